@@ -1,0 +1,542 @@
+//! The Kannala-Brandt fisheye model in its OpenCV-fisheye / Basalt `kb4` form, extended past
+//! 90 degrees (paper Section 3.1, Eq. 1).
+//!
+//! For a ray `[x, y, z]` (camera frame: x right, y down, z forward):
+//!
+//! ```text
+//! theta   = atan2(sqrt(x^2 + y^2), z)          angle to the optical axis, in [0, pi]
+//! phi     = atan2(y, x)                        azimuth
+//! d(theta) = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+//! u = fx d(theta) cos(phi) + cx
+//! v = fy d(theta) sin(phi) + cy
+//! ```
+//!
+//! Taking `theta` from `atan2` (not `atan(r / z)` on the `z = 1` plane as OpenCV does) lets rays
+//! behind the image plane (`theta > 90 deg`, `z < 0`) project: a 195 degree lens needs them.
+//!
+//! The model is only invertible where `d` increases: its valid domain is
+//! `theta in [0, theta_max]` with `theta_max = min(pi, first theta where d'(theta) <= 0)`,
+//! computed once by [`KannalaBrandt::new`]. Pixels are `[u, v]` = (column, row) with the centre of
+//! the top-left pixel at `(0, 0)`; angles are radians (the file's `fov_deg` is the one exception).
+
+use std::f64::consts::PI;
+
+use super::{Camera, CameraModel, PixelConvention};
+
+/// Newton iterations allowed when inverting `d`. Each failed Newton step falls back to a
+/// bisection step, and bisection alone shrinks a bracket of width pi below [`EPS`] in 42 steps;
+/// near a double root at `theta_max` Newton converges linearly (one bit per step), hence 100.
+pub const MAX_ITER: usize = 100;
+
+/// Convergence threshold on the Newton (or bisection) step, in radians: `fx * EPS` is about
+/// 3e-10 px for the shipped lenses, yet it stays well above the ~1e-15 rad round-off floor of
+/// `d(theta)`, so the test can actually fire.
+pub const EPS: f64 = 1e-12;
+
+/// Grid points used to scan `d'(theta)` over `[0, pi]` for its first non-positive value (step
+/// about 3e-4 rad; a sign change between two grid points narrower than that would be missed, which
+/// no realistic degree-9 lens polynomial produces).
+const SCAN_STEPS: usize = 10_000;
+
+/// Bisection steps refining `theta_max` once the scan has bracketed it: `pi / SCAN_STEPS / 2^60`
+/// is far below one ulp, so the loop ends on the floating-point limit.
+const REFINE_STEPS: usize = 60;
+
+/// A Kannala-Brandt (OpenCV-fisheye polynomial) camera.
+///
+/// Build it with [`KannalaBrandt::new`], which also finds the monotonic range `theta_max` of the
+/// polynomial. The fields are public for reading; if you change `k`, rebuild the camera with
+/// `new` so that `theta_max` follows. Equality compares the public fields only (`theta_max` is a
+/// function of `k`).
+#[derive(Clone, Debug)]
+pub struct KannalaBrandt {
+    /// Focal length along u, in pixels.
+    pub fx: f64,
+    /// Focal length along v, in pixels.
+    pub fy: f64,
+    /// Principal point column, in pixels (top-left pixel centre at 0).
+    pub cx: f64,
+    /// Principal point row, in pixels (top-left pixel centre at 0).
+    pub cy: f64,
+    /// Polynomial coefficients `[k1, k2, k3, k4]` of `d(theta)`.
+    pub k: [f64; 4],
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+    /// Full field of view of the lens, in degrees (as declared by the calibration).
+    pub fov_deg: f64,
+    /// End of the monotonic range of `d`, in radians (see [`KannalaBrandt::theta_max`]).
+    theta_max: f64,
+}
+
+impl PartialEq for KannalaBrandt {
+    fn eq(&self, other: &Self) -> bool {
+        self.fx == other.fx
+            && self.fy == other.fy
+            && self.cx == other.cx
+            && self.cy == other.cy
+            && self.k == other.k
+            && self.width == other.width
+            && self.height == other.height
+            && self.fov_deg == other.fov_deg
+    }
+}
+
+impl KannalaBrandt {
+    /// A camera with these intrinsics; computes `theta_max` (see [`KannalaBrandt::theta_max`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+        k: [f64; 4],
+        width: usize,
+        height: usize,
+        fov_deg: f64,
+    ) -> Self {
+        let mut cam = KannalaBrandt {
+            fx,
+            fy,
+            cx,
+            cy,
+            k,
+            width,
+            height,
+            fov_deg,
+            theta_max: 0.0,
+        };
+        cam.theta_max = cam.find_theta_max();
+        cam
+    }
+
+    /// `d(theta) = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`: the distance
+    /// from the principal point, in focal-length units, of a ray at angle `theta` (radians) to the
+    /// optical axis.
+    pub fn distort(&self, theta: f64) -> f64 {
+        let [k1, k2, k3, k4] = self.k;
+        let t2 = theta * theta;
+        theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    }
+
+    /// `d'(theta) = 1 + 3 k1 theta^2 + 5 k2 theta^4 + 7 k3 theta^6 + 9 k4 theta^8`.
+    pub fn distort_derivative(&self, theta: f64) -> f64 {
+        let [k1, k2, k3, k4] = self.k;
+        let t2 = theta * theta;
+        1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)))
+    }
+
+    /// End of the valid domain, in radians: `theta_max = min(pi, first theta > 0 where
+    /// d'(theta) <= 0)`. Rays with `theta > theta_max` do not project and pixels with
+    /// `r_d > d(theta_max)` do not unproject.
+    pub fn theta_max(&self) -> f64 {
+        self.theta_max
+    }
+
+    /// Whether `d` increases strictly on `[0, theta]` (radians), i.e. `theta <= theta_max`.
+    pub fn is_monotonic_to(&self, theta: f64) -> bool {
+        theta.is_finite() && theta <= self.theta_max
+    }
+
+    /// Scans `d'` on a grid of [`SCAN_STEPS`] points over `[0, pi]`; at the first point where
+    /// `d' > 0` fails (non-positive or NaN), bisects between it and the previous point.
+    fn find_theta_max(&self) -> f64 {
+        let increasing = |t: f64| self.distort_derivative(t) > 0.0;
+        if !increasing(0.0) {
+            return 0.0; // only reachable with non-finite coefficients
+        }
+        let step = PI / SCAN_STEPS as f64;
+        for i in 1..=SCAN_STEPS {
+            let hi = if i == SCAN_STEPS { PI } else { i as f64 * step };
+            if !increasing(hi) {
+                let (mut lo, mut hi) = ((i - 1) as f64 * step, hi);
+                for _ in 0..REFINE_STEPS {
+                    let mid = 0.5 * (lo + hi);
+                    if mid <= lo || mid >= hi {
+                        break;
+                    }
+                    if increasing(mid) {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                return lo;
+            }
+        }
+        PI
+    }
+
+    /// Solves `d(theta) = r_d` for `theta in [0, theta_max]` by safeguarded Newton:
+    /// `theta <- theta - (d(theta) - r_d) / d'(theta)`, keeping a bracket `[lo, hi]` around the
+    /// root and taking a bisection step whenever Newton would leave it. Converged when
+    /// `|step| < EPS`. Returns `(theta, iterations)`, or `None` without convergence in
+    /// [`MAX_ITER`] steps or for `r_d` outside `[0, d(theta_max)]`.
+    pub(crate) fn solve_theta(&self, r_d: f64) -> Option<(f64, usize)> {
+        let (mut lo, mut hi) = (0.0, self.theta_max);
+        if !(r_d >= 0.0 && r_d <= self.distort(hi)) {
+            return None;
+        }
+        if r_d == 0.0 {
+            return Some((0.0, 0));
+        }
+        // d(theta) ~ theta for realistic lenses: r_d itself is an excellent first guess.
+        let mut theta = r_d.clamp(lo, hi);
+        for iter in 1..=MAX_ITER {
+            let f = self.distort(theta) - r_d;
+            if f == 0.0 {
+                return Some((theta, iter));
+            }
+            if f < 0.0 {
+                lo = theta;
+            } else {
+                hi = theta;
+            }
+            let newton = theta - f / self.distort_derivative(theta);
+            let next = if newton.is_finite() && newton >= lo && newton <= hi {
+                newton
+            } else {
+                0.5 * (lo + hi)
+            };
+            let step = next - theta;
+            theta = next;
+            if step.abs() < EPS {
+                return Some((theta, iter));
+            }
+        }
+        None
+    }
+
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] at `ray`, or `None`
+    /// where `project` is `None`.
+    ///
+    /// With `n = |ray|`, `s = sin(theta)`, `c = cos(theta)`, `cp = cos(phi)`, `sp = sin(phi)`:
+    ///
+    /// ```text
+    /// du/dx = fx / n (sp^2 d/s + cp^2 d' c)    du/dy = fx / n cp sp (d' c - d/s)    du/dz = -fx / n s cp d'
+    /// dv/dx = fy / n cp sp (d' c - d/s)        dv/dy = fy / n (cp^2 d/s + sp^2 d' c)    dv/dz = -fy / n s sp d'
+    /// ```
+    ///
+    /// On the optical axis (`theta = 0`) `d/s = d'(0) = 1` and `phi` is taken as 0.
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.project(ray)?;
+        let [x, y, z] = ray;
+        let rho = x.hypot(y);
+        let n = rho.hypot(z);
+        let theta = rho.atan2(z);
+        let (s, c) = theta.sin_cos();
+        let (cp, sp) = if rho > 0.0 {
+            (x / rho, y / rho)
+        } else {
+            (1.0, 0.0)
+        };
+        let d = self.distort(theta);
+        let dd = self.distort_derivative(theta);
+        let d_over_s = if s > 0.0 { d / s } else { 1.0 };
+        let cross = cp * sp * (dd * c - d_over_s);
+        Some([
+            [
+                self.fx / n * (sp * sp * d_over_s + cp * cp * dd * c),
+                self.fx / n * cross,
+                -self.fx / n * s * cp * dd,
+            ],
+            [
+                self.fy / n * cross,
+                self.fy / n * (cp * cp * d_over_s + sp * sp * dd * c),
+                -self.fy / n * s * sp * dd,
+            ],
+        ])
+    }
+}
+
+impl CameraModel for KannalaBrandt {
+    /// `[fx d(theta) cos(phi) + cx, fy d(theta) sin(phi) + cy]` (module docs), or `None` for a
+    /// zero or non-finite ray, for `theta > theta_max`, and for the ray pointing straight back
+    /// (`theta = pi`, whose image is a circle, not a point).
+    fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
+        let [x, y, z] = ray;
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+            return None;
+        }
+        let rho = x.hypot(y);
+        if rho == 0.0 {
+            // On the axis: forward is the principal point; zero or backward has no single pixel.
+            return (z > 0.0).then_some([self.cx, self.cy]);
+        }
+        let theta = rho.atan2(z);
+        if theta > self.theta_max {
+            return None;
+        }
+        let r_d = self.distort(theta);
+        Some([
+            self.fx * r_d * (x / rho) + self.cx,
+            self.fy * r_d * (y / rho) + self.cy,
+        ])
+    }
+
+    /// With `r_d = sqrt(((u - cx) / fx)^2 + ((v - cy) / fy)^2)`, solves `d(theta) = r_d` (see
+    /// [`MAX_ITER`], [`EPS`]) and returns `[sin(theta) cos(phi), sin(theta) sin(phi),
+    /// cos(theta)]`; `[0, 0, 1]` at the principal point. `None` for non-finite input, for
+    /// `r_d > d(theta_max)` and if Newton does not converge.
+    fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
+        let mx = (px[0] - self.cx) / self.fx;
+        let my = (px[1] - self.cy) / self.fy;
+        let r_d = mx.hypot(my);
+        if !r_d.is_finite() {
+            return None;
+        }
+        if r_d == 0.0 {
+            return Some([0.0, 0.0, 1.0]);
+        }
+        let (theta, _) = self.solve_theta(r_d)?;
+        let (s, c) = theta.sin_cos();
+        Some([s * mx / r_d, s * my / r_d, c])
+    }
+
+    fn size(&self) -> [usize; 2] {
+        [self.width, self.height]
+    }
+
+    /// `fov_deg` in radians.
+    fn fov(&self) -> f64 {
+        self.fov_deg.to_radians()
+    }
+
+    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
+    /// `round(height sy)`; `k` and `fov_deg` unchanged (they are angular).
+    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
+        let [sx, sy] = scale;
+        Camera::KannalaBrandt(KannalaBrandt::new(
+            self.fx * sx,
+            self.fy * sy,
+            convention.scale_centre(self.cx, sx),
+            convention.scale_centre(self.cy, sy),
+            self.k,
+            (self.width as f64 * sx).round() as usize,
+            (self.height as f64 * sy).round() as usize,
+            self.fov_deg,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Round trips are exact up to a few ulps of theta times fx (~1e-13 px); 1e-9 px leaves
+    /// margin for sin/cos/atan2 rounding without hiding a real error (the Newton EPS is 1e-12 rad).
+    const PX_TOL: f64 = 1e-9;
+    /// Same in angle: 1e-9 rad is far above round-off (~1e-15) and far below anything visible.
+    const ANGLE_TOL: f64 = 1e-9;
+    /// Central differences with step 1e-6 on a unit-scale ray: truncation ~h^2 * f''' ~ 1e-10,
+    /// cancellation ~eps * |u| / h ~ 1e-7 px; compared relative to the Jacobian's scale.
+    const JAC_REL_TOL: f64 = 1e-6;
+    /// Residual of `d(theta) = r_d` after Newton: quadratic convergence leaves round-off only.
+    const RESIDUAL_TOL: f64 = 1e-12;
+
+    /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
+    fn f195() -> KannalaBrandt {
+        KannalaBrandt::new(
+            287.0,
+            287.0,
+            540.0,
+            480.0,
+            [
+                3.37012024344156e-19,
+                -3.543830680552053e-05,
+                9.999999999924497e-08,
+                -6.883696004705416e-11,
+            ],
+            1080,
+            960,
+            195.0,
+        )
+    }
+
+    /// A made-up lens whose polynomial turns back: d' = 1 - 1.5 theta^2 = 0 at theta = sqrt(2/3).
+    fn folding() -> KannalaBrandt {
+        KannalaBrandt::new(
+            300.0,
+            300.0,
+            500.0,
+            400.0,
+            [-0.5, 0.0, 0.0, 0.0],
+            1000,
+            800,
+            90.0,
+        )
+    }
+
+    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+        let cross = [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ];
+        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        (cross[0].hypot(cross[1]).hypot(cross[2])).atan2(dot)
+    }
+
+    #[test]
+    fn theta_max_is_pi_for_f195_and_the_fold_for_a_folding_polynomial() {
+        assert_eq!(f195().theta_max(), PI);
+        let t = folding().theta_max();
+        assert!((t - (2.0f64 / 3.0).sqrt()).abs() < 1e-12, "{t}");
+        assert!(folding().is_monotonic_to(0.8));
+        assert!(!folding().is_monotonic_to(0.9));
+    }
+
+    #[test]
+    fn principal_point_is_the_optical_axis() {
+        let cam = f195();
+        assert_eq!(cam.unproject([540.0, 480.0]), Some([0.0, 0.0, 1.0]));
+        assert_eq!(cam.project([0.0, 0.0, 2.5]), Some([540.0, 480.0]));
+    }
+
+    #[test]
+    fn rays_past_90_degrees_project_and_come_back() {
+        let cam = f195();
+        for deg in [90.0f64, 95.0, 97.5, 120.0, 170.0] {
+            let t = deg.to_radians();
+            let ray = [t.sin() * 0.6, t.sin() * 0.8, t.cos()];
+            let px = cam.project(ray).expect("past 90 deg projects");
+            let back = cam.unproject(px).unwrap();
+            assert!(angle(ray, back) < ANGLE_TOL, "{deg}: {ray:?} -> {back:?}");
+        }
+        // The edge of the 195 degree circle lies inside the image width (r ~ 488 px < 540).
+        let t = 97.5f64.to_radians();
+        let [u, _] = cam.project([t.sin(), 0.0, t.cos()]).unwrap();
+        assert!(u > 1000.0 && u < 1079.5, "{u}");
+    }
+
+    #[test]
+    fn outside_the_domain_is_none() {
+        let cam = folding();
+        let tm = cam.theta_max();
+        let inside = tm - 1e-6;
+        let outside = tm + 1e-3;
+        assert!(cam.project([inside.sin(), 0.0, inside.cos()]).is_some());
+        assert_eq!(cam.project([outside.sin(), 0.0, outside.cos()]), None);
+        let edge = cam.fx * cam.distort(tm);
+        assert!(cam.unproject([cam.cx + edge * 0.999, cam.cy]).is_some());
+        assert_eq!(cam.unproject([cam.cx + edge * 1.001, cam.cy]), None);
+        // Beyond d(pi) for F195.
+        let f = f195();
+        let edge = f.fx * f.distort(PI);
+        assert_eq!(f.unproject([f.cx, f.cy + edge + 1.0]), None);
+        // Degenerate rays and pixels.
+        assert_eq!(f.project([0.0, 0.0, 0.0]), None);
+        assert_eq!(f.project([0.0, 0.0, -1.0]), None);
+        assert_eq!(f.project([f64::NAN, 0.0, 1.0]), None);
+        assert_eq!(f.project([f64::INFINITY, 0.0, 1.0]), None);
+        assert_eq!(f.unproject([f64::NAN, 0.0]), None);
+    }
+
+    #[test]
+    fn round_trips_on_the_folding_lens_up_to_theta_max() {
+        let cam = folding();
+        let tm = cam.theta_max();
+        for i in 0..=200 {
+            let t = tm * i as f64 / 200.0 * 0.999_999;
+            for phi in [0.3f64, 2.0, 4.0] {
+                let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
+                let back = cam.unproject(cam.project(ray).unwrap()).unwrap();
+                assert!(angle(ray, back) < 1e-6, "theta {t}: {}", angle(ray, back));
+            }
+        }
+    }
+
+    #[test]
+    fn newton_converges_on_every_f195_pixel() {
+        let cam = f195();
+        let mut worst = 0;
+        let mut worst_residual = 0.0f64;
+        for v in 0..cam.height {
+            for u in 0..cam.width {
+                let mx = (u as f64 - cam.cx) / cam.fx;
+                let my = (v as f64 - cam.cy) / cam.fy;
+                let r_d = mx.hypot(my);
+                let (theta, iters) = cam.solve_theta(r_d).expect("converges");
+                worst = worst.max(iters);
+                worst_residual = worst_residual.max((cam.distort(theta) - r_d).abs());
+            }
+        }
+        assert!(worst < MAX_ITER, "{worst}");
+        assert!(
+            worst <= 6,
+            "Newton from theta = r_d should need few steps, took {worst}"
+        );
+        assert!(worst_residual < RESIDUAL_TOL, "{worst_residual}");
+    }
+
+    #[test]
+    fn newton_converges_next_to_a_double_root() {
+        // At theta_max d' = 0: Newton is only linear there, the bracket keeps it safe.
+        let cam = folding();
+        let r_max = cam.distort(cam.theta_max());
+        for r_d in [r_max, r_max * (1.0 - 1e-12), r_max * (1.0 - 1e-6)] {
+            let (theta, iters) = cam.solve_theta(r_d).expect("converges");
+            assert!(iters < MAX_ITER);
+            assert!((cam.distort(theta) - r_d).abs() < RESIDUAL_TOL);
+        }
+    }
+
+    #[test]
+    fn jacobian_matches_central_differences() {
+        let cam = f195();
+        let h = 1e-6;
+        for deg in [0.0f64, 0.5, 10.0, 45.0, 89.0, 90.0, 120.0, 160.0] {
+            for phi in [0.0f64, 0.7, 2.5, 4.0] {
+                for len in [0.5, 1.0, 2.0] {
+                    let t = deg.to_radians();
+                    let ray = [
+                        len * t.sin() * phi.cos(),
+                        len * t.sin() * phi.sin(),
+                        len * t.cos(),
+                    ];
+                    let jac = cam.project_jacobian(ray).unwrap();
+                    let scale = cam.fx / len;
+                    for j in 0..3 {
+                        let (mut p, mut m) = (ray, ray);
+                        p[j] += h;
+                        m[j] -= h;
+                        let (pp, pm) = (cam.project(p).unwrap(), cam.project(m).unwrap());
+                        for i in 0..2 {
+                            let fd = (pp[i] - pm[i]) / (2.0 * h);
+                            assert!(
+                                (fd - jac[i][j]).abs() < JAC_REL_TOL * scale,
+                                "theta {deg} phi {phi} len {len} [{i}][{j}]: fd {fd} analytic {}",
+                                jac[i][j]
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn rescaled_by_both_conventions() {
+        let cam = f195();
+        let Camera::KannalaBrandt(half) = cam.rescaled([0.5, 0.25], PixelConvention::HalfPixel)
+        else {
+            panic!("model changed");
+        };
+        // fx 287 * 0.5, fy 287 * 0.25, cx (540.5) * 0.5 - 0.5, cy (480.5) * 0.25 - 0.5.
+        assert_eq!(
+            half,
+            KannalaBrandt::new(143.5, 71.75, 269.75, 119.625, cam.k, 540, 240, 195.0)
+        );
+        let Camera::KannalaBrandt(paper) = cam.rescaled([0.5, 0.25], PixelConvention::Paper) else {
+            panic!("model changed");
+        };
+        assert_eq!(
+            paper,
+            KannalaBrandt::new(143.5, 71.75, 270.0, 120.0, cam.k, 540, 240, 195.0)
+        );
+        assert_eq!(half.theta_max(), cam.theta_max());
+        assert_eq!(half.fov(), 195.0f64.to_radians());
+        assert_eq!(half.size(), [540, 240]);
+    }
+}

@@ -1,0 +1,114 @@
+//! Camera models in plain `f64` Rust (no tensors).
+//!
+//! Conventions used by every model in this module:
+//! - pixel coordinates are `[u, v]` = (column, row), in pixels, with the centre of the top-left
+//!   pixel at `(0, 0)` (the OpenCV convention);
+//! - rays are `[x, y, z]` in the camera frame: x right, y down, z forward (optical axis);
+//!   [`CameraModel::unproject`] returns unit rays; [`CameraModel::project`] accepts any non-zero ray;
+//! - angles are radians everywhere except in camera files (`fov_deg`).
+//!
+//! Paper: Section 3.1 (Kannala-Brandt projection model).
+
+mod kannala_brandt;
+mod pinhole;
+
+pub use kannala_brandt::KannalaBrandt;
+pub use pinhole::Pinhole;
+
+use std::path::Path;
+
+use crate::error::Result;
+
+/// How intrinsics move to another resolution (Section 3.2 of the paper, "scaling factor").
+///
+/// With scale `s` = new size / old size:
+/// - `HalfPixel` (default): `c' = (c + 0.5) s - 0.5`, exact for average-pooled / resized maps
+///   whose pixel centres sit at half-integers of the original grid;
+/// - `Paper`: `c' = c s`, exactly the authors' released code (off by `(s - 1) / 2` pixels).
+///
+/// Focal lengths scale as `f' = f s` in both.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PixelConvention {
+    #[default]
+    HalfPixel,
+    Paper,
+}
+
+impl PixelConvention {
+    /// Moves a principal-point coordinate `c` to a grid scaled by `s`.
+    pub fn scale_centre(self, c: f64, s: f64) -> f64 {
+        match self {
+            PixelConvention::HalfPixel => (c + 0.5) * s - 0.5,
+            PixelConvention::Paper => c * s,
+        }
+    }
+}
+
+impl std::str::FromStr for PixelConvention {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "half-pixel" => Ok(PixelConvention::HalfPixel),
+            "paper" => Ok(PixelConvention::Paper),
+            other => Err(format!("unknown pixel convention `{other}` (expected half-pixel or paper)")),
+        }
+    }
+}
+
+/// What every camera model offers.
+pub trait CameraModel: Send + Sync + std::fmt::Debug {
+    /// Pixel `[u, v]` of a ray `[x, y, z]` (any length > 0), or `None` outside the model's valid
+    /// domain (behind a pinhole, past the monotonic range of a fisheye polynomial, zero ray).
+    fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]>;
+    /// Unit ray of pixel `[u, v]`, or `None` where the model has no inverse.
+    fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]>;
+    /// Image size `[width, height]` in pixels.
+    fn size(&self) -> [usize; 2];
+    /// Full horizontal field of view in radians.
+    fn fov(&self) -> f64;
+    /// The same camera seen at another resolution: intrinsics scaled by `[sx, sy]` (new / old),
+    /// the principal point moved by `convention`, the image size rounded.
+    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera;
+}
+
+/// A camera of any supported model, as read from a camera file.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Camera {
+    KannalaBrandt(KannalaBrandt),
+    Pinhole(Pinhole),
+}
+
+macro_rules! dispatch {
+    ($self:ident, $m:ident => $e:expr) => {
+        match $self {
+            Camera::KannalaBrandt($m) => $e,
+            Camera::Pinhole($m) => $e,
+        }
+    };
+}
+
+impl CameraModel for Camera {
+    fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
+        dispatch!(self, m => m.project(ray))
+    }
+    fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
+        dispatch!(self, m => m.unproject(px))
+    }
+    fn size(&self) -> [usize; 2] {
+        dispatch!(self, m => m.size())
+    }
+    fn fov(&self) -> f64 {
+        dispatch!(self, m => m.fov())
+    }
+    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
+        dispatch!(self, m => m.rescaled(scale, convention))
+    }
+}
+
+/// Reads a camera file (TOML, see `data/cameras/`) and returns its model.
+pub fn load(path: impl AsRef<Path>) -> Result<Camera> {
+    file::load(path.as_ref())
+}
+
+mod file;

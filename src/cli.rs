@@ -1,0 +1,130 @@
+//! Command-line interface (clap derive; the doc comments are the help text).
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+use calibconv::camera::PixelConvention;
+
+/// Calibrated convolutions for fisheye cameras: kernel offsets from a camera calibration, and
+/// the deformable convolution that uses them.
+#[derive(Debug, Parser)]
+#[command(name = "calibconv", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Compute the calibrated offsets of one layer and write them as safetensors (tensor
+    /// `offsets`, layout [2*k*k, H_out, W_out], per tap the pair (dy, dx), as torchvision).
+    Offsets(OffsetsArgs),
+    /// Draw a grid of calibrated kernels over an image (or a blank image circle) as a PNG.
+    Kernels(KernelsArgs),
+    /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
+    /// and a calibrated convolution run forward and backward, written to --out.
+    Demo(DemoArgs),
+}
+
+/// How the network input relates to the camera image.
+#[derive(Debug, Args)]
+pub struct FrameArgs {
+    /// Padding added to the right and bottom of the camera image to form the network input,
+    /// as `PW,PH` (the authors pad F195 by 2,0).
+    #[arg(long, value_parser = parse_pair, default_value = "0,0")]
+    pub padding: [usize; 2],
+    /// Pixel-centre convention when scaling intrinsics: `half-pixel` (c' = (c + 0.5) s - 0.5)
+    /// or `paper` (c' = c s, as the authors' code).
+    #[arg(long, default_value = "half-pixel")]
+    pub convention: PixelConvention,
+}
+
+#[derive(Debug, Args)]
+pub struct OffsetsArgs {
+    /// Camera file (TOML, see data/cameras/).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Input feature-map size as HxW (e.g. 240x272).
+    #[arg(long, value_parser = parse_size)]
+    pub size: [usize; 2],
+    /// Kernel size (odd).
+    #[arg(long, default_value_t = 3)]
+    pub kernel: usize,
+    #[arg(long, default_value_t = 1)]
+    pub stride: usize,
+    #[arg(long, default_value_t = 1)]
+    pub dilation: usize,
+    /// Zero padding of the convolution itself; default "same": dilation * (kernel - 1) / 2.
+    #[arg(long)]
+    pub conv_padding: Option<usize>,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Output file (.safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct KernelsArgs {
+    /// Camera file (TOML, see data/cameras/).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Background image with the camera's size (default: the blank image circle).
+    #[arg(long)]
+    pub image: Option<PathBuf>,
+    /// Feature-map downsampling factor the kernels are computed at.
+    #[arg(long, default_value_t = 16)]
+    pub level: usize,
+    /// Kernel size (odd).
+    #[arg(long, default_value_t = 3)]
+    pub kernel: usize,
+    /// Number of kernels along the longer side.
+    #[arg(long, default_value_t = 9)]
+    pub grid: usize,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Camera file.
+    #[arg(long, default_value = "data/cameras/f195.toml")]
+    pub camera: PathBuf,
+    /// Number of 2x2 poolings of the U-Net (the input is padded right/bottom to a multiple of
+    /// 2^depth).
+    #[arg(long, default_value_t = 4)]
+    pub depth: usize,
+    /// Output folder.
+    #[arg(long, default_value = "runs/demo")]
+    pub out: PathBuf,
+}
+
+fn parse_size(s: &str) -> Result<[usize; 2], String> {
+    let (h, w) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected HxW, e.g. 240x272"))?;
+    let num = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .ok()
+            .filter(|&n| n > 0)
+            .ok_or_else(|| format!("`{s}`: `{v}` is not a positive integer"))
+    };
+    Ok([num(h)?, num(w)?])
+}
+
+fn parse_pair(s: &str) -> Result<[usize; 2], String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("`{s}`: expected two integers as A,B"))?;
+    let num = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("`{s}`: `{v}` is not a non-negative integer"))
+    };
+    Ok([num(a)?, num(b)?])
+}

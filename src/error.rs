@@ -1,0 +1,48 @@
+//! The library's one error type. Every variant that comes from a file names the file, and where
+//! it can, the field.
+
+use std::path::PathBuf;
+
+/// Errors of the calibconv library.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// Reading or writing a file failed.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A TOML file did not parse (syntax error, unknown key, wrong type).
+    #[error("{path}: {message}")]
+    Toml { path: PathBuf, message: String },
+    /// A camera file parsed but one of its fields is invalid.
+    #[error("{path}: field `{field}`: {message}")]
+    Camera {
+        path: PathBuf,
+        field: String,
+        message: String,
+    },
+    /// A function argument is outside what the operation supports.
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+    /// A libtorch error.
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+    /// An image could not be encoded or decoded.
+    #[error("{path}: {message}")]
+    Image { path: PathBuf, message: String },
+}
+
+/// Result with the library's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    /// An [`Error::Io`] for `path`.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

@@ -1,0 +1,178 @@
+//! [`CalibratedConv2d`]: a deformable convolution whose offsets come from the camera.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use tch::nn::{self, Module};
+use tch::{Device, Kind, Tensor};
+
+use crate::camera::Camera;
+use crate::error::{Error, Result};
+use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
+use crate::ops::{deform_conv2d_planned, SamplingPlan};
+
+/// Geometry and bias of a convolution (pairs are `[y, x]`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Conv2dConfig {
+    pub stride: [i64; 2],
+    /// `None`: "same" padding `dilation * (k - 1) / 2`.
+    pub padding: Option<[i64; 2]>,
+    pub dilation: [i64; 2],
+    pub groups: i64,
+    pub bias: bool,
+}
+
+impl Default for Conv2dConfig {
+    fn default() -> Self {
+        Conv2dConfig {
+            stride: [1, 1],
+            padding: None,
+            dilation: [1, 1],
+            groups: 1,
+            bias: true,
+        }
+    }
+}
+
+impl Conv2dConfig {
+    fn padding_for(&self, k: i64) -> [i64; 2] {
+        self.padding
+            .unwrap_or([self.dilation[0] * (k - 1) / 2, self.dilation[1] * (k - 1) / 2])
+    }
+
+    /// The equivalent tch config (same initialisation for both kinds).
+    pub(crate) fn to_tch(self, k: i64) -> nn::ConvConfigND<[i64; 2]> {
+        nn::ConvConfigND::<[i64; 2]> {
+            stride: self.stride,
+            padding: self.padding_for(k),
+            dilation: self.dilation,
+            groups: self.groups,
+            bias: self.bias,
+            ..Default::default()
+        }
+    }
+}
+
+/// A `k x k` deformable convolution with fixed, calibrated offsets.
+///
+/// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
+/// The sampling plan is built once per (offsets, device) and shared (same tensor storage) by
+/// every layer with the same camera, feature-map size and geometry.
+#[derive(Debug)]
+pub struct CalibratedConv2d {
+    pub ws: Tensor,
+    pub bs: Option<Tensor>,
+    pub offsets: Arc<Offsets>,
+    plan: SamplingPlan,
+    groups: i64,
+}
+
+type PlanKey = (usize, [i64; 6], String);
+
+fn plan_cache() -> &'static Mutex<HashMap<PlanKey, SamplingPlan>> {
+    static CACHE: OnceLock<Mutex<HashMap<PlanKey, SamplingPlan>>> = OnceLock::new();
+    CACHE.get_or_init(Default::default)
+}
+
+impl CalibratedConv2d {
+    /// Creates the layer under `vs` for an input feature map of `input_size` `[H, W]`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        vs: &nn::Path,
+        c_in: i64,
+        c_out: i64,
+        k: i64,
+        camera: &Camera,
+        frame: &InputFrame,
+        input_size: [i64; 2],
+        cfg: Conv2dConfig,
+    ) -> Result<Self> {
+        if k < 1 || k % 2 == 0 {
+            return Err(Error::InvalidArgument(format!(
+                "calibrated kernels need an odd size, got {k}"
+            )));
+        }
+        if cfg.groups < 1 || c_in % cfg.groups != 0 || c_out % cfg.groups != 0 {
+            return Err(Error::InvalidArgument(format!(
+                "groups = {} must divide C_in = {c_in} and C_out = {c_out}",
+                cfg.groups
+            )));
+        }
+        let padding = cfg.padding_for(k);
+        let to_usize = |v: [i64; 2]| v.map(|x| x as usize);
+        let geometry = LayerGeometry {
+            kernel: [k as usize; 2],
+            stride: to_usize(cfg.stride),
+            padding: to_usize(padding),
+            dilation: to_usize(cfg.dilation),
+        };
+        let offsets = cached_offsets(camera, to_usize(input_size), &geometry, frame)?;
+        let device = vs.device();
+        let key = (
+            Arc::as_ptr(&offsets) as usize,
+            [cfg.stride[0], cfg.stride[1], padding[0], padding[1], cfg.dilation[0], cfg.dilation[1]],
+            format!("{device:?}"),
+        );
+        let cached = plan_cache()
+            .lock()
+            .expect("plan cache poisoned")
+            .get(&key)
+            .map(SamplingPlan::shallow_clone);
+        let plan = match cached {
+            Some(plan) => plan,
+            None => {
+                let plan = SamplingPlan::new(
+                        &offsets.to_tensor(),
+                        input_size,
+                        [k, k],
+                        cfg.stride,
+                        padding,
+                        cfg.dilation,
+                        Kind::Float,
+                )?
+                .to_device(device);
+                plan_cache()
+                    .lock()
+                    .expect("plan cache poisoned")
+                    .insert(key, plan.shallow_clone());
+                plan
+            }
+        };
+        // Same names, shapes and initialisation as tch's nn::conv2d.
+        let tch_cfg = cfg.to_tch(k);
+        let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
+        let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
+        Ok(CalibratedConv2d { ws, bs, offsets, plan, groups: cfg.groups })
+    }
+
+    /// The layer's sampling plan.
+    pub fn plan(&self) -> &SamplingPlan {
+        &self.plan
+    }
+
+    /// Fallible forward.
+    ///
+    /// # Shapes
+    /// - `xs`: `[B, C_in, H, W]` with `[H, W]` the size the layer was built for
+    /// - output: `[B, C_out, H_out, W_out]`
+    pub fn f_forward(&self, xs: &Tensor) -> Result<Tensor> {
+        if xs.device() != self.plan.device() {
+            let plan = self.plan.to_device(xs.device());
+            return deform_conv2d_planned(xs, &plan, &self.ws, self.bs.as_ref(), self.groups);
+        }
+        deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
+    }
+
+    /// Device of the sampling plan.
+    pub fn device(&self) -> Device {
+        self.plan.device()
+    }
+}
+
+impl Module for CalibratedConv2d {
+    /// Panics with the message of [`CalibratedConv2d::f_forward`] on a wrong input size.
+    fn forward(&self, xs: &Tensor) -> Tensor {
+        self.f_forward(xs)
+            .unwrap_or_else(|e| panic!("CalibratedConv2d: {e}"))
+    }
+}

@@ -1,0 +1,149 @@
+//! The deformable convolution with fixed offsets, with torchvision `deform_conv2d` semantics.
+//!
+//! Offsets are data, not parameters, so all sampling is precomputed once into a
+//! [`SamplingPlan`]: for every (tap, output pixel) the flat indices of the four bilinear corners
+//! and their weights, corners outside the input pointing at an extra zero element (torchvision's
+//! "zeros outside": a location with `y <= -1`, `y >= H`, `x <= -1` or `x >= W` samples 0, and
+//! each out-of-range corner contributes 0). The convolution is then composed from differentiable
+//! ATen ops: four `index_select` gathers weighted and summed into the column matrix, and one
+//! batched `matmul` with the weight. Autograd (input, weight, bias) and devices (CPU, CUDA) come
+//! from libtorch; gradients with respect to the offsets are not computed (they are fixed data).
+//!
+//! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
+//! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
+
+mod plan;
+
+pub use plan::SamplingPlan;
+
+use tch::{Kind, Tensor};
+
+use crate::error::{Error, Result};
+
+/// Deformable 2-D convolution with torchvision semantics (one offset group, no mask).
+///
+/// # Shapes
+/// - `input`: `[B, C_in, H, W]`, float32 or float64
+/// - `offsets`: `[2*kh*kw, H_out, W_out]` (shared by the batch) or `[B, 2*kh*kw, H_out, W_out]`,
+///   per tap (row-major) the pair `(dy, dx)`
+/// - `weight`: `[C_out, C_in / groups, kh, kw]`; `bias`: `[C_out]`
+/// - output: `[B, C_out, H_out, W_out]`
+///
+/// # Panics
+/// On invalid shapes or kinds, with the message of [`f_deform_conv2d`].
+#[allow(clippy::too_many_arguments)]
+pub fn deform_conv2d(
+    input: &Tensor,
+    offsets: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 2],
+    padding: [i64; 2],
+    dilation: [i64; 2],
+    groups: i64,
+) -> Tensor {
+    f_deform_conv2d(input, offsets, weight, bias, stride, padding, dilation, groups)
+        .unwrap_or_else(|e| panic!("deform_conv2d: {e}"))
+}
+
+/// Fallible twin of [`deform_conv2d`]. Builds the sampling plan on every call: layers that run
+/// many times hold a [`SamplingPlan`] and call [`deform_conv2d_planned`].
+#[allow(clippy::too_many_arguments)]
+pub fn f_deform_conv2d(
+    input: &Tensor,
+    offsets: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: [i64; 2],
+    padding: [i64; 2],
+    dilation: [i64; 2],
+    groups: i64,
+) -> Result<Tensor> {
+    let (_, _, h, w) = input.size4().map_err(|_| {
+        Error::InvalidArgument(format!("input must be [B, C, H, W], got {:?}", input.size()))
+    })?;
+    let (_, _, kh, kw) = weight.size4().map_err(|_| {
+        Error::InvalidArgument(format!(
+            "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
+            weight.size()
+        ))
+    })?;
+    let plan = SamplingPlan::new(
+        offsets,
+        [h, w],
+        [kh, kw],
+        stride,
+        padding,
+        dilation,
+        input.kind(),
+    )?
+    .to_device(input.device());
+    deform_conv2d_planned(input, &plan, weight, bias, groups)
+}
+
+/// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).
+pub fn deform_conv2d_planned(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<Tensor> {
+    let cols = plan.f_columns(input)?; // [B, C, K*P]
+    let (b, c, _) = cols.size3()?;
+    let (c_out, c_per_group, kh, kw) = weight.size4().map_err(|_| {
+        Error::InvalidArgument(format!(
+            "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
+            weight.size()
+        ))
+    })?;
+    if [kh, kw] != plan.kernel() {
+        return Err(Error::InvalidArgument(format!(
+            "weight kernel {kh}x{kw} does not match the plan's {:?}",
+            plan.kernel()
+        )));
+    }
+    if groups < 1 || c % groups != 0 || c_out % groups != 0 || c_per_group * groups != c {
+        return Err(Error::InvalidArgument(format!(
+            "groups = {groups} does not fit input channels {c}, weight {:?}",
+            weight.size()
+        )));
+    }
+    if weight.kind() != input.kind() || weight.device() != input.device() {
+        return Err(Error::InvalidArgument(format!(
+            "weight is {:?} on {:?} but input is {:?} on {:?}",
+            weight.kind(),
+            weight.device(),
+            input.kind(),
+            input.device()
+        )));
+    }
+    let taps = kh * kw;
+    let [ho, wo] = plan.output_size();
+    let cols = cols.view([b, groups, c_per_group * taps, ho * wo]);
+    let w = weight.reshape([groups, c_out / groups, c_per_group * taps]);
+    let mut out = w.f_matmul(&cols)?.view([b, c_out, ho, wo]);
+    if let Some(bias) = bias {
+        if bias.size() != [c_out] {
+            return Err(Error::InvalidArgument(format!(
+                "bias must be [{c_out}], got {:?}",
+                bias.size()
+            )));
+        }
+        out = out.f_add(&bias.view([1, c_out, 1, 1]))?;
+    }
+    Ok(out)
+}
+
+/// Checks that a tensor is floating point (float32 or float64).
+fn check_float(t: &Tensor, what: &str) -> Result<()> {
+    match t.kind() {
+        Kind::Float | Kind::Double => Ok(()),
+        k => Err(Error::InvalidArgument(format!(
+            "{what} must be float32 or float64, got {k:?}"
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests;
