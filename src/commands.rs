@@ -40,7 +40,10 @@ fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
 
 fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
     let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)?;
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )?;
     write_bytes_atomic(path, &bytes).with_context(|| format!("cannot write {}", path.display()))
 }
 
@@ -96,7 +99,12 @@ fn kernels(args: KernelsArgs) -> Result<()> {
     };
     let img = draw_kernels(&camera, background, &fig)?;
     save_png(&args.out, &img)?;
-    println!("{}: {}x{} kernel figure", args.out.display(), img.width(), img.height());
+    println!(
+        "{}: {}x{} kernel figure",
+        args.out.display(),
+        img.width(),
+        img.height()
+    );
     Ok(())
 }
 
@@ -171,7 +179,10 @@ fn demo(args: DemoArgs) -> Result<()> {
         ..Default::default()
     };
     let figure_path = args.out.join("kernels.png");
-    save_png(&figure_path, &draw_kernels(&camera, image_circle(&camera), &fig)?)?;
+    save_png(
+        &figure_path,
+        &draw_kernels(&camera, image_circle(&camera), &fig)?,
+    )?;
 
     // 3. A calibrated convolution at the third level, forward + backward, against conv2d.
     let level = sizes.len().min(3) - 1;
@@ -226,7 +237,10 @@ fn demo(args: DemoArgs) -> Result<()> {
         "threads": rayon::current_num_threads(),
     });
     let summary_path = args.out.join("summary.json");
-    write_bytes_atomic(&summary_path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    write_bytes_atomic(
+        &summary_path,
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
     println!(
         "wrote {}, {} and {}",
         offsets_path.display(),

@@ -334,6 +334,9 @@ mod tests {
     const JAC_REL_TOL: f64 = 1e-6;
     /// Residual of `d(theta) = r_d` after Newton: quadratic convergence leaves round-off only.
     const RESIDUAL_TOL: f64 = 1e-12;
+    /// Next to the fold the inverse is ill-conditioned: the angle error is ~1e-16 / d'(theta), and
+    /// d' >= 2e-6 on the grid of the test below (measured worst: 8e-11 rad).
+    const NEAR_FOLD_ANGLE_TOL: f64 = 1e-9;
 
     /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
     fn f195() -> KannalaBrandt {
@@ -403,6 +406,8 @@ mod tests {
             let px = cam.project(ray).expect("past 90 deg projects");
             let back = cam.unproject(px).unwrap();
             assert!(angle(ray, back) < ANGLE_TOL, "{deg}: {ray:?} -> {back:?}");
+            let again = cam.project(back).unwrap();
+            assert!((again[0] - px[0]).hypot(again[1] - px[1]) < PX_TOL, "{deg}");
         }
         // The edge of the 195 degree circle lies inside the image width (r ~ 488 px < 540).
         let t = 97.5f64.to_radians();
@@ -442,7 +447,8 @@ mod tests {
             for phi in [0.3f64, 2.0, 4.0] {
                 let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
                 let back = cam.unproject(cam.project(ray).unwrap()).unwrap();
-                assert!(angle(ray, back) < 1e-6, "theta {t}: {}", angle(ray, back));
+                let err = angle(ray, back);
+                assert!(err < NEAR_FOLD_ANGLE_TOL, "theta {t}: {err}");
             }
         }
     }
@@ -464,8 +470,8 @@ mod tests {
         }
         assert!(worst < MAX_ITER, "{worst}");
         assert!(
-            worst <= 6,
-            "Newton from theta = r_d should need few steps, took {worst}"
+            worst <= 4,
+            "Newton from theta = r_d took {worst} steps (measured: 3 at most)"
         );
         assert!(worst_residual < RESIDUAL_TOL, "{worst_residual}");
     }

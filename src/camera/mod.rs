@@ -27,7 +27,9 @@ use crate::error::Result;
 /// - `Paper`: `c' = c s`, exactly the authors' released code (off by `(s - 1) / 2` pixels).
 ///
 /// Focal lengths scale as `f' = f s` in both.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum PixelConvention {
     #[default]
@@ -51,7 +53,9 @@ impl std::str::FromStr for PixelConvention {
         match s {
             "half-pixel" => Ok(PixelConvention::HalfPixel),
             "paper" => Ok(PixelConvention::Paper),
-            other => Err(format!("unknown pixel convention `{other}` (expected half-pixel or paper)")),
+            other => Err(format!(
+                "unknown pixel convention `{other}` (expected half-pixel or paper)"
+            )),
         }
     }
 }

@@ -117,7 +117,10 @@ impl Offsets {
         let k = tap[0] * self.kernel[1] + tap[1];
         let plane = self.output_size[0] * self.output_size[1];
         let p = out[0] * self.output_size[1] + out[1];
-        [self.data[2 * k * plane + p], self.data[(2 * k + 1) * plane + p]]
+        [
+            self.data[2 * k * plane + p],
+            self.data[(2 * k + 1) * plane + p],
+        ]
     }
 
     /// The offsets as a `[2*kh*kw, H_out, W_out]` float32 CPU tensor.

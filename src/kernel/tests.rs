@@ -20,7 +20,13 @@ fn symmetric_kb() -> Camera {
 
 #[test]
 fn rotation_takes_the_optical_axis_to_the_ray() {
-    for r in [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.6, -0.8], [0.0, 0.0, -1.0], [0.48, 0.6, 0.64]] {
+    for r in [
+        [0.0, 0.0, 1.0],
+        [0.6, 0.0, 0.8],
+        [0.0, -0.6, -0.8],
+        [0.0, 0.0, -1.0],
+        [0.48, 0.6, 0.64],
+    ] {
         let m = align_optical_axis(r);
         let z = rotate(&m, [0.0, 0.0, 1.0]);
         for a in 0..3 {
@@ -35,20 +41,39 @@ fn rotation_takes_the_optical_axis_to_the_ray() {
 }
 
 #[test]
-fn pinhole_whose_focal_matches_the_kernel_gives_zero_offsets_at_the_centre() {
-    // Choose fx equal to the virtual kernel focal d for k = 3 on this map.
+fn pinhole_offsets_at_the_principal_point_are_the_focal_mismatch() {
+    // At the principal point the rotation is the identity, so tap (i, j) lands at
+    // (fx / d) (i, j): its offset is (fx / d - 1) (i, j), which is near zero for a narrow
+    // pinhole (the kernel maps the FOV linearly to pixels, a pinhole does not, so they never
+    // match exactly).
     let (w, h) = (101usize, 101usize);
-    let mut fx = 300.0;
-    for _ in 0..50 {
-        let fov = 2.0 * ((w as f64 / 2.0) / fx).atan();
-        fx = kernel_focal(3, fov, w).unwrap();
-    }
-    let cam = Camera::Pinhole(Pinhole { fx, fy: fx, cx: 50.0, cy: 50.0, width: w, height: h });
-    let off = compute_offsets(&cam, [h, w], &LayerGeometry::same(3), &InputFrame::default()).unwrap();
+    let fx = 300.0;
+    let cam = Camera::Pinhole(Pinhole {
+        fx,
+        fy: fx,
+        cx: 50.0,
+        cy: 50.0,
+        width: w,
+        height: h,
+    });
+    let d = kernel_focal(3, cam.fov(), w).unwrap();
+    let ratio = fx / d - 1.0;
+    assert!(ratio.abs() < 0.01, "focal mismatch {ratio}");
+    let off = compute_offsets(
+        &cam,
+        [h, w],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )
+    .unwrap();
     for i in 0..3 {
         for j in 0..3 {
             let [dy, dx] = off.get([i, j], [50, 50]);
-            assert!(dy.abs() < 1e-6 && dx.abs() < 1e-6, "tap ({i},{j}): ({dy}, {dx})");
+            let (ey, ex) = (ratio * (i as f64 - 1.0), ratio * (j as f64 - 1.0));
+            assert!(
+                (dy as f64 - ey).abs() < 1e-6 && (dx as f64 - ex).abs() < 1e-6,
+                "tap ({i},{j}): ({dy}, {dx}) vs ({ey}, {ex})"
+            );
         }
     }
     assert_eq!(off.fallback_anchors, 0);
@@ -57,7 +82,13 @@ fn pinhole_whose_focal_matches_the_kernel_gives_zero_offsets_at_the_centre() {
 #[test]
 fn offsets_are_mirror_symmetric_about_the_principal_point() {
     let cam = symmetric_kb();
-    let off = compute_offsets(&cam, [96, 128], &LayerGeometry::same(3), &InputFrame::default()).unwrap();
+    let off = compute_offsets(
+        &cam,
+        [96, 128],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )
+    .unwrap();
     let [ho, wo] = off.output_size;
     for oy in (0..ho).step_by(7) {
         for ox in (0..wo).step_by(5) {
@@ -75,7 +106,10 @@ fn offsets_are_mirror_symmetric_about_the_principal_point() {
         }
     }
     // The centre tap sits on the anchor.
-    assert!(off.get([1, 1], [10, 10]).iter().all(|v| v.abs() < OFFSET_TOL));
+    assert!(off
+        .get([1, 1], [10, 10])
+        .iter()
+        .all(|v| v.abs() < OFFSET_TOL));
 }
 
 #[test]
@@ -85,7 +119,10 @@ fn stride_two_offsets_match_stride_one_at_the_same_anchors() {
     let cam = symmetric_kb();
     let frame = InputFrame::default();
     let s1 = compute_offsets(&cam, [96, 128], &LayerGeometry::same(3), &frame).unwrap();
-    let g2 = LayerGeometry { stride: [2, 2], ..LayerGeometry::same(3) };
+    let g2 = LayerGeometry {
+        stride: [2, 2],
+        ..LayerGeometry::same(3)
+    };
     let s2 = compute_offsets(&cam, [96, 128], &g2, &frame).unwrap();
     assert_eq!(s2.output_size, [48, 64]);
     for oy in 0..48 {
@@ -96,7 +133,11 @@ fn stride_two_offsets_match_stride_one_at_the_same_anchors() {
         }
     }
     // Stride 2 without padding: anchors move by one pixel.
-    let g3 = LayerGeometry { stride: [2, 2], padding: [0, 0], ..LayerGeometry::same(3) };
+    let g3 = LayerGeometry {
+        stride: [2, 2],
+        padding: [0, 0],
+        ..LayerGeometry::same(3)
+    };
     let s3 = compute_offsets(&cam, [96, 128], &g3, &frame).unwrap();
     assert_eq!(s3.output_size, [47, 63]);
     assert_eq!(s3.get([0, 0], [3, 4]), s1.get([0, 0], [7, 9]));
@@ -106,10 +147,20 @@ fn stride_two_offsets_match_stride_one_at_the_same_anchors() {
 fn dilation_scales_the_virtual_kernel() {
     // Near the centre, a dilated kernel's taps sit about `dilation` times farther out.
     let cam = symmetric_kb();
-    let g = LayerGeometry { dilation: [2, 2], padding: [2, 2], ..LayerGeometry::same(3) };
+    let g = LayerGeometry {
+        dilation: [2, 2],
+        padding: [2, 2],
+        ..LayerGeometry::same(3)
+    };
     let off = compute_offsets(&cam, [96, 128], &g, &InputFrame::default()).unwrap();
     assert_eq!(off.output_size, [96, 128]);
-    let one = compute_offsets(&cam, [96, 128], &LayerGeometry::same(3), &InputFrame::default()).unwrap();
+    let one = compute_offsets(
+        &cam,
+        [96, 128],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )
+    .unwrap();
     let [dy2, _] = off.get([0, 1], [47, 63]);
     let [dy1, _] = one.get([0, 1], [47, 63]);
     assert!((dy2 - 2.0 * dy1).abs() < 0.05, "{dy2} vs 2 x {dy1}");
@@ -120,14 +171,23 @@ fn conventions_differ_by_the_half_pixel_shift() {
     let cam = symmetric_kb();
     let g = LayerGeometry::same(3);
     let half = compute_offsets(&cam, [24, 32], &g, &InputFrame::default()).unwrap();
-    let paper_frame = InputFrame { convention: PixelConvention::Paper, ..Default::default() };
+    let paper_frame = InputFrame {
+        convention: PixelConvention::Paper,
+        ..Default::default()
+    };
     let paper = compute_offsets(&cam, [24, 32], &g, &paper_frame).unwrap();
     // At 1/4 scale the paper convention moves the centre by (s - 1)/2 = -0.375 px.
-    let diff = half.data.iter().zip(&paper.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let diff = half
+        .data
+        .iter()
+        .zip(&paper.data)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
     assert!(diff > 1e-3, "conventions should differ");
     // Half-pixel keeps the mirror symmetry of a centred camera; the paper convention breaks it.
     let [ho, wo] = half.output_size;
-    let asym = |o: &Offsets| (o.get([1, 0], [ho / 2, 3])[1] + o.get([1, 2], [ho / 2, wo - 4])[1]).abs();
+    let asym =
+        |o: &Offsets| (o.get([1, 0], [ho / 2, 3])[1] + o.get([1, 2], [ho / 2, wo - 4])[1]).abs();
     assert!(asym(&half) < OFFSET_TOL);
     assert!(asym(&paper) > 1e-3);
 }
@@ -148,13 +208,25 @@ fn deterministic_and_cached() {
 #[test]
 fn too_small_feature_maps_are_rejected_clearly() {
     let cam = symmetric_kb();
-    let e = compute_offsets(&cam, [3, 3], &LayerGeometry::same(3), &InputFrame::default()).unwrap_err();
+    let e = compute_offsets(
+        &cam,
+        [3, 3],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("feature map"), "{e}");
-    let even = LayerGeometry { kernel: [2, 2], ..LayerGeometry::same(3) };
+    let even = LayerGeometry {
+        kernel: [2, 2],
+        ..LayerGeometry::same(3)
+    };
     assert!(compute_offsets(&cam, [32, 32], &even, &InputFrame::default()).is_err());
 }
 
 #[test]
 fn pyramid_sizes_floor_like_maxpool() {
-    assert_eq!(pyramid_sizes([960, 1082], 4), vec![[960, 1082], [480, 541], [240, 270], [120, 135], [60, 67]]);
+    assert_eq!(
+        pyramid_sizes([960, 1082], 4),
+        vec![[960, 1082], [480, 541], [240, 270], [120, 135], [60, 67]]
+    );
 }

@@ -36,8 +36,10 @@ impl Default for Conv2dConfig {
 
 impl Conv2dConfig {
     fn padding_for(&self, k: i64) -> [i64; 2] {
-        self.padding
-            .unwrap_or([self.dilation[0] * (k - 1) / 2, self.dilation[1] * (k - 1) / 2])
+        self.padding.unwrap_or([
+            self.dilation[0] * (k - 1) / 2,
+            self.dilation[1] * (k - 1) / 2,
+        ])
     }
 
     /// The equivalent tch config (same initialisation for both kinds).
@@ -110,7 +112,14 @@ impl CalibratedConv2d {
         let device = vs.device();
         let key = (
             Arc::as_ptr(&offsets) as usize,
-            [cfg.stride[0], cfg.stride[1], padding[0], padding[1], cfg.dilation[0], cfg.dilation[1]],
+            [
+                cfg.stride[0],
+                cfg.stride[1],
+                padding[0],
+                padding[1],
+                cfg.dilation[0],
+                cfg.dilation[1],
+            ],
             format!("{device:?}"),
         );
         let cached = plan_cache()
@@ -122,13 +131,13 @@ impl CalibratedConv2d {
             Some(plan) => plan,
             None => {
                 let plan = SamplingPlan::new(
-                        &offsets.to_tensor(),
-                        input_size,
-                        [k, k],
-                        cfg.stride,
-                        padding,
-                        cfg.dilation,
-                        Kind::Float,
+                    &offsets.to_tensor(),
+                    input_size,
+                    [k, k],
+                    cfg.stride,
+                    padding,
+                    cfg.dilation,
+                    Kind::Float,
                 )?
                 .to_device(device);
                 plan_cache()
@@ -142,7 +151,13 @@ impl CalibratedConv2d {
         let tch_cfg = cfg.to_tch(k);
         let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
         let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
-        Ok(CalibratedConv2d { ws, bs, offsets, plan, groups: cfg.groups })
+        Ok(CalibratedConv2d {
+            ws,
+            bs,
+            offsets,
+            plan,
+            groups: cfg.groups,
+        })
     }
 
     /// The layer's sampling plan.

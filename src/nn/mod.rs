@@ -74,7 +74,13 @@ pub fn conv2d(
         ConvKind::Calibrated { camera, frame } if k > 1 => Ok(Conv::Calibrated(
             CalibratedConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
         )),
-        _ => Ok(Conv::Standard(nn::conv(vs, c_in, c_out, [k, k], cfg.to_tch(k)))),
+        _ => Ok(Conv::Standard(nn::conv(
+            vs,
+            c_in,
+            c_out,
+            [k, k],
+            cfg.to_tch(k),
+        ))),
     }
 }
 

@@ -8,15 +8,26 @@ use crate::camera::{Camera, Pinhole};
 use crate::kernel::InputFrame;
 
 fn f195() -> Camera {
-    crate::camera::load(concat!(env!("CARGO_MANIFEST_DIR"), "/data/cameras/f195.toml")).unwrap()
+    crate::camera::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/cameras/f195.toml"
+    ))
+    .unwrap()
 }
 
 fn calibrated(camera: Camera) -> ConvKind {
-    ConvKind::Calibrated { camera: Arc::new(camera), frame: InputFrame::default() }
+    ConvKind::Calibrated {
+        camera: Arc::new(camera),
+        frame: InputFrame::default(),
+    }
 }
 
 fn names_and_shapes(vs: &VarStore) -> Vec<(String, Vec<i64>)> {
-    let mut v: Vec<_> = vs.variables().into_iter().map(|(n, t)| (n, t.size())).collect();
+    let mut v: Vec<_> = vs
+        .variables()
+        .into_iter()
+        .map(|(n, t)| (n, t.size()))
+        .collect();
     v.sort();
     v
 }
@@ -25,7 +36,16 @@ fn names_and_shapes(vs: &VarStore) -> Vec<(String, Vec<i64>)> {
 fn both_kinds_have_identical_parameters_and_weights_move_between_them() {
     let build = |kind: &ConvKind| {
         let vs = VarStore::new(Device::Cpu);
-        let conv = conv2d(&(vs.root() / "enc"), 3, 8, 3, kind, [24, 27], Conv2dConfig::default()).unwrap();
+        let conv = conv2d(
+            &(vs.root() / "enc"),
+            3,
+            8,
+            3,
+            kind,
+            [24, 27],
+            Conv2dConfig::default(),
+        )
+        .unwrap();
         (vs, conv)
     };
     let (vs_std, conv_std) = build(&ConvKind::Standard);
@@ -44,21 +64,45 @@ fn both_kinds_have_identical_parameters_and_weights_move_between_them() {
 fn pinhole_with_matching_focal_is_close_to_standard_conv() {
     // A narrow pinhole: the virtual kernel focal d = k / (2 tan(k fov / 2W)) is within 0.1% of
     // fx in the centre, so sampling differs from the regular grid by well under a pixel.
-    let cam = Camera::Pinhole(Pinhole { fx: 200.0, fy: 200.0, cx: 31.5, cy: 31.5, width: 64, height: 64 });
+    let cam = Camera::Pinhole(Pinhole {
+        fx: 200.0,
+        fy: 200.0,
+        cx: 31.5,
+        cy: 31.5,
+        width: 64,
+        height: 64,
+    });
     let vs = VarStore::new(Device::Cpu);
-    let cal = conv2d(&vs.root(), 2, 4, 3, &calibrated(cam), [64, 64], Conv2dConfig::default()).unwrap();
-    let Conv::Calibrated(c) = &cal else { panic!("expected a calibrated conv") };
+    let cal = conv2d(
+        &vs.root(),
+        2,
+        4,
+        3,
+        &calibrated(cam),
+        [64, 64],
+        Conv2dConfig::default(),
+    )
+    .unwrap();
+    let Conv::Calibrated(c) = &cal else {
+        panic!("expected a calibrated conv")
+    };
     // Centre anchor (31, 31) is 0.5 px from the principal point: offsets there are tiny.
     for tap in [[0, 0], [0, 2], [2, 0], [2, 2]] {
         let [dy, dx] = c.offsets.get(tap, [31, 31]);
-        assert!(dy.abs() < 0.01 && dx.abs() < 0.01, "tap {tap:?}: ({dy}, {dx})");
+        assert!(
+            dy.abs() < 0.01 && dx.abs() < 0.01,
+            "tap {tap:?}: ({dy}, {dx})"
+        );
     }
 }
 
 #[test]
 fn every_parameter_receives_a_gradient() {
     let vs = VarStore::new(Device::Cpu);
-    let cfg = Conv2dConfig { stride: [2, 2], ..Default::default() };
+    let cfg = Conv2dConfig {
+        stride: [2, 2],
+        ..Default::default()
+    };
     let conv = conv2d(&vs.root(), 3, 5, 3, &calibrated(f195()), [30, 34], cfg).unwrap();
     let x = Tensor::randn([2, 3, 30, 34], (Kind::Float, Device::Cpu));
     let y = conv.forward(&x);
@@ -67,7 +111,10 @@ fn every_parameter_receives_a_gradient() {
     y.square().sum(Kind::Float).backward();
     for (name, t) in vs.variables() {
         let g = t.grad();
-        assert!(g.defined() && g.abs().sum(Kind::Float).double_value(&[]) > 0.0, "{name} has no gradient");
+        assert!(
+            g.defined() && g.abs().sum(Kind::Float).double_value(&[]) > 0.0,
+            "{name} has no gradient"
+        );
     }
 }
 
@@ -75,7 +122,16 @@ fn every_parameter_receives_a_gradient() {
 #[should_panic(expected = "offsets were built for 30x34")]
 fn wrong_input_size_panics_with_a_clear_message() {
     let vs = VarStore::new(Device::Cpu);
-    let conv = conv2d(&vs.root(), 3, 5, 3, &calibrated(f195()), [30, 34], Conv2dConfig::default()).unwrap();
+    let conv = conv2d(
+        &vs.root(),
+        3,
+        5,
+        3,
+        &calibrated(f195()),
+        [30, 34],
+        Conv2dConfig::default(),
+    )
+    .unwrap();
     let _ = conv.forward(&Tensor::zeros([1, 3, 32, 32], (Kind::Float, Device::Cpu)));
 }
 
@@ -83,9 +139,29 @@ fn wrong_input_size_panics_with_a_clear_message() {
 fn layers_of_the_same_geometry_share_offsets_and_plans() {
     let vs = VarStore::new(Device::Cpu);
     let kind = calibrated(f195());
-    let a = conv2d(&(vs.root() / "a"), 3, 4, 3, &kind, [40, 44], Conv2dConfig::default()).unwrap();
-    let b = conv2d(&(vs.root() / "b"), 4, 4, 3, &kind, [40, 44], Conv2dConfig::default()).unwrap();
-    let (Conv::Calibrated(a), Conv::Calibrated(b)) = (&a, &b) else { panic!("calibrated") };
+    let a = conv2d(
+        &(vs.root() / "a"),
+        3,
+        4,
+        3,
+        &kind,
+        [40, 44],
+        Conv2dConfig::default(),
+    )
+    .unwrap();
+    let b = conv2d(
+        &(vs.root() / "b"),
+        4,
+        4,
+        3,
+        &kind,
+        [40, 44],
+        Conv2dConfig::default(),
+    )
+    .unwrap();
+    let (Conv::Calibrated(a), Conv::Calibrated(b)) = (&a, &b) else {
+        panic!("calibrated")
+    };
     assert!(Arc::ptr_eq(&a.offsets, &b.offsets));
     assert!(a.plan().shares_storage_with(b.plan()));
 }

@@ -5,8 +5,9 @@
 //! and their weights, corners outside the input pointing at an extra zero element (torchvision's
 //! "zeros outside": a location with `y <= -1`, `y >= H`, `x <= -1` or `x >= W` samples 0, and
 //! each out-of-range corner contributes 0). The convolution is then composed from differentiable
-//! ATen ops: four `index_select` gathers weighted and summed into the column matrix, and one
-//! batched `matmul` with the weight. Autograd (input, weight, bias) and devices (CPU, CUDA) come
+//! ATen ops: one `embedding_bag` (weighted sum of the four corner rows of a pixel-major table:
+//! gathers contiguous channel vectors) builds the column matrix, and one batched `matmul`
+//! applies the weight. Autograd (input, weight, bias) and devices (CPU, CUDA) come
 //! from libtorch; gradients with respect to the offsets are not computed (they are fixed data).
 //!
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
@@ -42,8 +43,10 @@ pub fn deform_conv2d(
     dilation: [i64; 2],
     groups: i64,
 ) -> Tensor {
-    f_deform_conv2d(input, offsets, weight, bias, stride, padding, dilation, groups)
-        .unwrap_or_else(|e| panic!("deform_conv2d: {e}"))
+    f_deform_conv2d(
+        input, offsets, weight, bias, stride, padding, dilation, groups,
+    )
+    .unwrap_or_else(|e| panic!("deform_conv2d: {e}"))
 }
 
 /// Fallible twin of [`deform_conv2d`]. Builds the sampling plan on every call: layers that run
@@ -60,7 +63,10 @@ pub fn f_deform_conv2d(
     groups: i64,
 ) -> Result<Tensor> {
     let (_, _, h, w) = input.size4().map_err(|_| {
-        Error::InvalidArgument(format!("input must be [B, C, H, W], got {:?}", input.size()))
+        Error::InvalidArgument(format!(
+            "input must be [B, C, H, W], got {:?}",
+            input.size()
+        ))
     })?;
     let (_, _, kh, kw) = weight.size4().map_err(|_| {
         Error::InvalidArgument(format!(
@@ -89,8 +95,8 @@ pub fn deform_conv2d_planned(
     bias: Option<&Tensor>,
     groups: i64,
 ) -> Result<Tensor> {
-    let cols = plan.f_columns(input)?; // [B, C, K*P]
-    let (b, c, _) = cols.size3()?;
+    let cols = plan.f_columns(input)?; // [B, P, K, C]
+    let (b, p, taps, c) = cols.size4()?;
     let (c_out, c_per_group, kh, kw) = weight.size4().map_err(|_| {
         Error::InvalidArgument(format!(
             "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
@@ -118,11 +124,22 @@ pub fn deform_conv2d_planned(
             input.device()
         )));
     }
-    let taps = kh * kw;
     let [ho, wo] = plan.output_size();
-    let cols = cols.view([b, groups, c_per_group * taps, ho * wo]);
-    let w = weight.reshape([groups, c_out / groups, c_per_group * taps]);
-    let mut out = w.f_matmul(&cols)?.view([b, c_out, ho, wo]);
+    let (g, c_out_g) = (groups, c_out / groups);
+    // Columns [B, G, P, K*Cg] against weights [G, K*Cg, C_out/G], both tap-major then channel.
+    let cols = cols
+        .f_view([b, p, taps, g, c_per_group])?
+        .f_permute([0, 3, 1, 2, 4])?
+        .f_reshape([b, g, p, taps * c_per_group])?;
+    let w = weight
+        .f_view([g, c_out_g, c_per_group, taps])?
+        .f_permute([0, 3, 2, 1])?
+        .f_reshape([g, taps * c_per_group, c_out_g])?;
+    // [B, G, P, C_out/G] -> [B, C_out, H_out, W_out]
+    let mut out = cols
+        .f_matmul(&w)?
+        .f_permute([0, 1, 3, 2])?
+        .f_reshape([b, c_out, ho, wo])?;
     if let Some(bias) = bias {
         if bias.size() != [c_out] {
             return Err(Error::InvalidArgument(format!(

@@ -1,5 +1,6 @@
 //! The sampling plan: bilinear corner indices and weights of every (tap, output pixel).
 
+use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};
 
 use super::check_float;
@@ -7,14 +8,20 @@ use crate::error::{Error, Result};
 
 /// Precomputed bilinear sampling of a deformable convolution with fixed offsets.
 ///
-/// For `N = K * P` samples (`K = kh*kw` taps, `P = H_out*W_out` pixels; times `B` for
-/// per-item offsets), `index` holds four `[N]` int64 tensors (corners top-left, top-right,
-/// bottom-left, bottom-right) into the flattened input `H*W` with one extra zero element at
-/// index `H*W`, and `weight` four `[N]` tensors of bilinear weights.
+/// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
+/// times `B` for per-item offsets), `index` `[N * 4]` holds the flat indices of the four bilinear
+/// corners (top-left, top-right, bottom-left, bottom-right) into the input's `H*W` pixels, with
+/// one extra zero row at index `H*W` for corners outside the input, and `weight` their
+/// bilinear weights (`[N * 4]`). A column is then one weighted "bag" of four rows of a pixel-major table,
+/// which libtorch's `embedding_bag` computes (and differentiates) in one fused op.
 #[derive(Debug)]
 pub struct SamplingPlan {
-    index: [Tensor; 4],
-    weight: [Tensor; 4],
+    /// `[N * 4]`: four corners per sample.
+    index: Tensor,
+    /// `[N * 4]`, same order.
+    weight: Tensor,
+    /// `[N]`: start of each sample's bag of four in `index` (0, 4, 8, ...).
+    bags: Tensor,
     input_size: [i64; 2],
     output_size: [i64; 2],
     kernel: [i64; 2],
@@ -37,16 +44,24 @@ impl SamplingPlan {
     ) -> Result<Self> {
         let [h, w] = input_size;
         let [kh, kw] = kernel;
-        if kh < 1 || kw < 1 || stride.iter().chain(&dilation).any(|&v| v < 1) || padding.iter().any(|&p| p < 0) {
+        if kh < 1
+            || kw < 1
+            || stride.iter().chain(&dilation).any(|&v| v < 1)
+            || padding.iter().any(|&p| p < 0)
+        {
             return Err(Error::InvalidArgument(format!(
-                "kernel {kernel:?}, stride {stride:?}, padding {padding:?}, dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
+                "kernel {kernel:?}, stride {stride:?}, padding {padding:?}, dilation {dilation:?}: \
+                 sizes, strides and dilations must be >= 1, padding >= 0"
             )));
         }
-        let out_dim = |a: usize| (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1;
+        let out_dim = |a: usize| {
+            (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
+        };
         let (ho, wo) = (out_dim(0), out_dim(1));
         if ho < 1 || wo < 1 {
             return Err(Error::InvalidArgument(format!(
-                "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a {h}x{w} input"
+                "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
+                 {h}x{w} input"
             )));
         }
         check_float(offsets, "offsets")?;
@@ -56,51 +71,65 @@ impl SamplingPlan {
             [b, c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] => Some(*b),
             other => {
                 return Err(Error::InvalidArgument(format!(
-                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {kh}x{kw} kernel on a {h}x{w} input, got {other:?}",
+                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {kh}x{kw} \
+                     kernel on a {h}x{w} input, got {other:?}",
                     2 * taps,
                     2 * taps
                 )))
             }
         };
         let off: Vec<f64> = Vec::<f64>::try_from(
-            offsets.to_device(Device::Cpu).to_kind(Kind::Double).contiguous().view(-1),
+            offsets
+                .to_device(Device::Cpu)
+                .to_kind(Kind::Double)
+                .contiguous()
+                .view(-1),
         )?;
         let items = batch.unwrap_or(1);
         let plane = (ho * wo) as usize;
-        let n = (items * taps) as usize * plane;
-        let mut idx = [(); 4].map(|_| vec![0i64; n]);
-        let mut wts = [(); 4].map(|_| vec![0f64; n]);
-        let zero = h * w; // the extra zero element
-        let mut s = 0usize;
-        for item in 0..items as usize {
-            // The zero element of item b sits at b * (H*W + 1) + H*W in the per-item layout.
-            let base = if batch.is_some() { item as i64 * (h * w + 1) } else { 0 };
-            for i in 0..kh {
-                for j in 0..kw {
-                    let k = (i * kw + j) as usize;
-                    let off_y = &off[(item * 2 * taps as usize + 2 * k) * plane..][..plane];
-                    let off_x = &off[(item * 2 * taps as usize + 2 * k + 1) * plane..][..plane];
-                    for oy in 0..ho {
-                        for ox in 0..wo {
-                            let p = (oy * wo + ox) as usize;
-                            let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64 + off_y[p];
-                            let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64 + off_x[p];
-                            let corners = bilinear(y, x, h, w);
-                            for (c, (flat, wt)) in corners.into_iter().enumerate() {
-                                idx[c][s] = base + flat.unwrap_or(zero);
-                                wts[c][s] = wt;
+        let taps_u = taps as usize;
+        // One output row of one item per task: (indices, weights), 4 per sample.
+        let rows: Vec<(Vec<i64>, Vec<f64>)> = (0..items * ho)
+            .into_par_iter()
+            .map(|row| {
+                let (item, oy) = (row / ho, row % ho);
+                // Per-item tables stack the items' pixels, each followed by its zero row.
+                let base = if batch.is_some() {
+                    item * (h * w + 1)
+                } else {
+                    0
+                };
+                let item_off = &off[item as usize * 2 * taps_u * plane..];
+                let mut idx = Vec::with_capacity(wo as usize * taps_u * 4);
+                let mut wts = Vec::with_capacity(wo as usize * taps_u * 4);
+                for ox in 0..wo {
+                    let p = (oy * wo + ox) as usize;
+                    for i in 0..kh {
+                        for j in 0..kw {
+                            let k = (i * kw + j) as usize;
+                            let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64
+                                + item_off[2 * k * plane + p];
+                            let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64
+                                + item_off[(2 * k + 1) * plane + p];
+                            for (flat, wt) in bilinear(y, x, h, w) {
+                                idx.push(base + flat.unwrap_or(h * w));
+                                wts.push(wt);
                             }
-                            s += 1;
                         }
                     }
                 }
-            }
-        }
-        let index = idx.map(|v| Tensor::from_slice(&v));
-        let weight = wts.map(|v| Tensor::from_slice(&v).to_kind(kind));
+                (idx, wts)
+            })
+            .collect();
+        let n = items * ho * wo * taps;
+        let (idx, wts): (Vec<i64>, Vec<f64>) = (
+            rows.iter().flat_map(|r| r.0.iter().copied()).collect(),
+            rows.iter().flat_map(|r| r.1.iter().copied()).collect(),
+        );
         Ok(SamplingPlan {
-            index,
-            weight,
+            index: Tensor::from_slice(&idx),
+            weight: Tensor::from_slice(&wts).to_kind(kind),
+            bags: Tensor::arange_start_step(0, 4 * n, 4, (Kind::Int64, Device::Cpu)),
             input_size,
             output_size: [ho, wo],
             kernel,
@@ -111,8 +140,9 @@ impl SamplingPlan {
     /// The same plan with its tensors on `device`.
     pub fn to_device(&self, device: Device) -> Self {
         SamplingPlan {
-            index: self.index.each_ref().map(|t| t.to_device(device)),
-            weight: self.weight.each_ref().map(|t| t.to_device(device)),
+            index: self.index.to_device(device),
+            weight: self.weight.to_device(device),
+            bags: self.bags.to_device(device),
             ..*self
         }
     }
@@ -120,15 +150,16 @@ impl SamplingPlan {
     /// Another handle on the same tensors (no copy; libtorch reference counting).
     pub fn shallow_clone(&self) -> Self {
         SamplingPlan {
-            index: self.index.each_ref().map(Tensor::shallow_clone),
-            weight: self.weight.each_ref().map(Tensor::shallow_clone),
+            index: self.index.shallow_clone(),
+            weight: self.weight.shallow_clone(),
+            bags: self.bags.shallow_clone(),
             ..*self
         }
     }
 
     /// Whether two plans hold the same tensor storage.
     pub fn shares_storage_with(&self, other: &SamplingPlan) -> bool {
-        self.index[0].data_ptr() == other.index[0].data_ptr()
+        self.index.data_ptr() == other.index.data_ptr()
     }
 
     /// Output size `[H_out, W_out]`.
@@ -148,19 +179,22 @@ impl SamplingPlan {
 
     /// Device of the plan's tensors.
     pub fn device(&self) -> Device {
-        self.index[0].device()
+        self.index.device()
     }
 
-    /// The column matrix of `input`: for each channel, tap and output pixel, the bilinear sample.
+    /// The column matrix of `input`: for each output pixel, the bilinear samples of every tap
+    /// and channel.
     ///
     /// # Shapes
     /// - `input`: `[B, C, H, W]`
-    /// - output: `[B, C, K * H_out * W_out]` (tap-major within a channel, as torchvision's
-    ///   `columns` and `weight.view(C_out, C_in * K)` expect)
+    /// - output: `[B, H_out * W_out, K, C]` (pixel-major, then tap, then channel)
     pub fn f_columns(&self, input: &Tensor) -> Result<Tensor> {
         check_float(input, "input")?;
         let (b, c, h, w) = input.size4().map_err(|_| {
-            Error::InvalidArgument(format!("input must be [B, C, H, W], got {:?}", input.size()))
+            Error::InvalidArgument(format!(
+                "input must be [B, C, H, W], got {:?}",
+                input.size()
+            ))
         })?;
         if [h, w] != self.input_size {
             return Err(Error::InvalidArgument(format!(
@@ -175,53 +209,54 @@ impl SamplingPlan {
                 self.device()
             )));
         }
-        if let Some(pb) = self.batch {
-            if pb != b {
-                return Err(Error::InvalidArgument(format!(
-                    "offsets have batch {pb} but input has batch {b}"
-                )));
-            }
-        }
-        let flat = input.reshape([b, c, h * w]);
-        let zero = Tensor::f_zeros([b, c, 1], (input.kind(), input.device()))?;
-        let padded = Tensor::f_cat(&[flat, zero], 2)?;
-        let weight_kind = |t: &Tensor| t.to_kind(input.kind());
-        let mut cols: Option<Tensor> = None;
+        let weight = self.weight.to_kind(input.kind());
+        let (p, k) = (
+            self.output_size[0] * self.output_size[1],
+            self.kernel[0] * self.kernel[1],
+        );
+        let bag = |table: &Tensor| -> Result<Tensor> {
+            let (sum, _, _, _) = Tensor::f_embedding_bag(
+                table,
+                &self.index,
+                &self.bags,
+                false,
+                0, // mode: sum
+                false,
+                Some(&weight),
+                false,
+            )?;
+            Ok(sum)
+        };
         match self.batch {
             None => {
-                for (idx, wt) in self.index.iter().zip(&self.weight) {
-                    let term = padded.f_index_select(2, idx)?.f_mul(&weight_kind(wt))?;
-                    cols = Some(match cols {
-                        None => term,
-                        Some(acc) => acc.f_add(&term)?,
-                    });
-                }
+                // Table [H*W + 1, B*C]: one row per pixel holding every item's channels, so the
+                // shared plan serves the whole batch without copying indices.
+                let table = input.f_permute([2, 3, 0, 1])?.f_reshape([h * w, b * c])?;
+                let zero = Tensor::f_zeros([1, b * c], (input.kind(), input.device()))?;
+                let table = Tensor::f_cat(&[table, zero], 0)?;
+                Ok(bag(&table)?.f_view([p, k, b, c])?.f_permute([2, 0, 1, 3])?)
             }
-            Some(_) => {
-                // [C, B*(H*W+1)]: per-item indices already carry the item's base.
-                let per_item = padded.permute([1, 0, 2]).reshape([c, b * (h * w + 1)]);
-                for (idx, wt) in self.index.iter().zip(&self.weight) {
-                    let n = idx.size()[0] / b;
-                    let term = per_item
-                        .f_index_select(1, idx)?
-                        .view([c, b, n])
-                        .permute([1, 0, 2])
-                        .f_mul(&weight_kind(wt).view([b, 1, n]))?;
-                    cols = Some(match cols {
-                        None => term,
-                        Some(acc) => acc.f_add(&term)?,
-                    });
+            Some(pb) => {
+                if pb != b {
+                    return Err(Error::InvalidArgument(format!(
+                        "offsets have batch {pb} but input has batch {b}"
+                    )));
                 }
+                // Table [B*(H*W + 1), C]: items stacked, each followed by its zero row.
+                let table = input.f_permute([0, 2, 3, 1])?.f_reshape([b, h * w, c])?;
+                let zero = Tensor::f_zeros([b, 1, c], (input.kind(), input.device()))?;
+                let table = Tensor::f_cat(&[table, zero], 1)?.f_reshape([b * (h * w + 1), c])?;
+                Ok(bag(&table)?.f_view([b, p, k, c])?)
             }
         }
-        Ok(cols.expect("four corners"))
     }
 }
 
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
 /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1).
 fn bilinear(y: f64, x: f64, h: i64, w: i64) -> [(Option<i64>, f64); 4] {
-    if y <= -1.0 || y >= h as f64 || x <= -1.0 || x >= w as f64 || !y.is_finite() || !x.is_finite() {
+    if y <= -1.0 || y >= h as f64 || x <= -1.0 || x >= w as f64 || !y.is_finite() || !x.is_finite()
+    {
         return [(None, 0.0); 4];
     }
     let (y0, x0) = (y.floor() as i64, x.floor() as i64);
@@ -251,7 +286,9 @@ mod tests {
 
     #[test]
     fn bilinear_is_zero_outside_and_partial_at_border() {
-        assert!(bilinear(-1.0, 0.0, 4, 4).iter().all(|(i, w)| i.is_none() && *w == 0.0));
+        assert!(bilinear(-1.0, 0.0, 4, 4)
+            .iter()
+            .all(|(i, w)| i.is_none() && *w == 0.0));
         assert!(bilinear(0.0, 4.0, 4, 4).iter().all(|(i, _)| i.is_none()));
         // y in (-1, 0): the top corners fall outside, the bottom ones keep weight ly.
         let c = bilinear(-0.5, 1.0, 4, 4);

@@ -83,7 +83,11 @@ pub fn load_background(path: &Path, camera: &Camera) -> Result<RgbImage> {
 }
 
 /// Draws a grid of calibrated kernels over `background` (the camera's image).
-pub fn draw_kernels(camera: &Camera, mut background: RgbImage, fig: &KernelFigure) -> Result<RgbImage> {
+pub fn draw_kernels(
+    camera: &Camera,
+    mut background: RgbImage,
+    fig: &KernelFigure,
+) -> Result<RgbImage> {
     let [w_c, h_c] = camera.size();
     let (w_in, h_in) = (w_c + fig.frame.padding[0], h_c + fig.frame.padding[1]);
     let fm = [h_in / fig.level.max(1), w_in / fig.level.max(1)];
@@ -112,17 +116,33 @@ pub fn draw_kernels(camera: &Camera, mut background: RgbImage, fig: &KernelFigur
             for i in 0..k {
                 for j in 0..k {
                     if j + 1 < k {
-                        draw::line(&mut background, tap(i, j), tap(i, j + 1), dot * 0.6, [240, 200, 60]);
+                        draw::line(
+                            &mut background,
+                            tap(i, j),
+                            tap(i, j + 1),
+                            dot * 0.6,
+                            [240, 200, 60],
+                        );
                     }
                     if i + 1 < k {
-                        draw::line(&mut background, tap(i, j), tap(i + 1, j), dot * 0.6, [240, 200, 60]);
+                        draw::line(
+                            &mut background,
+                            tap(i, j),
+                            tap(i + 1, j),
+                            dot * 0.6,
+                            [240, 200, 60],
+                        );
                     }
                 }
             }
             for i in 0..k {
                 for j in 0..k {
                     let [x, y] = tap(i, j);
-                    let col = if i == c && j == c { [80, 200, 255] } else { colour };
+                    let col = if i == c && j == c {
+                        [80, 200, 255]
+                    } else {
+                        colour
+                    };
                     draw::disc(&mut background, x, y, dot, col);
                 }
             }
