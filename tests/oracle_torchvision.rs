@@ -171,7 +171,7 @@ fn check(what: &str, tol: f64, kind: Kind, pick: impl Fn(&Case, &Run) -> Option<
         if let Some((ours, reference)) = pick(case, &ran) {
             let rel = max_rel(&ours, &reference);
             println!("{} {what}: max_rel {rel:.3e}", case.name);
-            if !(rel < tol) {
+            if rel.is_nan() || rel >= tol {
                 failures.push(format!("{} `{}`: max_rel {rel:.3e}", case.name, what));
             }
             compared += 1;
