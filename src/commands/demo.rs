@@ -1,112 +1,18 @@
-//! What each subcommand does (the library does the work; this file wires files and output).
+//! `calibconv demo`: the main job on the embedded default data.
 
-use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use tch::{Device, Kind, Tensor};
 
-use calibconv::camera::{self, Camera, CameraModel};
-use calibconv::io::{write_atomic, write_bytes_atomic};
+use calibconv::camera::CameraModel;
+use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, Offsets};
 use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
-use calibconv::report::kernels::{draw_kernels, image_circle, load_background, KernelFigure};
+use calibconv::report::kernels::{draw_kernels, image_circle, KernelFigure};
 
-use crate::cli::{Command, DemoArgs, FrameArgs, KernelsArgs, OffsetsArgs};
-
-pub fn run(command: Command) -> Result<()> {
-    match command {
-        Command::Offsets(args) => offsets(args),
-        Command::Kernels(args) => kernels(args),
-        Command::Demo(args) => demo(args),
-    }
-}
-
-fn frame(args: &FrameArgs) -> InputFrame {
-    InputFrame {
-        padding: args.padding,
-        convention: args.convention,
-    }
-}
-
-fn load_camera(path: &Path) -> Result<Camera> {
-    camera::load(path).with_context(|| format!("cannot use camera file {}", path.display()))
-}
-
-fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
-    write_atomic(path, |tmp| Ok(Tensor::write_safetensors(tensors, tmp)?))
-        .with_context(|| format!("cannot write {}", path.display()))
-}
-
-fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )?;
-    write_bytes_atomic(path, &bytes).with_context(|| format!("cannot write {}", path.display()))
-}
-
-fn offsets(args: OffsetsArgs) -> Result<()> {
-    let camera = load_camera(&args.camera)?;
-    if args.kernel % 2 == 0 || args.stride == 0 || args.dilation == 0 {
-        bail!("--kernel must be odd, --stride and --dilation at least 1");
-    }
-    let pad = args
-        .conv_padding
-        .unwrap_or(args.dilation * (args.kernel - 1) / 2);
-    let geometry = LayerGeometry {
-        kernel: [args.kernel; 2],
-        stride: [args.stride; 2],
-        padding: [pad; 2],
-        dilation: [args.dilation; 2],
-    };
-    let start = Instant::now();
-    let off = compute_offsets(&camera, args.size, &geometry, &frame(&args.frame))?;
-    let secs = start.elapsed().as_secs_f64();
-    write_safetensors(&args.out, &[("offsets".to_string(), off.to_tensor())])?;
-    println!(
-        "{}: offsets [{}, {}, {}] for a {}x{} input ({} stride {} dilation {} padding {}), \
-         max |offset| {:.3} px, {} anchors outside the model, {:.1} ms",
-        args.out.display(),
-        2 * args.kernel * args.kernel,
-        off.output_size[0],
-        off.output_size[1],
-        args.size[0],
-        args.size[1],
-        args.kernel,
-        args.stride,
-        args.dilation,
-        pad,
-        off.max_abs(),
-        off.fallback_anchors,
-        secs * 1e3
-    );
-    Ok(())
-}
-
-fn kernels(args: KernelsArgs) -> Result<()> {
-    let camera = load_camera(&args.camera)?;
-    let background = match &args.image {
-        Some(path) => load_background(path, &camera)?,
-        None => image_circle(&camera),
-    };
-    let fig = KernelFigure {
-        level: args.level,
-        kernel: args.kernel,
-        grid: args.grid,
-        frame: frame(&args.frame),
-    };
-    let img = draw_kernels(&camera, background, &fig)?;
-    save_png(&args.out, &img)?;
-    println!(
-        "{}: {}x{} kernel figure",
-        args.out.display(),
-        img.width(),
-        img.height()
-    );
-    Ok(())
-}
+use super::{load_camera, save_png, write_safetensors};
+use crate::cli::DemoArgs;
 
 /// Times `f` (after one warm-up call) over `reps` calls, in milliseconds per call.
 fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
@@ -118,7 +24,7 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
     start.elapsed().as_secs_f64() * 1e3 / reps as f64
 }
 
-fn demo(args: DemoArgs) -> Result<()> {
+pub fn run(args: DemoArgs) -> Result<()> {
     let camera = load_camera(&args.camera)?;
     let [w, h] = camera.size();
     let m = 1usize << args.depth;

@@ -1,0 +1,50 @@
+//! What each subcommand does, one file per subcommand (the library does the work; these files
+//! wire files and output). Shared helpers live here.
+
+mod demo;
+mod kernels;
+mod offsets;
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use tch::Tensor;
+
+use calibconv::camera::{self, Camera};
+use calibconv::io::{write_atomic, write_bytes_atomic};
+use calibconv::kernel::InputFrame;
+
+use crate::cli::{Command, FrameArgs};
+
+pub fn run(command: Command) -> Result<()> {
+    match command {
+        Command::Offsets(args) => offsets::run(args),
+        Command::Kernels(args) => kernels::run(args),
+        Command::Demo(args) => demo::run(args),
+    }
+}
+
+fn frame(args: &FrameArgs) -> InputFrame {
+    InputFrame {
+        padding: args.padding,
+        convention: args.convention,
+    }
+}
+
+fn load_camera(path: &Path) -> Result<Camera> {
+    camera::load(path).with_context(|| format!("cannot use camera file {}", path.display()))
+}
+
+fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
+    write_atomic(path, |tmp| Ok(Tensor::write_safetensors(tensors, tmp)?))
+        .with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )?;
+    write_bytes_atomic(path, &bytes).with_context(|| format!("cannot write {}", path.display()))
+}

@@ -1,0 +1,222 @@
+//! The `calibconv` binary end to end: files written, shapes, and clear errors on bad input.
+
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use calibconv::camera;
+use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry};
+
+fn calibconv(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_calibconv"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run calibconv")
+}
+
+fn camera_file(name: &str) -> String {
+    format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn read_offsets(path: &Path) -> tch::Tensor {
+    let mut tensors = tch::Tensor::read_safetensors(path).expect("read safetensors");
+    assert_eq!(tensors.len(), 1);
+    let (name, t) = tensors.pop().unwrap();
+    assert_eq!(name, "offsets");
+    t
+}
+
+#[test]
+fn offsets_writes_the_library_offsets_in_torchvision_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o.safetensors");
+    let o = calibconv(&[
+        "offsets",
+        "--camera",
+        &camera_file("f195.toml"),
+        "--size",
+        "240x272",
+        "--kernel",
+        "3",
+        "--padding",
+        "8,0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let t = read_offsets(&out);
+    assert_eq!(t.size(), [18, 240, 272]);
+    let cam = camera::load(camera_file("f195.toml")).unwrap();
+    let frame = InputFrame {
+        padding: [8, 0],
+        ..Default::default()
+    };
+    let lib = compute_offsets(&cam, [240, 272], &LayerGeometry::same(3), &frame).unwrap();
+    assert!(t.equal(&lib.to_tensor()));
+}
+
+#[test]
+fn offsets_with_stride_dilation_and_paper_convention() {
+    let dir = tempfile::tempdir().unwrap();
+    let out: PathBuf = dir.path().join("s2.safetensors");
+    let o = calibconv(&[
+        "offsets",
+        "--camera",
+        &camera_file("f165.toml"),
+        "--size",
+        "60x68",
+        "--kernel",
+        "5",
+        "--stride",
+        "2",
+        "--dilation",
+        "2",
+        "--convention",
+        "paper",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Same padding 4 with dilation 2: (60 + 8 - 9) / 2 + 1 = 30, (68 + 8 - 9) / 2 + 1 = 34.
+    assert_eq!(read_offsets(&out).size(), [50, 30, 34]);
+}
+
+#[test]
+fn bad_camera_file_is_a_clear_error_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let cam = dir.path().join("typo.toml");
+    let text = std::fs::read_to_string(camera_file("f195.toml"))
+        .unwrap()
+        .replace("fx =", "fxx =");
+    std::fs::write(&cam, text).unwrap();
+    let out = dir.path().join("o.safetensors");
+    let o = calibconv(&[
+        "offsets",
+        "--camera",
+        cam.to_str().unwrap(),
+        "--size",
+        "24x27",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(err.contains("typo.toml") && err.contains("fxx"), "{err}");
+    assert!(!out.exists());
+}
+
+#[test]
+fn bad_arguments_exit_non_zero() {
+    for args in [
+        vec![
+            "offsets",
+            "--camera",
+            "data/cameras/f195.toml",
+            "--size",
+            "24by27",
+            "--out",
+            "x",
+        ],
+        vec![
+            "offsets",
+            "--camera",
+            "data/cameras/f195.toml",
+            "--size",
+            "24x27",
+            "--kernel",
+            "4",
+            "--out",
+            "x",
+        ],
+        vec![
+            "offsets",
+            "--camera",
+            "data/cameras/missing.toml",
+            "--size",
+            "24x27",
+            "--out",
+            "x",
+        ],
+        vec![
+            "offsets",
+            "--camera",
+            "data/cameras/f195.toml",
+            "--size",
+            "24x27",
+            "--convention",
+            "corner",
+            "--out",
+            "x",
+        ],
+    ] {
+        let o = calibconv(&args);
+        assert!(!o.status.success(), "{args:?} should fail");
+        assert!(!stderr(&o).is_empty());
+    }
+    assert!(!Path::new(env!("CARGO_MANIFEST_DIR")).join("x").exists());
+}
+
+#[test]
+fn kernels_draws_a_png_of_the_camera_size_and_rejects_a_wrong_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("k.png");
+    let o = calibconv(&[
+        "kernels",
+        "--camera",
+        &camera_file("f195.toml"),
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (1080, 960));
+    // Kernel taps are drawn in colour on the grey/black background.
+    assert!(img.pixels().any(|p| p.0[0] > 200 && p.0[2] < 100));
+
+    let small = dir.path().join("small.png");
+    image::RgbImage::new(64, 48).save(&small).unwrap();
+    let o = calibconv(&[
+        "kernels",
+        "--camera",
+        &camera_file("f195.toml"),
+        "--image",
+        small.to_str().unwrap(),
+        "--out",
+        dir.path().join("k2.png").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(err.contains("small.png") && err.contains("64x48"), "{err}");
+}
+
+#[test]
+fn demo_writes_pyramid_offsets_figure_and_summary() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = calibconv(&[
+        "demo",
+        "--camera",
+        &camera_file("f165.toml"),
+        "--depth",
+        "3",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let tensors =
+        tch::Tensor::read_safetensors(dir.path().join("pyramid_offsets.safetensors")).unwrap();
+    let mut names: Vec<_> = tensors.iter().map(|(n, t)| (n.clone(), t.size())).collect();
+    names.sort();
+    // 1080x960 padded to multiples of 8: 1080 and 960 already are.
+    assert_eq!(names[0], ("level0".to_string(), vec![18, 960, 1080]));
+    assert_eq!(names[3], ("level3".to_string(), vec![18, 120, 135]));
+    assert!(dir.path().join("kernels.png").exists());
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["levels"].as_array().unwrap().len(), 4);
+    assert!(summary["offsets_seconds"].as_f64().unwrap() > 0.0);
+}
