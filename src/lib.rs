@@ -19,6 +19,7 @@
 //! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a).
 
 pub mod camera;
+pub mod data;
 pub mod error;
 pub mod io;
 pub mod kernel;

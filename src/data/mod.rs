@@ -1,0 +1,74 @@
+//! Data: synthetic indoor panoramas, fisheye / perspective / rectified view synthesis, the
+//! Stanford 2D-3D-S loader, and batches for training.
+//!
+//! # The contract with training (do not change without updating both sides)
+//!
+//! Training and evaluation see data only through [`BatchSource`] and [`Batch`]:
+//! - `image`: `[B, 3, H, W]` float32 RGB in `[0, 1]` (8-bit value / 255, no mean/std, as the
+//!   public PyTorch U-Net);
+//! - `depth`: `[B, 1, H, W]` float32 metres, `0` where missing;
+//! - `labels`: `[B, H, W]` int64 class ids `0..NUM_CLASSES` in [`CLASSES`] order, or
+//!   [`IGNORE_LABEL`] for unknown / invalid pixels (PyTorch's default `ignore_index`);
+//! - `mask`: `[B, 1, H, W]` bool, true on valid pixels (inside the fisheye image circle, depth
+//!   present, not padding).
+//!
+//! `H, W` is the network input: the stored image padded on the right / bottom (padding pixels
+//! are zeros with `mask` false), matching the `InputFrame` padding the calibrated offsets use.
+//!
+//! # On-disk data set (written by `calibconv synth`, read by [`BatchSource`] implementations)
+//!
+//! ```text
+//! DATASET/manifest.json     generator, generator_version, seed, camera, counts, splits {train,
+//!                           val, test: [ids]}, depth_scale (metres per unit), classes
+//! DATASET/camera.toml       the camera the views were rendered with (at the stored resolution)
+//! DATASET/rgb/ID.png        8-bit RGB
+//! DATASET/depth/ID.png      16-bit grey; metres = value * depth_scale; 0 = missing
+//! DATASET/labels/ID.png     8-bit grey; class id in CLASSES order; 255 = unknown
+//! DATASET/mask/ID.png       8-bit grey; 255 = valid
+//! DATASET/previews/ID.png   colourised RGB | depth | labels, for people
+//! ```
+
+use tch::Tensor;
+
+use crate::error::Result;
+
+/// The 13 Stanford 2D-3D-S classes, in the alphabetical order public loaders use for ids.
+pub const CLASSES: [&str; 13] = [
+    "beam", "board", "bookcase", "ceiling", "chair", "clutter", "column", "door", "floor", "sofa",
+    "table", "wall", "window",
+];
+
+/// Number of semantic classes (unknown excluded).
+pub const NUM_CLASSES: usize = CLASSES.len();
+
+/// Label of unknown / invalid pixels in tensors (PyTorch's default `ignore_index`).
+pub const IGNORE_LABEL: i64 = -100;
+
+/// Label of unknown pixels in label PNGs.
+pub const UNKNOWN_PNG_LABEL: u8 = 255;
+
+/// One batch, see the module docs for shapes and units.
+#[derive(Debug)]
+pub struct Batch {
+    pub image: Tensor,
+    pub depth: Tensor,
+    pub labels: Tensor,
+    pub mask: Tensor,
+    /// Sample ids, in batch order.
+    pub ids: Vec<String>,
+}
+
+/// Something that serves batches in a deterministic order per epoch.
+pub trait BatchSource {
+    /// Number of samples (not batches).
+    fn len(&self) -> usize;
+    /// Whether there are no samples.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Network input size `[H, W]` of every batch.
+    fn input_size(&self) -> [i64; 2];
+    /// The batches of `epoch`; the order depends only on the source's seed and `epoch`, so a
+    /// resumed run sees the same data order. `skip` batches at the start are not loaded.
+    fn batches(&self, epoch: u64, skip: usize) -> Box<dyn Iterator<Item = Result<Batch>> + '_>;
+}
