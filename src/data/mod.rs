@@ -28,6 +28,10 @@
 //! DATASET/previews/ID.png   colourised RGB | depth | labels, for people
 //! ```
 
+pub mod panorama;
+pub mod rng;
+pub mod views;
+
 use tch::Tensor;
 
 use crate::error::Result;
