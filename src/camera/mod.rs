@@ -116,3 +116,4 @@ pub fn load(path: impl AsRef<Path>) -> Result<Camera> {
 }
 
 mod file;
+mod write;

@@ -28,8 +28,11 @@
 //! DATASET/previews/ID.png   colourised RGB | depth | labels, for people
 //! ```
 
+pub mod format;
 pub mod panorama;
 pub mod rng;
+pub mod stanford;
+pub mod synth;
 pub mod views;
 
 use tch::Tensor;
