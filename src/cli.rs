@@ -25,6 +25,10 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
+    /// Write data sets of fisheye / perspective / rectified views (RGB, depth, labels, mask)
+    /// rendered from panoramas, procedural or Stanford 2D-3D-S, as a config describes
+    /// (default: the embedded data/synth.toml); deterministic and resumable.
+    Synth(crate::commands::synth::SynthArgs),
 }
 
 /// How the network input relates to the camera image.

@@ -4,6 +4,7 @@
 mod demo;
 mod kernels;
 mod offsets;
+pub(crate) mod synth;
 
 use std::path::Path;
 
@@ -21,6 +22,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Synth(args) => synth::run(args),
     }
 }
 

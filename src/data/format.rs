@@ -28,7 +28,7 @@ use crate::error::{Error, Result};
 pub const DEPTH_SCALE: f64 = 1e-3;
 
 /// Depth mapped to the top of the preview colour scale, in metres.
-pub const PREVIEW_MAX_DEPTH_M: f32 = 10.0;
+pub const PREVIEW_MAX_DEPTH_M: f32 = 8.0;
 
 /// Preview colour of each class, in `CLASSES` order.
 pub const CLASS_COLOURS: [[u8; 3]; NUM_CLASSES] = [
@@ -58,7 +58,7 @@ pub fn sample_path(root: &Path, dir: &str, id: &str) -> PathBuf {
 fn encode(width: usize, height: usize, bytes: &[u8], colour: ExtendedColorType) -> Vec<u8> {
     let mut out = Vec::new();
     // Fixed compression and filter settings: the same pixels always give the same bytes.
-    PngEncoder::new_with_quality(&mut out, CompressionType::Default, FilterType::Adaptive)
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
         .write_image(bytes, width as u32, height as u32, colour)
         .expect("PNG encoding into memory cannot fail for a matching buffer");
     out

@@ -62,7 +62,7 @@ use crate::data::format::{
 };
 use crate::data::panorama::{render_procedural, Panorama};
 use crate::data::rng::{tag, Rng};
-use crate::data::views::{rectified_camera, rectify, render_view, View, ViewSampling};
+use crate::data::views::{rectified_camera, RayGrid, Rectifier, View, ViewSampling};
 use crate::data::{CLASSES, UNKNOWN_PNG_LABEL};
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
@@ -611,20 +611,35 @@ pub fn sample_id(name: &str, view: usize) -> String {
     format!("{name}_v{view}")
 }
 
-/// Renders view `view` of a panorama for a set.
-pub fn render_sample(
-    plan: &SynthPlan,
-    set: &SetPlan,
-    pano: &Panorama,
-    key: u64,
-    view: usize,
-) -> Result<View> {
-    let o = plan.sampling.orientation(plan.seed, key, view as u64);
-    match &set.fisheye {
-        None => render_view(pano, &set.camera, &o, plan.supersample),
-        Some(fish) => {
-            let f = render_view(pano, fish, &o, plan.supersample)?;
-            rectify(&f, fish, &set.camera)
+/// The rays of a set's camera (and the rectification mapping), computed once per set.
+#[derive(Clone, Debug)]
+pub struct SetRenderer {
+    grid: RayGrid,
+    rectifier: Option<Rectifier>,
+}
+
+impl SetRenderer {
+    /// Precomputes the rays of `set` (the fisheye's for a rectified set).
+    pub fn new(plan: &SynthPlan, set: &SetPlan) -> Result<Self> {
+        Ok(match &set.fisheye {
+            None => SetRenderer {
+                grid: RayGrid::new(&set.camera, plan.supersample)?,
+                rectifier: None,
+            },
+            Some(fish) => SetRenderer {
+                grid: RayGrid::new(fish, plan.supersample)?,
+                rectifier: Some(Rectifier::new(fish, &set.camera)?),
+            },
+        })
+    }
+
+    /// Renders view `view` of the panorama with key `key` (see [`PanoramaSource::key`]).
+    pub fn render(&self, plan: &SynthPlan, pano: &Panorama, key: u64, view: usize) -> Result<View> {
+        let o = plan.sampling.orientation(plan.seed, key, view as u64);
+        let v = self.grid.render(pano, &o)?;
+        match &self.rectifier {
+            None => Ok(v),
+            Some(r) => r.apply(&v),
         }
     }
 }
@@ -642,6 +657,7 @@ pub struct GenerateOptions {
 pub struct SetJob {
     pub set: SetPlan,
     pub dir: PathBuf,
+    renderer: SetRenderer,
     manifest: Manifest,
     /// Per panorama index, the views still to write.
     todo: Vec<Vec<usize>>,
@@ -836,6 +852,7 @@ pub fn prepare_set(
         .collect();
     Ok(SetJob {
         set: set.clone(),
+        renderer: SetRenderer::new(plan, set)?,
         dir,
         manifest,
         todo,
@@ -875,7 +892,7 @@ pub fn run_jobs(
         let name = source.name(i);
         for job in jobs {
             for &v in &job.todo[i] {
-                let view = render_sample(plan, &job.set, &pano, source.key(i), v)?;
+                let view = job.renderer.render(plan, &pano, source.key(i), v)?;
                 let enc = encode_sample(&view, DEPTH_SCALE);
                 let id = sample_id(&name, v);
                 for (sub, bytes) in SAMPLE_DIRS.iter().zip(enc.files()) {

@@ -161,8 +161,108 @@ pub fn image_region(camera: &Camera) -> Vec<bool> {
         .collect()
 }
 
+/// The rays of every pixel (and sub-pixel) of a camera, computed once and reused for every
+/// view of a set (unprojecting a fisheye pixel takes a Newton solve).
+#[derive(Clone, Debug)]
+pub struct RayGrid {
+    width: usize,
+    height: usize,
+    supersample: usize,
+    /// Per pixel, the centre ray (row-major).
+    centre: Vec<Option<V3>>,
+    /// Per pixel, `k x k` sub-pixel rays (empty when `supersample == 1`).
+    sub: Vec<Option<V3>>,
+}
+
+impl RayGrid {
+    /// The rays of `camera` with `supersample x supersample` RGB rays per pixel at
+    /// `(u + (j + 0.5) / k - 0.5, v + (i + 0.5) / k - 0.5)`.
+    ///
+    /// # Errors
+    /// `supersample == 0`.
+    pub fn new(camera: &Camera, supersample: usize) -> Result<Self> {
+        if supersample == 0 {
+            return Err(Error::InvalidArgument("supersample must be >= 1".into()));
+        }
+        let [w, h] = camera.size();
+        let k = supersample;
+        let centre: Vec<Option<V3>> = (0..w * h)
+            .into_par_iter()
+            .map(|i| pixel_ray(camera, [(i % w) as f64, (i / w) as f64]))
+            .collect();
+        let sub: Vec<Option<V3>> = if k == 1 {
+            Vec::new()
+        } else {
+            (0..w * h * k * k)
+                .into_par_iter()
+                .map(|n| {
+                    let (i, s) = (n / (k * k), n % (k * k));
+                    let px = [
+                        (i % w) as f64 + ((s % k) as f64 + 0.5) / k as f64 - 0.5,
+                        (i / w) as f64 + ((s / k) as f64 + 0.5) / k as f64 - 0.5,
+                    ];
+                    pixel_ray(camera, px)
+                })
+                .collect()
+        };
+        Ok(RayGrid {
+            width: w,
+            height: h,
+            supersample: k,
+            centre,
+            sub,
+        })
+    }
+
+    /// Renders the view at `orientation` from `pano` (sampling rules in the module docs); rows
+    /// in parallel.
+    ///
+    /// # Errors
+    /// A panorama whose buffers do not match its size.
+    pub fn render(&self, pano: &Panorama, orientation: &Orientation) -> Result<View> {
+        pano.check()?;
+        let (w, h, k) = (self.width, self.height, self.supersample);
+        let rot = orientation.matrix();
+        let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
+            .into_par_iter()
+            .map(|v| {
+                (0..w)
+                    .map(|u| {
+                        let i = v * w + u;
+                        let centre = self.centre[i];
+                        let mut acc = [0.0f32; 3];
+                        if k == 1 {
+                            if let Some(ray) = centre {
+                                acc = pano.bilinear_rgb(pano.pixel_of(apply(&rot, ray)));
+                            }
+                        } else {
+                            for ray in self.sub[i * k * k..(i + 1) * k * k].iter().flatten() {
+                                let c = pano.bilinear_rgb(pano.pixel_of(apply(&rot, *ray)));
+                                for (a, c) in acc.iter_mut().zip(c) {
+                                    *a += c;
+                                }
+                            }
+                            acc = acc.map(|a| a / (k * k) as f32);
+                        }
+                        let rgb = acc.map(|a| a.round().clamp(0.0, 255.0) as u8);
+                        match centre {
+                            None => (rgb, 0.0, UNKNOWN_PNG_LABEL, false),
+                            Some(ray) => {
+                                let j = pano.nearest_index(pano.pixel_of(apply(&rot, ray)));
+                                let d = pano.depth[j];
+                                (rgb, d, pano.labels[j], d > 0.0)
+                            }
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(collect_view(w, h, rows))
+    }
+}
+
 /// Renders the view of `camera` at `orientation` from `pano` (sampling rules in the module
-/// docs); rows in parallel.
+/// docs). For many views of one camera, build a [`RayGrid`] once instead.
 ///
 /// # Errors
 /// `supersample == 0`, or a panorama whose buffers do not match its size.
@@ -172,55 +272,7 @@ pub fn render_view(
     orientation: &Orientation,
     supersample: usize,
 ) -> Result<View> {
-    pano.check()?;
-    if supersample == 0 {
-        return Err(Error::InvalidArgument("supersample must be >= 1".into()));
-    }
-    let [w, h] = camera.size();
-    let rot = orientation.matrix();
-    let k = supersample;
-    let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
-        .into_par_iter()
-        .map(|v| {
-            (0..w)
-                .map(|u| {
-                    let centre = pixel_ray(camera, [u as f64, v as f64]);
-                    let mut acc = [0.0f32; 3];
-                    if k == 1 {
-                        if let Some(ray) = centre {
-                            acc = pano.bilinear_rgb(pano.pixel_of(apply(&rot, ray)));
-                        }
-                    } else {
-                        for i in 0..k {
-                            for j in 0..k {
-                                let px = [
-                                    u as f64 + (j as f64 + 0.5) / k as f64 - 0.5,
-                                    v as f64 + (i as f64 + 0.5) / k as f64 - 0.5,
-                                ];
-                                if let Some(ray) = pixel_ray(camera, px) {
-                                    let c = pano.bilinear_rgb(pano.pixel_of(apply(&rot, ray)));
-                                    for c_ in 0..3 {
-                                        acc[c_] += c[c_];
-                                    }
-                                }
-                            }
-                        }
-                        acc = acc.map(|a| a / (k * k) as f32);
-                    }
-                    let rgb = acc.map(|a| a.round().clamp(0.0, 255.0) as u8);
-                    match centre {
-                        None => (rgb, 0.0, UNKNOWN_PNG_LABEL, false),
-                        Some(ray) => {
-                            let i = pano.nearest_index(pano.pixel_of(apply(&rot, ray)));
-                            let d = pano.depth[i];
-                            (rgb, d, pano.labels[i], d > 0.0)
-                        }
-                    }
-                })
-                .collect()
-        })
-        .collect();
-    Ok(collect_view(w, h, rows))
+    RayGrid::new(camera, supersample)?.render(pano, orientation)
 }
 
 fn collect_view(w: usize, h: usize, rows: Vec<Vec<([u8; 3], f32, u8, bool)>>) -> View {
@@ -282,57 +334,95 @@ pub fn rectified_camera(fisheye: &Camera, hfov_deg: Option<f64>) -> Result<Camer
     }))
 }
 
+/// The fisheye pixel each pinhole pixel samples when rectifying, computed once per camera
+/// pair (see [`rectify`]).
+#[derive(Clone, Debug)]
+pub struct Rectifier {
+    fisheye_size: [usize; 2],
+    size: [usize; 2],
+    /// Per pinhole pixel, the fisheye pixel coordinates, or `None` outside the image circle.
+    source: Vec<Option<[f64; 2]>>,
+}
+
+impl Rectifier {
+    /// The mapping from `pinhole` pixels to `fisheye` pixels.
+    ///
+    /// # Errors
+    /// `fisheye` is not a fisheye with FOV < 180 deg, or `pinhole` is not a pinhole.
+    pub fn new(fisheye: &Camera, pinhole: &Camera) -> Result<Self> {
+        rectified_camera(fisheye, None)?; // the same checks on the fisheye
+        if !matches!(pinhole, Camera::Pinhole(_)) {
+            return Err(Error::InvalidArgument(
+                "rectification target must be a pinhole camera".into(),
+            ));
+        }
+        let max = max_ray_angle(fisheye).expect("fisheye");
+        let [w, h] = pinhole.size();
+        let source = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let ray = pinhole.unproject([(i % w) as f64, (i / w) as f64])?;
+                if ray[2].clamp(-1.0, 1.0).acos() > max {
+                    return None;
+                }
+                fisheye.project(ray)
+            })
+            .collect();
+        Ok(Rectifier {
+            fisheye_size: fisheye.size(),
+            size: [w, h],
+            source,
+        })
+    }
+
+    /// Re-projects a fisheye view (see [`rectify`]).
+    ///
+    /// # Errors
+    /// The view does not have the fisheye's size.
+    pub fn apply(&self, view: &View) -> Result<View> {
+        let [fw, fh] = self.fisheye_size;
+        if [view.width, view.height] != [fw, fh] {
+            return Err(Error::InvalidArgument(format!(
+                "view is {}x{}, the fisheye camera {}x{}",
+                view.width, view.height, fw, fh
+            )));
+        }
+        let [w, h] = self.size;
+        let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
+            .into_par_iter()
+            .map(|v| {
+                (0..w)
+                    .map(|u| {
+                        let outside = ([0u8; 3], 0.0, UNKNOWN_PNG_LABEL, false);
+                        let Some(px) = self.source[v * w + u] else {
+                            return outside;
+                        };
+                        let (nu, nv) = (px[0].round(), px[1].round());
+                        if nu < 0.0 || nv < 0.0 || nu >= fw as f64 || nv >= fh as f64 {
+                            return outside;
+                        }
+                        let ni = nv as usize * fw + nu as usize;
+                        let rgb = bilinear_clamped(&view.rgb, fw, fh, px);
+                        (rgb, view.depth[ni], view.labels[ni], view.mask[ni])
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(collect_view(w, h, rows))
+    }
+}
+
 /// Re-projects a fisheye `view` (rendered with `fisheye`) to `pinhole`: each pinhole pixel's
 /// ray is projected into the fisheye image; RGB is bilinear there (clamped at the border),
 /// depth, label and mask nearest. Pinhole pixels whose ray leaves the fisheye's image circle
-/// are outside the image (black, depth 0, unknown, mask false).
+/// are outside the image (black, depth 0, unknown, mask false). For many views of one camera
+/// pair, build a [`Rectifier`] once instead.
 ///
 /// # Errors
 /// `fisheye` is not a fisheye with FOV < 180 deg, `pinhole` is not a pinhole, or the view does
 /// not have the fisheye's size.
 pub fn rectify(view: &View, fisheye: &Camera, pinhole: &Camera) -> Result<View> {
-    rectified_camera(fisheye, None)?; // the same checks on the fisheye
-    if !matches!(pinhole, Camera::Pinhole(_)) {
-        return Err(Error::InvalidArgument(
-            "rectification target must be a pinhole camera".into(),
-        ));
-    }
-    let [fw, fh] = fisheye.size();
-    if [view.width, view.height] != [fw, fh] {
-        return Err(Error::InvalidArgument(format!(
-            "view is {}x{}, the fisheye camera {}x{}",
-            view.width, view.height, fw, fh
-        )));
-    }
-    let max = max_ray_angle(fisheye).expect("fisheye");
-    let [w, h] = pinhole.size();
-    let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
-        .into_par_iter()
-        .map(|v| {
-            (0..w)
-                .map(|u| {
-                    let outside = ([0u8; 3], 0.0, UNKNOWN_PNG_LABEL, false);
-                    let Some(ray) = pinhole.unproject([u as f64, v as f64]) else {
-                        return outside;
-                    };
-                    if ray[2].clamp(-1.0, 1.0).acos() > max {
-                        return outside;
-                    }
-                    let Some(px) = fisheye.project(ray) else {
-                        return outside;
-                    };
-                    let (nu, nv) = (px[0].round(), px[1].round());
-                    if nu < 0.0 || nv < 0.0 || nu >= fw as f64 || nv >= fh as f64 {
-                        return outside;
-                    }
-                    let ni = nv as usize * fw + nu as usize;
-                    let rgb = bilinear_clamped(&view.rgb, fw, fh, px);
-                    (rgb, view.depth[ni], view.labels[ni], view.mask[ni])
-                })
-                .collect()
-        })
-        .collect();
-    Ok(collect_view(w, h, rows))
+    Rectifier::new(fisheye, pinhole)?.apply(view)
 }
 
 /// Bilinear RGB with coordinates clamped to the image.

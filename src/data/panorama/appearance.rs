@@ -80,6 +80,27 @@ pub fn fbm(seed: u64, p: [f64; 3], freq: f64) -> f32 {
     (a * 0.67 + b * 0.33).clamp(0.0, 1.0)
 }
 
+/// The fraction of the interval `[x - fp / 2, x + fp / 2]` covered by the lines
+/// `[k period, k period + width]` (a pulse train box-filtered over a pixel footprint `fp`):
+/// with `C(y) = floor(y / P) w + min(y - floor(y / P) P, w)` the covered length below `y`,
+/// the coverage is `(C(x + fp / 2) - C(x - fp / 2)) / fp`; a point sample when `fp` is tiny.
+pub fn line_coverage(x: f64, period: f64, width: f64, fp: f64) -> f32 {
+    let covered = |y: f64| {
+        let k = (y / period).floor();
+        k * width + (y - k * period).min(width)
+    };
+    if fp < 1e-9 {
+        let r = x - (x / period).floor() * period;
+        return if r < width { 1.0 } else { 0.0 };
+    }
+    ((covered(x + fp / 2.0) - covered(x - fp / 2.0)) / fp).clamp(0.0, 1.0) as f32
+}
+
+/// Coverage of a grid of lines from the coverages along its two directions (independent).
+fn grid_coverage(a: f32, b: f32) -> f32 {
+    1.0 - (1.0 - a) * (1.0 - b)
+}
+
 /// How a material varies over its surface.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Pattern {
@@ -93,8 +114,9 @@ pub enum Pattern {
     Planks { width: f32, length: f32 },
     /// Fine isotropic noise (carpet, fabric).
     Fabric { freq: f32, amp: f32 },
-    /// Running-bond bricks (0.25 x 0.075 m) in `base` with `alt` mortar.
-    Brick,
+    /// Running-bond concrete blocks (0.4 x 0.2 m, as the painted block walls of university
+    /// buildings) in `base` with `alt` mortar.
+    Blocks,
     /// Books standing in a shelf compartment of half height `half_height` (local y): slots of
     /// 3-5 cm along local x with colours from a palette, `alt` behind and above them.
     Books { half_height: f32 },
@@ -139,13 +161,18 @@ impl Material {
         }
     }
 
-    /// The surface at a hit (see the module docs for the `(s, t)` coordinates).
-    pub fn surface(&self, hit: &Hit) -> Surface {
+    /// The surface at a hit (see the module docs for the `(s, t)` coordinates). `footprint`
+    /// is the width of the pixel on the surface, metres: thin periodic lines (grout, mortar,
+    /// plank gaps, mullions, strokes) are box-filtered with [`line_coverage`] over twice that
+    /// (the usual margin for a texture that view synthesis resamples again), so distant and
+    /// grazing textures average out instead of aliasing into moire.
+    pub fn surface(&self, hit: &Hit, footprint: f64) -> Surface {
+        let fp = 2.0 * footprint;
         // Textures with a grid (tiles, planks, bricks) are shifted by a per-material offset,
         // or every grout line through the origin would pass exactly under the camera.
         let off = |k: u64| (hash(self.seed, &[k]) >> 11) as f64 / (1u64 << 53) as f64 * 8.0;
         let p = match self.pattern {
-            Pattern::Tiles { .. } | Pattern::Planks { .. } | Pattern::Brick => [
+            Pattern::Tiles { .. } | Pattern::Planks { .. } | Pattern::Blocks => [
                 hit.local[0] + off(0),
                 hit.local[1] + off(1),
                 hit.local[2] + off(2),
@@ -179,13 +206,14 @@ impl Material {
             } => {
                 let (size, grout) = (size as f64, grout as f64);
                 let (fs, ft) = ((s / size).floor(), (t / size).floor());
-                let (us, ut) = (s - fs * size, t - ft * size);
-                if us < grout || ut < grout {
-                    return dull(self.alt);
-                }
+                let cov = grid_coverage(
+                    line_coverage(s, size, grout, fp),
+                    line_coverage(t, size, grout, fp),
+                );
                 let tone = lattice(seed, fs as i64, ft as i64, 7) - 0.5;
                 let n = fbm(seed, p, 6.0) - 0.5;
-                dull(tint(self.base, 1.0 + 2.0 * jitter * tone + 0.12 * n))
+                let tile = tint(self.base, 1.0 + 2.0 * jitter * tone + 0.12 * n);
+                dull(mix(tile, self.alt, cov))
             }
             Pattern::Planks { width, length } => {
                 let (width, length) = (width as f64, length as f64);
@@ -193,21 +221,22 @@ impl Material {
                 // Staggered plank ends: each row shifts by a random fraction of a length.
                 let shift = lattice(seed, row as i64, 0, 3) as f64 * length;
                 let col = ((s + shift) / length).floor();
-                let (ut, us) = (t - row * width, s + shift - col * length);
-                if ut < 0.004 || us < 0.004 {
-                    return dull(tint(self.base, 0.55));
-                }
+                let gap = grid_coverage(
+                    line_coverage(t, width, 0.004, fp),
+                    line_coverage(s + shift, length, 0.004, fp),
+                );
                 let tone = lattice(seed, row as i64, col as i64, 5) - 0.5;
                 // Grain: noise stretched along the plank.
                 let g = value_noise(seed ^ 9, [s * 3.0, t * 60.0, row]) - 0.5;
-                dull(mix(
+                let wood = mix(
                     tint(self.base, 1.0 + 0.35 * tone),
                     self.alt,
                     (0.5 + g).clamp(0.0, 1.0) * 0.45,
-                ))
+                );
+                dull(mix(wood, tint(self.base, 0.55), gap))
             }
-            Pattern::Brick => {
-                let (bw, bh, m) = (0.25, 0.075, 0.01);
+            Pattern::Blocks => {
+                let (bw, bh, m) = (0.4, 0.2, 0.012);
                 let course = (t / bh).floor();
                 let off = if course as i64 % 2 == 0 {
                     0.0
@@ -215,12 +244,12 @@ impl Material {
                     bw / 2.0
                 };
                 let col = ((s + off) / bw).floor();
-                let (us, ut) = (s + off - col * bw, t - course * bh);
-                if us < m || ut < m {
-                    return dull(self.alt);
-                }
+                let cov = grid_coverage(
+                    line_coverage(s + off, bw, m, fp),
+                    line_coverage(t, bh, m, fp),
+                );
                 let tone = lattice(seed, col as i64, course as i64, 11) - 0.5;
-                dull(tint(self.base, 1.0 + 0.4 * tone))
+                dull(mix(tint(self.base, 1.0 + 0.12 * tone), self.alt, cov))
             }
             Pattern::Books { half_height } => {
                 let slot_w = 0.04;
@@ -261,36 +290,35 @@ impl Material {
                 let row = (t / line_h).floor();
                 let y = t - row * line_h;
                 let wiggle = 0.012 * (s * 55.0 + row).sin() * (s * 13.0).cos();
-                let inked = lattice(seed, row as i64, 0, 17) < 0.55
-                    && value_noise(seed, [s * 6.0, row, 0.0]) > 0.45
-                    && (y - line_h / 2.0 - wiggle).abs() < 0.005;
-                let smudge = fbm(seed ^ 3, p, 3.0) - 0.5;
-                if inked {
-                    dull(self.alt)
+                let written = lattice(seed, row as i64, 0, 17) < 0.55
+                    && value_noise(seed, [s * 6.0, row, 0.0]) > 0.45;
+                // A 1 cm stroke centred in its line, filtered over the footprint.
+                let ink = if written {
+                    line_coverage(y - line_h / 2.0 - wiggle + 0.005, line_h, 0.01, fp)
                 } else {
-                    dull(tint(self.base, 1.0 + 0.1 * smudge))
-                }
+                    0.0
+                };
+                let smudge = fbm(seed ^ 3, p, 3.0) - 0.5;
+                dull(mix(tint(self.base, 1.0 + 0.1 * smudge), self.alt, ink))
             }
             Pattern::Window { half, panes } => {
                 let (lx, ly) = (p[0], p[1]);
-                let border = 0.05;
-                let mullion = 0.025;
+                // Frame bars 6 cm wide centred on the pane edges (so 3 cm of border): lines
+                // at -h + k 2h / n for k = 0..=n, filtered over the footprint.
+                let bar = 0.06;
                 let (hx, hy) = (half[0] as f64, half[1] as f64);
-                let on_border = hx - lx.abs() < border || hy - ly.abs() < border;
-                let near_line = |v: f64, h: f64, n: u8| {
-                    (1..n).any(|i| (v - (-h + 2.0 * h * i as f64 / n as f64)).abs() < mullion)
+                let bars = |v: f64, h: f64, n: u8| {
+                    line_coverage(v + h + bar / 2.0, 2.0 * h / n as f64, bar, fp)
                 };
-                if on_border || near_line(lx, hx, panes[0]) || near_line(ly, hy, panes[1]) {
-                    return dull(self.alt);
-                }
+                let cov = grid_coverage(bars(lx, hx, panes[0]), bars(ly, hy, panes[1]));
                 // Sky: brighter and bluer towards the top (local y grows downwards), clouds.
                 let up = (0.5 - ly / (2.0 * hy)) as f32;
                 let cloud = fbm(seed, p, 1.2);
                 let sky = mix(srgb(200, 215, 230), srgb(120, 160, 215), up);
                 let c = mix(sky, [1.0; 3], (cloud - 0.45).max(0.0) * 1.5);
                 Surface {
-                    albedo: [0.04; 3],
-                    emission: tint(c, 1.6),
+                    albedo: mix([0.04; 3], self.alt, cov),
+                    emission: tint(c, 1.6 * (1.0 - cov)),
                 }
             }
             Pattern::Light { half } => {
@@ -344,6 +372,22 @@ mod tests {
         // Smoothstep interpolation: slope <= 1.5 per lattice cell, so a 1e-3 step moves < 2e-3.
         assert!(max_step < 2e-3, "{max_step}");
         assert_ne!(value_noise(1, [0.5; 3]), value_noise(2, [0.5; 3]));
+    }
+
+    #[test]
+    fn line_coverage_is_the_box_filtered_pulse_train() {
+        // Point samples.
+        assert_eq!(line_coverage(0.05, 1.0, 0.1, 0.0), 1.0);
+        assert_eq!(line_coverage(0.5, 1.0, 0.1, 0.0), 0.0);
+        // A footprint of several periods sees the duty cycle width / period.
+        let c = line_coverage(0.37, 1.0, 0.1, 10.0);
+        assert!((c - 0.1).abs() < 1e-6, "{c}");
+        // Half of a line inside a footprint of one line width.
+        let c = line_coverage(0.1, 1.0, 0.1, 0.1);
+        assert!((c - 0.5).abs() < 1e-6, "{c}");
+        // Negative coordinates tile the same way.
+        let c = line_coverage(-0.95, 1.0, 0.1, 0.0);
+        assert_eq!(c, 1.0);
     }
 
     #[test]

@@ -207,7 +207,7 @@ pub fn render(scene: &Scene, height: usize) -> Panorama {
             (0..width)
                 .map(|u| {
                     let dir = Panorama::direction(width, height, u as f64, v as f64);
-                    let s = scene.sample(dir);
+                    let s = scene.sample(dir, PI / height as f64);
                     let i = v * width + u;
                     // Dither in [-1, 1] levels, a function of the scene and the pixel only.
                     let d = (hash(scene.seed, &[i as u64]) >> 40) as f32 / (1u64 << 24) as f32;
@@ -315,7 +315,7 @@ mod tests {
             assert!(pano.depth.iter().all(|&d| d > 0.0 && d < 40.0), "{index}");
             let h = scene.camera_height;
             // The ray straight down hits the floor at exactly the camera height.
-            let down = scene.sample([0.0, 1.0, 0.0]);
+            let down = scene.sample([0.0, 1.0, 0.0], 0.0);
             assert_eq!(down.class, scene::class::FLOOR, "{index}");
             assert!(
                 (down.depth - h).abs() < 1e-12,
@@ -336,7 +336,7 @@ mod tests {
                 );
             }
             // Straight up is the ceiling (or a beam / light panel hung from it).
-            let up = scene.sample([0.0, -1.0, 0.0]);
+            let up = scene.sample([0.0, -1.0, 0.0], 0.0);
             let room_top = scene.room_height - h;
             assert!(
                 up.depth <= room_top + 1e-9 && up.depth > room_top - 0.7,

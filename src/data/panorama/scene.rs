@@ -215,9 +215,10 @@ impl Scene {
         false
     }
 
-    /// What the camera sees along the unit direction `dir` (shading in the module docs of
-    /// [`super::appearance`]).
-    pub fn sample(&self, dir: V3) -> Sample {
+    /// What the camera sees along the unit direction `dir`, for a pixel `pixel_angle` radians
+    /// wide (textures are filtered over its footprint `t pixel_angle / max(|n . d|, 0.1)`;
+    /// shading in the module docs of [`super::appearance`]).
+    pub fn sample(&self, dir: V3, pixel_angle: f64) -> Sample {
         let ray = Ray::new([0.0; 3], dir);
         let Some((hit, i)) = self.trace(&ray) else {
             return Sample {
@@ -227,7 +228,8 @@ impl Scene {
             };
         };
         let prim = &self.prims[i];
-        let surf = self.materials[prim.material as usize].surface(&hit);
+        let footprint = hit.t * pixel_angle / dot(hit.n, dir).abs().max(0.1);
+        let surf = self.materials[prim.material as usize].surface(&hit, footprint);
         let p = ray.at(hit.t);
         let n = hit.n;
         let up = -n[1] as f32;
@@ -673,9 +675,9 @@ impl Builder {
             r,
             0.05,
         );
-        let wall = if r.chance(0.1) {
-            let brick = *r.pick(&[srgb(150, 72, 52), srgb(190, 172, 150)]);
-            self.material(brick, srgb(200, 196, 186), Pattern::Brick)
+        let wall = if r.chance(0.2) {
+            // Painted concrete blocks: the wall colour with slightly darker mortar.
+            self.material(wall_colour, tint(wall_colour, 0.8), Pattern::Blocks)
         } else {
             self.plain(wall_colour, 0.06)
         };
