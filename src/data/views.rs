@@ -120,6 +120,9 @@ impl ViewSampling {
     }
 }
 
+/// One view pixel: RGB, depth, label, mask.
+type ViewPixel = ([u8; 3], f32, u8, bool);
+
 /// An image rendered for a camera: row-major buffers of `height` rows of `width` pixels.
 #[derive(Clone, Debug, PartialEq)]
 pub struct View {
@@ -223,7 +226,7 @@ impl RayGrid {
         pano.check()?;
         let (w, h, k) = (self.width, self.height, self.supersample);
         let rot = orientation.matrix();
-        let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
+        let rows: Vec<Vec<ViewPixel>> = (0..h)
             .into_par_iter()
             .map(|v| {
                 (0..w)
@@ -275,7 +278,7 @@ pub fn render_view(
     RayGrid::new(camera, supersample)?.render(pano, orientation)
 }
 
-fn collect_view(w: usize, h: usize, rows: Vec<Vec<([u8; 3], f32, u8, bool)>>) -> View {
+fn collect_view(w: usize, h: usize, rows: Vec<Vec<ViewPixel>>) -> View {
     let mut view = View {
         width: w,
         height: h,
@@ -388,7 +391,7 @@ impl Rectifier {
             )));
         }
         let [w, h] = self.size;
-        let rows: Vec<Vec<([u8; 3], f32, u8, bool)>> = (0..h)
+        let rows: Vec<Vec<ViewPixel>> = (0..h)
             .into_par_iter()
             .map(|v| {
                 (0..w)
@@ -433,13 +436,11 @@ fn bilinear_clamped(rgb: &[[u8; 3]], w: usize, h: usize, px: [f64; 2]) -> [u8; 3
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (wx, wy) = ((x - x0 as f64) as f32, (y - y0 as f64) as f32);
     let p = |xx: usize, yy: usize| rgb[yy * w + xx];
-    let mut out = [0u8; 3];
-    for k in 0..3 {
+    [0, 1, 2].map(|k| {
         let a = p(x0, y0)[k] as f32 * (1.0 - wx) + p(x1, y0)[k] as f32 * wx;
         let b = p(x0, y1)[k] as f32 * (1.0 - wx) + p(x1, y1)[k] as f32 * wx;
-        out[k] = (a * (1.0 - wy) + b * wy).round().clamp(0.0, 255.0) as u8;
-    }
-    out
+        (a * (1.0 - wy) + b * wy).round().clamp(0.0, 255.0) as u8
+    })
 }
 
 #[cfg(test)]

@@ -41,6 +41,12 @@ use crate::error::{Error, Result};
 use geometry::V3;
 use scene::Scene;
 
+/// One rendered pixel: RGB, depth, label.
+type PanoPixel = ([u8; 3], f32, u8);
+
+/// One downsampled row: RGB, depth and label buffers.
+type PanoRow = (Vec<[u8; 3]>, Vec<f32>, Vec<u8>);
+
 /// An equirectangular panorama with per-pixel colour, distance and class (row-major,
 /// `height` rows of `width` pixels).
 #[derive(Clone, Debug, PartialEq)]
@@ -145,7 +151,8 @@ impl Panorama {
     /// `factor x factor` block (anti-aliasing), depth and label are the block's pixel nearest
     /// to its centre (`(factor / 2, factor / 2)`, never blending across object edges).
     pub fn downsample(&self, factor: usize) -> Result<Panorama> {
-        if factor == 0 || self.width % factor != 0 || self.height % factor != 0 {
+        if factor == 0 || !self.width.is_multiple_of(factor) || !self.height.is_multiple_of(factor)
+        {
             return Err(Error::InvalidArgument(format!(
                 "cannot downsample a {}x{} panorama by {factor}",
                 self.width, self.height
@@ -155,7 +162,7 @@ impl Panorama {
             return Ok(self.clone());
         }
         let (w, h) = (self.width / factor, self.height / factor);
-        let rows: Vec<(Vec<[u8; 3]>, Vec<f32>, Vec<u8>)> = (0..h)
+        let rows: Vec<PanoRow> = (0..h)
             .into_par_iter()
             .map(|r| {
                 let mut rgb = Vec::with_capacity(w);
@@ -201,7 +208,7 @@ impl Panorama {
 /// parallel.
 pub fn render(scene: &Scene, height: usize) -> Panorama {
     let width = 2 * height;
-    let rows: Vec<Vec<(usize, [u8; 3], f32, u8)>> = (0..height)
+    let rows: Vec<Vec<(usize, PanoPixel)>> = (0..height)
         .into_par_iter()
         .map(|v| {
             (0..width)
@@ -217,7 +224,7 @@ pub fn render(scene: &Scene, height: usize) -> Panorama {
                     } else {
                         UNKNOWN_PNG_LABEL
                     };
-                    (i, rgb, s.depth as f32, label)
+                    (i, (rgb, s.depth as f32, label))
                 })
                 .collect()
         })
@@ -230,7 +237,7 @@ pub fn render(scene: &Scene, height: usize) -> Panorama {
         depth: vec![0.0; n],
         labels: vec![UNKNOWN_PNG_LABEL; n],
     };
-    for (i, rgb, depth, label) in rows.into_iter().flatten() {
+    for (i, (rgb, depth, label)) in rows.into_iter().flatten() {
         pano.rgb[i] = rgb;
         pano.depth[i] = depth;
         pano.labels[i] = label;

@@ -455,6 +455,7 @@ impl Builder {
         );
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn cylinder(
         &mut self,
         frame: &Frame,
