@@ -7,9 +7,14 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use std::time::Instant;
+
+use rayon::prelude::*;
+
 use calibconv::camera::CameraModel;
 use calibconv::data::synth::{
-    prepare_set, run_jobs, GenerateOptions, RawSet, RawSynthConfig, SourceKind, ViewKind,
+    prepare_set, run_jobs, GenerateOptions, PanoramaSource, RawSet, RawSynthConfig, SetRenderer,
+    SourceKind, SynthPlan, ViewKind,
 };
 
 /// Flags of `calibconv synth`; each one overrides the configuration.
@@ -68,6 +73,10 @@ pub struct SynthArgs {
     /// Print what would be written and exit.
     #[arg(long)]
     pub dry_run: bool,
+    /// Only measure, writing nothing: load or render the panoramas (in parallel, as synth
+    /// does) and print panoramas/s, then render views of each set from them and print views/s.
+    #[arg(long)]
+    pub bench: bool,
 }
 
 /// The configuration with the flags applied.
@@ -155,6 +164,9 @@ pub fn run(args: SynthArgs) -> Result<()> {
     let (raw, path) = configure(&args)?;
     let plan = raw.resolve(&path)?;
     let source = plan.open_source()?;
+    if args.bench {
+        return bench(&plan, source.as_ref());
+    }
     let options = GenerateOptions { force: args.force };
     let mut jobs = Vec::new();
     for set in &plan.sets {
@@ -213,6 +225,44 @@ pub fn run(args: SynthArgs) -> Result<()> {
             report.seconds,
             report.panoramas as f64 / report.seconds,
             report.written as f64 / report.seconds
+        );
+    }
+    Ok(())
+}
+
+/// `--bench`: panoramas/s, then views/s per set, nothing written.
+fn bench(plan: &SynthPlan, source: &dyn PanoramaSource) -> Result<()> {
+    let n = source.len();
+    let start = Instant::now();
+    let panos = (0..n)
+        .into_par_iter()
+        .map(|i| source.load(i))
+        .collect::<calibconv::Result<Vec<_>>>()?;
+    let secs = start.elapsed().as_secs_f64();
+    let (w, h) = (panos[0].width, panos[0].height);
+    println!(
+        "{n} panoramas {w}x{h} ({}) in {secs:.2} s: {:.2} panoramas/s ({} threads)",
+        source.describe(),
+        n as f64 / secs,
+        rayon::current_num_threads()
+    );
+    for set in &plan.sets {
+        let renderer = SetRenderer::new(plan, set)?;
+        let views = n * plan.per_panorama;
+        let start = Instant::now();
+        for (i, pano) in panos.iter().enumerate() {
+            for v in 0..plan.per_panorama {
+                renderer.render(plan, pano, source.key(i), v)?;
+            }
+        }
+        let secs = start.elapsed().as_secs_f64();
+        let [cw, ch] = set.camera.size();
+        println!(
+            "{}: {views} {} views {cw}x{ch} (supersample {}) in {secs:.2} s: {:.1} views/s",
+            set.name,
+            set.kind.as_str(),
+            plan.supersample,
+            views as f64 / secs
         );
     }
     Ok(())

@@ -76,9 +76,13 @@ pub const UNKNOWN_PNG_LABEL: u8 = 255;
 /// One batch, see the module docs for shapes and units.
 #[derive(Debug)]
 pub struct Batch {
+    /// `[B, 3, H, W]` float32 RGB in `[0, 1]`.
     pub image: Tensor,
+    /// `[B, 1, H, W]` float32 metres, 0 where missing.
     pub depth: Tensor,
+    /// `[B, H, W]` int64 class ids or [`IGNORE_LABEL`].
     pub labels: Tensor,
+    /// `[B, 1, H, W]` bool, true on valid pixels.
     pub mask: Tensor,
     /// Sample ids, in batch order.
     pub ids: Vec<String>,
