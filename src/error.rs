@@ -36,7 +36,12 @@ pub enum Error {
     /// manifest from another generator version...); `message` names the field where there is
     /// one.
     #[error("{path}: {message}")]
-    Data { path: PathBuf, message: String },
+    Data {
+        /// The offending file (or folder).
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
 }
 
 /// Result with the library's [`Error`].

@@ -67,10 +67,15 @@ fn encode(width: usize, height: usize, bytes: &[u8], colour: ExtendedColorType) 
 /// The five PNG files of one sample, encoded (see the module docs).
 #[derive(Clone, Debug, PartialEq)]
 pub struct EncodedSample {
+    /// `rgb/ID.png`.
     pub rgb: Vec<u8>,
+    /// `depth/ID.png`.
     pub depth: Vec<u8>,
+    /// `labels/ID.png`.
     pub labels: Vec<u8>,
+    /// `mask/ID.png`.
     pub mask: Vec<u8>,
+    /// `previews/ID.png`.
     pub preview: Vec<u8>,
 }
 
@@ -294,8 +299,11 @@ pub fn read_mask(path: &Path, size: [usize; 2]) -> Result<Vec<bool>> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Split {
+    /// Training samples.
     Train,
+    /// Validation samples (model selection).
     Val,
+    /// Held-out test samples (Stanford: area 5).
     Test,
 }
 
@@ -327,8 +335,11 @@ impl std::fmt::Display for Split {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Splits {
+    /// Training ids.
     pub train: Vec<String>,
+    /// Validation ids.
     pub val: Vec<String>,
+    /// Test ids.
     pub test: Vec<String>,
 }
 
@@ -352,11 +363,17 @@ impl Splits {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Counts {
+    /// Panoramas the views come from.
     pub panoramas: usize,
+    /// Views rendered per panorama.
     pub views_per_panorama: usize,
+    /// All samples (`panoramas x views_per_panorama`).
     pub samples: usize,
+    /// Samples in the train split.
     pub train: usize,
+    /// Samples in the val split.
     pub val: usize,
+    /// Samples in the test split.
     pub test: usize,
 }
 
@@ -375,6 +392,7 @@ pub struct Manifest {
     pub name: String,
     /// `pers`, `fisheye` or `rectified`.
     pub kind: String,
+    /// The seed of scenes, orientations and splits.
     pub seed: u64,
     /// The camera file of the stored images, relative to the data set folder (`camera.toml`).
     pub camera: String,
@@ -384,6 +402,7 @@ pub struct Manifest {
     pub panorama_source: String,
     /// Stored image size, pixels.
     pub width: usize,
+    /// Stored image height, pixels.
     pub height: usize,
     /// Metres per unit of the depth PNGs.
     pub depth_scale: f64,
@@ -391,7 +410,9 @@ pub struct Manifest {
     pub classes: Vec<String>,
     /// Label PNG value of unknown pixels.
     pub unknown_label: u8,
+    /// Sample counts.
     pub counts: Counts,
+    /// Sample ids per split.
     pub splits: Splits,
     /// The generator's resolved settings.
     pub config: serde_json::Value,

@@ -102,12 +102,14 @@ impl Default for ColorJitter {
 pub struct Augment {
     /// Flip horizontally with probability 1/2 (needs a centred principal point).
     pub hflip: bool,
+    /// Photometric jitter, if any.
     pub jitter: Option<ColorJitter>,
 }
 
 /// How a [`Dataset`] serves batches.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LoaderConfig {
+    /// Samples per batch.
     pub batch_size: usize,
     /// Seeds the shuffle and the augmentations.
     pub seed: u64,
@@ -115,7 +117,9 @@ pub struct LoaderConfig {
     pub shuffle: bool,
     /// Drop a last, incomplete batch.
     pub drop_last: bool,
+    /// The network input size.
     pub input: InputSize,
+    /// Augmentations.
     pub augment: Augment,
     /// Batches assembled ahead of the consumer (at least 1).
     pub prefetch: usize,
@@ -138,12 +142,15 @@ impl Default for LoaderConfig {
 /// One stored sample, decoded (row-major, stored size).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Sample {
+    /// The sample id.
     pub id: String,
+    /// 8-bit RGB.
     pub rgb: Vec<[u8; 3]>,
     /// Metres, 0 = missing.
     pub depth: Vec<f32>,
     /// Class ids or `UNKNOWN_PNG_LABEL`.
     pub labels: Vec<u8>,
+    /// Valid pixels.
     pub mask: Vec<bool>,
 }
 

@@ -10,7 +10,7 @@
 //! - [`views`]: fisheye, perspective and rectified views of a panorama for any camera, at
 //!   random orientations, with a validity mask;
 //! - [`synth`]: `calibconv synth`: data set folders (below), deterministic and resumable;
-//! - [`format`]: the PNG encodings and the manifest of those folders;
+//! - [`format`](mod@format): the PNG encodings and the manifest of those folders;
 //! - [`loader`]: a folder served as [`Batch`]es ([`loader::Dataset`] implements
 //!   [`BatchSource`]);
 //! - [`rng`]: the seeded generator everything random goes through.

@@ -49,6 +49,7 @@ pub const FOLD1_TEST_AREAS: [&str; 3] = ["area_5", "area_5a", "area_5b"];
 /// `semantic_labels.json`: the class id (or unknown) of every semantic index.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SemanticLabels {
+    /// The file the list was read from.
     pub path: PathBuf,
     /// Per index: a class id in `CLASSES` order or [`UNKNOWN_PNG_LABEL`].
     pub classes: Vec<u8>,
@@ -112,8 +113,11 @@ pub struct StanfordPano {
     pub area: String,
     /// The file name without `_rgb.png` (and `_frame_equirectangular_domain`).
     pub stem: String,
+    /// `pano/rgb/..._rgb.png`.
     pub rgb: PathBuf,
+    /// `pano/depth/..._depth.png`.
     pub depth: PathBuf,
+    /// `pano/semantic/..._semantic.png`.
     pub semantic: PathBuf,
 }
 
@@ -132,8 +136,11 @@ impl StanfordPano {
 /// A Stanford 2D-3D-S tree: the label list and every panorama, sorted by area then file name.
 #[derive(Clone, Debug)]
 pub struct Stanford {
+    /// The dataset root.
     pub root: PathBuf,
+    /// The decoded label list.
     pub labels: SemanticLabels,
+    /// Every panorama, sorted.
     pub panoramas: Vec<StanfordPano>,
 }
 

@@ -82,8 +82,10 @@ pub const DEFAULT_CONFIG: &str = include_str!("../../data/synth.toml");
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SourceKind {
+    /// Rendered by [`crate::data::panorama`].
     #[default]
     Procedural,
+    /// Read from a Stanford 2D-3D-S copy.
     Stanford,
 }
 
@@ -128,8 +130,11 @@ impl std::str::FromStr for ViewKind {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawSplit {
+    /// Fraction of panoramas for training.
     pub train: f64,
+    /// Fraction for validation.
     pub val: f64,
+    /// Fraction for testing (procedural only).
     pub test: f64,
 }
 
@@ -147,13 +152,19 @@ impl Default for RawSplit {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawPanoramas {
+    /// Where panoramas come from.
     #[serde(default)]
     pub source: SourceKind,
+    /// Procedural: how many; Stanford: 0 = all, N = an evenly spaced subset.
     pub count: usize,
+    /// Panorama height in pixels (width = 2 height).
     pub height: usize,
+    /// Split fractions.
     #[serde(default)]
     pub split: RawSplit,
+    /// Stanford 2D-3D-S root (source = "stanford").
     pub stanford_root: Option<PathBuf>,
+    /// Its label list (default: ROOT/assets/semantic_labels.json).
     pub stanford_labels: Option<PathBuf>,
 }
 
@@ -161,9 +172,13 @@ pub struct RawPanoramas {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawViews {
+    /// Views per panorama and set.
     pub per_panorama: usize,
+    /// Pitch is uniform in `[-max, max]`, degrees.
     pub pitch_max_deg: f64,
+    /// Roll is uniform in `[-max, max]`, degrees.
     pub roll_max_deg: f64,
+    /// `k x k` RGB rays per pixel.
     pub supersample: usize,
 }
 
@@ -183,10 +198,15 @@ impl Default for RawViews {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawSet {
+    /// Folder name.
     pub name: String,
+    /// What the images are.
     pub kind: ViewKind,
+    /// Camera file (the fisheye for `rectified`).
     pub camera: PathBuf,
+    /// Stored image width, pixels.
     pub width: usize,
+    /// Rectified only: the pinhole's horizontal field of view, degrees.
     pub rectify_hfov_deg: Option<f64>,
 }
 
@@ -195,11 +215,16 @@ pub struct RawSet {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RawSynthConfig {
+    /// Seed of scenes, orientations and splits.
     pub seed: u64,
+    /// Output root: each set goes to `out/name`.
     pub out: PathBuf,
+    /// `[panoramas]`.
     pub panoramas: RawPanoramas,
+    /// `[views]`.
     #[serde(default)]
     pub views: RawViews,
+    /// The `[[set]]`s.
     #[serde(rename = "set")]
     pub sets: Vec<RawSet>,
 }
@@ -412,17 +437,26 @@ impl RawSynthConfig {
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SourceSpec {
+    /// Procedural panoramas.
     Procedural {
+        /// How many.
         count: usize,
+        /// Height in pixels.
         height: usize,
+        /// Split fractions.
         split: RawSplit,
     },
+    /// Stanford 2D-3D-S panoramas.
     Stanford {
+        /// Dataset root.
         root: PathBuf,
+        /// Label list.
         labels: PathBuf,
         /// 0 = all.
         count: usize,
+        /// Height in pixels.
         height: usize,
+        /// Validation fraction of the non-test areas.
         val: f64,
     },
 }
@@ -430,7 +464,9 @@ pub enum SourceSpec {
 /// One data set to write, resolved.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SetPlan {
+    /// Folder name.
     pub name: String,
+    /// What the images are.
     pub kind: ViewKind,
     /// The camera file as given.
     pub camera_path: PathBuf,
@@ -438,18 +474,26 @@ pub struct SetPlan {
     pub camera: Camera,
     /// Rectified sets: the fisheye rendered first, at the stored width.
     pub fisheye: Option<Camera>,
+    /// Rectified only: the pinhole's horizontal FOV, if chosen.
     pub rectify_hfov_deg: Option<f64>,
 }
 
 /// A resolved configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SynthPlan {
+    /// Seed of scenes, orientations and splits.
     pub seed: u64,
+    /// Output root.
     pub out: PathBuf,
+    /// Where panoramas come from.
     pub source: SourceSpec,
+    /// Views per panorama and set.
     pub per_panorama: usize,
+    /// How orientations are drawn.
     pub sampling: ViewSampling,
+    /// `k x k` RGB rays per pixel.
     pub supersample: usize,
+    /// The sets to write.
     pub sets: Vec<SetPlan>,
 }
 
@@ -655,7 +699,9 @@ pub struct GenerateOptions {
 /// One set prepared for writing: its folder checked, its manifest built, the samples still to
 /// write listed.
 pub struct SetJob {
+    /// The set.
     pub set: SetPlan,
+    /// Its folder.
     pub dir: PathBuf,
     renderer: SetRenderer,
     manifest: Manifest,

@@ -47,8 +47,11 @@ use crate::error::{Error, Result};
 /// A camera orientation in the panorama frame (see the module docs), radians.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Orientation {
+    /// Turn about the vertical axis, + to the right.
     pub yaw: f64,
+    /// Tilt, + up.
     pub pitch: f64,
+    /// Turn about the optical axis, + clockwise seen from behind the camera.
     pub roll: f64,
 }
 
@@ -126,7 +129,9 @@ type ViewPixel = ([u8; 3], f32, u8, bool);
 /// An image rendered for a camera: row-major buffers of `height` rows of `width` pixels.
 #[derive(Clone, Debug, PartialEq)]
 pub struct View {
+    /// Width in pixels (the camera's).
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
     /// 8-bit RGB; black outside the image.
     pub rgb: Vec<[u8; 3]>,

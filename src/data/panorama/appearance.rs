@@ -106,27 +106,60 @@ fn grid_coverage(a: f32, b: f32) -> f32 {
 pub enum Pattern {
     /// Plain colour with blotches of relative amplitude `amp` at `freq` cycles per metre
     /// (paint, plaster, plastic, metal).
-    Plain { freq: f32, amp: f32 },
+    Plain {
+        /// Cycles per metre.
+        freq: f32,
+        /// Relative amplitude.
+        amp: f32,
+    },
     /// Square tiles of `size` metres with `grout` metres of `alt` between them; each tile's
     /// brightness is jittered by `jitter`.
-    Tiles { size: f32, grout: f32, jitter: f32 },
+    Tiles {
+        /// Tile period, metres.
+        size: f32,
+        /// Grout width, metres.
+        grout: f32,
+        /// Relative brightness jitter per tile.
+        jitter: f32,
+    },
     /// Planks `width` metres wide and `length` long along s, with a tone per plank and grain.
-    Planks { width: f32, length: f32 },
+    Planks {
+        /// Plank width (across t), metres.
+        width: f32,
+        /// Plank length (along s), metres.
+        length: f32,
+    },
     /// Fine isotropic noise (carpet, fabric).
-    Fabric { freq: f32, amp: f32 },
+    Fabric {
+        /// Cycles per metre.
+        freq: f32,
+        /// Relative amplitude.
+        amp: f32,
+    },
     /// Running-bond concrete blocks (0.4 x 0.2 m, as the painted block walls of university
     /// buildings) in `base` with `alt` mortar.
     Blocks,
     /// Books standing in a shelf compartment of half height `half_height` (local y): slots of
     /// 3-5 cm along local x with colours from a palette, `alt` behind and above them.
-    Books { half_height: f32 },
+    Books {
+        /// Half height of the compartment (local y), metres.
+        half_height: f32,
+    },
     /// A board surface with strokes of `alt` along lines of text (whiteboard, blackboard).
     Board,
     /// A window of half size `half` (local x, y): emissive sky through `panes` with mullions and
     /// a border of `alt`.
-    Window { half: [f32; 2], panes: [u8; 2] },
+    Window {
+        /// Half size (local x, y), metres.
+        half: [f32; 2],
+        /// Panes across (x) and down (y).
+        panes: [u8; 2],
+    },
     /// An emissive ceiling light panel of half size `half` (local x, z) with an `alt` rim.
-    Light { half: [f32; 2] },
+    Light {
+        /// Half size (local x, z), metres.
+        half: [f32; 2],
+    },
     /// A monitor screen: dark glass with a faint blue glow.
     Screen,
 }
@@ -134,16 +167,22 @@ pub enum Pattern {
 /// A surface material: two colours and a pattern; `seed` decorrelates its noise from others.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Material {
+    /// Main colour.
     pub base: Rgb,
+    /// Second colour (grout, mortar, frame, ink...).
     pub alt: Rgb,
+    /// How the two vary over the surface.
     pub pattern: Pattern,
+    /// Seed of the material's noise.
     pub seed: u64,
 }
 
 /// What a surface point looks like: its diffuse albedo and its own emission.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Surface {
+    /// Diffuse reflectance, linear RGB in `[0, 1]`.
     pub albedo: Rgb,
+    /// Emitted radiance (windows, light panels, screens).
     pub emission: Rgb,
 }
 

@@ -21,22 +21,27 @@ pub type V3 = [f64; 3];
 /// Smallest ray parameter accepted as a hit, in metres (rays start on surfaces for shadows).
 pub const T_MIN: f64 = 1e-6;
 
+/// `a + b`.
 pub fn add(a: V3, b: V3) -> V3 {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
+/// `a - b`.
 pub fn sub(a: V3, b: V3) -> V3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
+/// `a s`.
 pub fn scale(a: V3, s: f64) -> V3 {
     [a[0] * s, a[1] * s, a[2] * s]
 }
 
+/// `a . b`.
 pub fn dot(a: V3, b: V3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// `|a|`.
 pub fn norm(a: V3) -> f64 {
     dot(a, a).sqrt()
 }
@@ -49,7 +54,9 @@ pub fn normalize(a: V3) -> V3 {
 /// A ray `o + t d` with `|d| = 1` and its componentwise inverse direction (for slab tests).
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
+    /// Origin.
     pub o: V3,
+    /// Unit direction.
     pub d: V3,
     inv: V3,
 }
@@ -73,7 +80,9 @@ impl Ray {
 /// An axis-aligned bounding box.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Aabb {
+    /// Smallest corner.
     pub lo: V3,
+    /// Largest corner.
     pub hi: V3,
 }
 
@@ -137,24 +146,45 @@ pub struct Hit {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Shape {
     /// The horizontal plane `y = y`.
-    Plane { y: f64 },
+    Plane {
+        /// Height of the plane (y down).
+        y: f64,
+    },
     /// The vertical plane `coord[axis] = at` (`axis` 0 or 2), for the other horizontal coordinate
     /// in `[lo, hi]`.
     Wall {
+        /// The coordinate the plane is perpendicular to: 0 (x) or 2 (z).
         axis: usize,
+        /// Its value on the plane.
         at: f64,
+        /// Lower end of the other horizontal coordinate.
         lo: f64,
+        /// Upper end of the other horizontal coordinate.
         hi: f64,
     },
     /// A box with centre `c`, half sizes `h` (local x, y, z) turned by `yaw` (stored as its
     /// cosine and sine) about the vertical axis.
-    Box { c: V3, h: V3, cos: f64, sin: f64 },
+    Box {
+        /// Centre.
+        c: V3,
+        /// Half sizes along the local axes.
+        h: V3,
+        /// `cos(yaw)`.
+        cos: f64,
+        /// `sin(yaw)`.
+        sin: f64,
+    },
     /// A vertical cylinder of radius `r` around `(x, z)`, between `y0 < y1`.
     Cylinder {
+        /// Axis x.
         x: f64,
+        /// Axis z.
         z: f64,
+        /// Radius.
         r: f64,
+        /// Top (smaller y, as y points down).
         y0: f64,
+        /// Bottom.
         y1: f64,
     },
 }

@@ -51,7 +51,9 @@ type PanoRow = (Vec<[u8; 3]>, Vec<f32>, Vec<u8>);
 /// `height` rows of `width` pixels).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Panorama {
+    /// Width in pixels (`2 height`).
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
     /// 8-bit RGB.
     pub rgb: Vec<[u8; 3]>,

@@ -29,6 +29,8 @@ use crate::data::rng::{hash, Rng};
 
 /// Class ids in [`crate::data::CLASSES`] order.
 pub mod class {
+    //! One constant per class, named as the class.
+    #![allow(missing_docs)]
     pub const BEAM: u8 = 0;
     pub const BOARD: u8 = 1;
     pub const BOOKCASE: u8 = 2;
@@ -55,6 +57,7 @@ pub const CAMERA_CLEARANCE_M: f64 = 0.6;
 /// One primitive: a shape, its class, its material and whether it casts shadows.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Prim {
+    /// Geometry.
     pub shape: Shape,
     /// Class id in [`crate::data::CLASSES`] order.
     pub class: u8,
@@ -67,24 +70,33 @@ pub struct Prim {
 /// A contiguous run of primitives (one piece of furniture) with its bounding box.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Group {
+    /// Bounds of every primitive of the group.
     pub bounds: Aabb,
+    /// First primitive index.
     pub start: usize,
+    /// One past the last primitive index.
     pub end: usize,
 }
 
 /// A point light.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Light {
+    /// Position, metres.
     pub pos: V3,
+    /// Intensity `I` of the shading formula.
     pub intensity: f32,
 }
 
 /// An axis-aligned rectangle of the floor plan, in (x, z) metres.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Rect {
+    /// Smallest x.
     pub x0: f64,
+    /// Largest x.
     pub x1: f64,
+    /// Smallest z.
     pub z0: f64,
+    /// Largest z.
     pub z1: f64,
 }
 
@@ -104,10 +116,15 @@ impl Rect {
 /// coordinate in `[lo, hi]`, with the room on the side `inward` (+1 or -1) of the plane.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WallSeg {
+    /// 0 (a plane x = at) or 2 (z = at).
     pub axis: usize,
+    /// The plane's coordinate.
     pub at: f64,
+    /// Lower end along the wall.
     pub lo: f64,
+    /// Upper end along the wall.
     pub hi: f64,
+    /// +1 or -1: the side of the plane the room is on.
     pub inward: f64,
 }
 
@@ -141,10 +158,13 @@ impl WallSeg {
 /// with [`Scene::generate`].
 #[derive(Clone, Debug)]
 pub struct Scene {
+    /// Every primitive, grouped.
     pub prims: Vec<Prim>,
     /// Group 0 is the room structure (planes and walls) and is never culled.
     pub groups: Vec<Group>,
+    /// The materials the primitives index.
     pub materials: Vec<Material>,
+    /// Ceiling lights.
     pub lights: Vec<Light>,
     /// Camera height above the floor, metres (the floor is the plane `y = camera_height`).
     pub camera_height: f64,
@@ -152,6 +172,7 @@ pub struct Scene {
     pub room_height: f64,
     /// The floor plan (union of rectangles), camera at `(0, 0)`.
     pub footprint: Vec<Rect>,
+    /// The walls of the plan.
     pub walls: Vec<WallSeg>,
     /// Ambient light level `A`.
     pub ambient: f32,
@@ -164,6 +185,7 @@ pub struct Scene {
 /// What a camera ray sees: linear radiance, distance along the ray (metres) and class.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sample {
+    /// Linear radiance (before tone mapping).
     pub radiance: Rgb,
     /// Distance from the camera centre to the hit, metres; 0 if the ray escaped.
     pub depth: f64,
