@@ -27,9 +27,8 @@ use super::appearance::{mix, srgb, tint, vary, Material, Pattern, Rgb, FALLOFF_M
 use super::geometry::{dot, norm, scale, sub, Aabb, Hit, Ray, Shape, V3};
 use crate::data::rng::{hash, Rng};
 
-/// Class ids in [`crate::data::CLASSES`] order.
 pub mod class {
-    //! One constant per class, named as the class.
+    //! Class ids in [`crate::data::CLASSES`] order: one constant per class, named as the class.
     #![allow(missing_docs)]
     pub const BEAM: u8 = 0;
     pub const BOARD: u8 = 1;
