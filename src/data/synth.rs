@@ -704,10 +704,13 @@ pub struct SetJob {
     /// Its folder.
     pub dir: PathBuf,
     renderer: SetRenderer,
+    camera_toml: String,
     manifest: Manifest,
     /// Per panorama index, the views still to write.
     todo: Vec<Vec<usize>>,
     total: usize,
+    /// Whether finished samples are kept (false with `force` on a mismatching folder).
+    resume: bool,
 }
 
 impl SetJob {
@@ -723,13 +726,46 @@ impl SetJob {
     pub fn manifest(&self) -> &Manifest {
         &self.manifest
     }
+
+    /// Makes the folder ready to receive samples: removes temporary files of an interrupted
+    /// run (`io::write_atomic` names them `.NAME.tmp-PID`) and, when not resuming (`force`),
+    /// sample files of ids no longer in the set; writes `camera.toml` and the manifest with
+    /// `complete: false`. Nothing is written for a finished set with nothing to do.
+    fn begin(&self) -> Result<()> {
+        let dir = &self.dir;
+        if self.resume && self.pending() == 0 && dir.join(MANIFEST).exists() {
+            return Ok(());
+        }
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let ids: HashSet<&String> = self.manifest.splits.all().collect();
+        for sub in SAMPLE_DIRS {
+            let d = dir.join(sub);
+            std::fs::create_dir_all(&d).map_err(|e| Error::io(&d, e))?;
+            for entry in std::fs::read_dir(&d).map_err(|e| Error::io(&d, e))? {
+                let entry = entry.map_err(|e| Error::io(&d, e))?;
+                let name = entry.file_name().to_string_lossy().into_owned();
+                let stale_tmp = name.starts_with('.') && name.contains(".tmp-");
+                let stale_sample = !self.resume
+                    && name
+                        .strip_suffix(".png")
+                        .is_some_and(|id| !ids.contains(&id.to_string()));
+                if stale_tmp || stale_sample {
+                    let p = entry.path();
+                    std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
+                }
+            }
+        }
+        write_bytes_atomic(&dir.join("camera.toml"), self.camera_toml.as_bytes())?;
+        write_bytes_atomic(&dir.join(MANIFEST), self.manifest.to_json().as_bytes())
+    }
 }
 
-/// Checks the folder of `set` (see the module docs, "Safe"), writes `camera.toml` and a
-/// manifest with `complete: false`, and lists the samples still to write.
+/// Checks the folder of `set` (see the module docs, "Safe") and lists the samples still to
+/// write. Writes nothing: [`run_jobs`] does, once every set has been checked, so a refusal of
+/// one set leaves the others untouched.
 ///
 /// # Errors
-/// A folder that is not ours to write (without `force`), unreadable files, write failures.
+/// A folder that is not ours to write (without `force`), unreadable files.
 pub fn prepare_set(
     plan: &SynthPlan,
     set: &SetPlan,
@@ -833,48 +869,6 @@ pub fn prepare_set(
         }
     }
 
-    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-    let ids: HashSet<&String> = manifest.splits.all().collect();
-    for sub in SAMPLE_DIRS {
-        let d = dir.join(sub);
-        std::fs::create_dir_all(&d).map_err(|e| Error::io(&d, e))?;
-        for entry in std::fs::read_dir(&d).map_err(|e| Error::io(&d, e))? {
-            let entry = entry.map_err(|e| Error::io(&d, e))?;
-            let name = entry.file_name().to_string_lossy().into_owned();
-            // Temporary files of an interrupted run (io::write_atomic names them
-            // `.NAME.tmp-PID`), and with --force, samples that are no longer in the set.
-            let stale_tmp = name.starts_with('.') && name.contains(".tmp-");
-            let stale_sample = !resume
-                && name
-                    .strip_suffix(".png")
-                    .is_some_and(|id| !ids.contains(&id.to_string()));
-            if stale_tmp || stale_sample {
-                let p = entry.path();
-                std::fs::remove_file(&p).map_err(|e| Error::io(&p, e))?;
-            }
-        }
-    }
-    let description = format!(
-        "{} rescaled to {}x{} (half-pixel convention) by calibconv synth{}",
-        set.camera_path
-            .file_name()
-            .map_or("camera".into(), |f| f.to_string_lossy().into_owned()),
-        width,
-        height,
-        if set.kind == ViewKind::Rectified {
-            ", then rectified to this pinhole"
-        } else {
-            ""
-        }
-    );
-    write_bytes_atomic(
-        &dir.join("camera.toml"),
-        set.camera
-            .to_toml(Some(&set.name), Some(&description))
-            .as_bytes(),
-    )?;
-    write_bytes_atomic(&manifest_path, manifest.to_json().as_bytes())?;
-
     // Which samples are already complete?
     let preview = [3 * width, height];
     let todo: Vec<Vec<usize>> = (0..n)
@@ -896,13 +890,28 @@ pub fn prepare_set(
                 .collect()
         })
         .collect();
+    let description = format!(
+        "{} rescaled to {}x{} (half-pixel convention) by calibconv synth{}",
+        set.camera_path
+            .file_name()
+            .map_or("camera".into(), |f| f.to_string_lossy().into_owned()),
+        width,
+        height,
+        if set.kind == ViewKind::Rectified {
+            ", then rectified to this pinhole"
+        } else {
+            ""
+        }
+    );
     Ok(SetJob {
         set: set.clone(),
         renderer: SetRenderer::new(plan, set)?,
+        camera_toml: set.camera.to_toml(Some(&set.name), Some(&description)),
         dir,
         manifest,
         todo,
         total: n * k,
+        resume,
     })
 }
 
@@ -917,8 +926,10 @@ pub struct RunReport {
     pub seconds: f64,
 }
 
-/// Writes the pending samples of every job, loading each panorama once for all sets, panoramas
-/// in parallel; calls `progress(1)` after each sample; marks each manifest complete at the end.
+/// Writes the pending samples of every job (after [`SetJob`]'s preparation of each folder:
+/// stale temporary files removed, `camera.toml` and an incomplete manifest written), loading
+/// each panorama once for all sets, panoramas in parallel; calls `progress(1)` after each
+/// sample; marks each manifest complete at the end.
 pub fn run_jobs(
     plan: &SynthPlan,
     jobs: &[SetJob],
@@ -926,6 +937,9 @@ pub fn run_jobs(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<RunReport> {
     let start = Instant::now();
+    for job in jobs {
+        job.begin()?;
+    }
     let n = source.len();
     let written = AtomicUsize::new(0);
     let loaded = AtomicUsize::new(0);
@@ -1093,5 +1107,14 @@ mod tests {
         let report = synthesize(&other, &GenerateOptions { force: true }).unwrap();
         assert_eq!(report.written, 4 * 3 * 2);
         assert_ne!(std::fs::read(&victim).unwrap(), before);
+        // A refusal of one set writes nothing into the others.
+        let manifest = std::fs::read(dir.join(MANIFEST)).unwrap();
+        let last = plan.set_dir(plan.sets.last().unwrap());
+        std::fs::remove_dir_all(&last).unwrap();
+        std::fs::create_dir_all(&last).unwrap();
+        std::fs::write(last.join("notes.txt"), "mine").unwrap();
+        let e = synthesize(&other, &GenerateOptions::default()).unwrap_err();
+        assert!(e.to_string().contains("without a manifest"), "{e}");
+        assert_eq!(std::fs::read(dir.join(MANIFEST)).unwrap(), manifest);
     }
 }
