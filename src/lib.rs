@@ -16,7 +16,9 @@
 //!   autograd and CUDA come from libtorch).
 //! - [`nn`]: layers: [`nn::CalibratedConv2d`] (same parameter names and shapes as a standard
 //!   convolution) and the conv-kind factory the networks use.
+//! - [`data`]: the data sets and the `Batch` / `BatchSource` contract training consumes.
 //! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a).
+//! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;
 pub mod data;
