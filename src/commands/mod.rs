@@ -1,6 +1,7 @@
 //! What each subcommand does, one file per subcommand (the library does the work; these files
 //! wire files and output). Shared helpers live here.
 
+mod camera;
 mod demo;
 mod kernels;
 mod offsets;
@@ -10,7 +11,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use tch::Tensor;
 
-use calibconv::camera::{self, Camera};
+use calibconv::camera::Camera;
 use calibconv::io::{write_atomic, write_bytes_atomic};
 use calibconv::kernel::InputFrame;
 
@@ -21,6 +22,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Camera(args) => camera::run(args),
     }
 }
 
@@ -32,7 +34,8 @@ fn frame(args: &FrameArgs) -> InputFrame {
 }
 
 fn load_camera(path: &Path) -> Result<Camera> {
-    camera::load(path).with_context(|| format!("cannot use camera file {}", path.display()))
+    calibconv::camera::load(path)
+        .with_context(|| format!("cannot use camera file {}", path.display()))
 }
 
 fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {

@@ -26,6 +26,11 @@
 //!   kernel; on a fisheye such pixels lie outside the image circle and are black anyway), and a
 //!   tap the camera cannot project keeps its regular position. Both are counted in
 //!   [`Offsets::fallback_anchors`] / [`Offsets::fallback_taps`].
+//! - Panoramas ([`CameraModel::wraps_horizontally`]): a tap's `dx` is taken modulo the
+//!   feature-map width `W` to the representative nearest the regular tap,
+//!   `dx - W round(dx / W)`, so that a kernel continuing across the seam gets small offsets (the
+//!   sampling plan wraps columns, [`crate::ops::Border::WrapX`]). Such a camera cannot be padded
+//!   horizontally (`p_w = 0`): the image must span exactly 360 degrees.
 
 mod cache;
 
@@ -201,6 +206,15 @@ pub fn compute_offsets(
         ))
     })?;
     let [w_c, h_c] = camera.size();
+    let wrap = camera.wraps_horizontally();
+    if wrap && frame.padding[0] != 0 {
+        return Err(Error::InvalidArgument(format!(
+            "a panorama wraps across its left/right edge, so it cannot be padded horizontally \
+             (padding {:?}: use p_w = 0)",
+            frame.padding
+        )));
+    }
+    let period = input_size[1] as f64;
     let scale = [
         input_size[1] as f64 / (w_c + frame.padding[0]) as f64,
         input_size[0] as f64 / (h_c + frame.padding[1]) as f64,
@@ -234,8 +248,11 @@ pub fn compute_offsets(
                         let tx = (j as f64 - cw as f64) * geometry.dilation[1] as f64;
                         match cam.project(rotate(&rot, [tx, ty, d])) {
                             Some([u, v]) => {
-                                row[ox * taps + i * kw + j] =
-                                    [(v - (ay + ty)) as f32, (u - (ax + tx)) as f32];
+                                let mut dx = u - (ax + tx);
+                                if wrap {
+                                    dx -= period * (dx / period).round();
+                                }
+                                row[ox * taps + i * kw + j] = [(v - (ay + ty)) as f32, dx as f32];
                             }
                             None => bad_taps += 1,
                         }
