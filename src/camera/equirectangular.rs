@@ -22,12 +22,14 @@
 //! picks a longitude, so projecting the vertical ray gives a pixel, never NaN.
 //!
 //! Kernels wrap horizontally across the seam ([`CameraModel::wraps_horizontally`]): the offsets and
-//! the sampling plan take columns modulo the feature-map width.
+//! the sampling plan take columns modulo the feature-map width. They are oriented upright
+//! ([`KernelFrame::Upright`]: rows along the parallels), so a kernel's offsets depend on its row
+//! only.
 
 use std::f64::consts::PI;
 
 use super::geometry::finite3;
-use super::{Camera, CameraModel, PixelConvention};
+use super::{Camera, CameraModel, KernelFrame, PixelConvention};
 
 /// An equirectangular panorama camera.
 ///
@@ -149,6 +151,13 @@ impl CameraModel for Equirectangular {
     /// `true`: longitude is periodic, kernels continue across the seam.
     fn wraps_horizontally(&self) -> bool {
         true
+    }
+
+    /// [`KernelFrame::Upright`]: kernels keep their rows along the parallels, the same at every
+    /// longitude (the minimal rotation from the forward axis would spin them around the point
+    /// straight back, which lies on the seam).
+    fn kernel_frame(&self) -> KernelFrame {
+        KernelFrame::Upright
     }
 }
 

@@ -98,6 +98,28 @@ pub trait CameraModel: Send + Sync + std::fmt::Debug {
     fn wraps_horizontally(&self) -> bool {
         false
     }
+    /// How calibrated kernels are oriented on the sphere (see [`KernelFrame`]).
+    fn kernel_frame(&self) -> KernelFrame {
+        KernelFrame::MinimalRotation
+    }
+}
+
+/// The orientation of a calibrated kernel's virtual perspective patch around its anchor ray.
+///
+/// Any smooth choice of orientation over the whole sphere has a singular point (the hairy-ball
+/// theorem); each choice puts it somewhere else.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum KernelFrame {
+    /// The paper's choice (Section 3.2): the minimal rotation taking the optical axis onto the
+    /// anchor ray. Singular only at the backward ray `-z`, outside any fisheye's view.
+    #[default]
+    MinimalRotation,
+    /// Yaw then pitch, no roll: the patch's rows stay horizontal (its x axis along increasing
+    /// longitude, its y axis towards the south pole), as in the tangent-plane kernels of Tateno et
+    /// al. and EquiConvs. Singular only at the poles. Used by panoramas, where the minimal
+    /// rotation's singular point (straight back) lies on the seam and turns the kernels around it
+    /// by up to 180 degrees between neighbouring pixels.
+    Upright,
 }
 
 /// A camera of any supported model, as read from a camera file.
@@ -169,6 +191,9 @@ impl CameraModel for Camera {
     }
     fn wraps_horizontally(&self) -> bool {
         dispatch!(self, m => m.wraps_horizontally())
+    }
+    fn kernel_frame(&self) -> KernelFrame {
+        dispatch!(self, m => m.kernel_frame())
     }
 }
 
