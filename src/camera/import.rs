@@ -26,6 +26,9 @@
 //! than the lens sees (pass the lens's `--fov-deg` then); it is an error when an edge lies outside
 //! the model's domain. Pinhole models derive their field of view and take no `--fov-deg`.
 //!
+//! JSON numbers are read exactly (serde_json's `float_roundtrip`), YAML numbers by Rust's own
+//! float parser, so coefficients reach the camera file bit for bit.
+//!
 //! Every imported camera goes through the camera-file checks ([`super::parse`] of its
 //! [`super::to_toml`] text), so it is exactly what the written file will read back as.
 
