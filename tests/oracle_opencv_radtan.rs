@@ -112,7 +112,7 @@ fn projection_matches_opencv_project_points() {
             };
             let err = (got[0] - want[0]).hypot(got[1] - want[1]);
             worst = worst.max(err);
-            if !(err < PROJECT_TOL_PX) {
+            if err.is_nan() || err >= PROJECT_TOL_PX {
                 failures.push(format!("{} {ray:?}: {got:?} vs {want:?}", cam.name));
             }
         }
@@ -135,7 +135,7 @@ fn unprojection_matches_opencv_undistort_points() {
             let got = [ray[0] / ray[2], ray[1] / ray[2]];
             let err = (got[0] - want[0]).hypot(got[1] - want[1]) / want[0].hypot(want[1]).max(1.0);
             worst = worst.max(err);
-            if !(err < UNPROJECT_REL_TOL) {
+            if err.is_nan() || err >= UNPROJECT_REL_TOL {
                 failures.push(format!(
                     "{} {px:?}: {got:?} vs {want:?} ({err:.3e})",
                     cam.name

@@ -77,7 +77,7 @@ impl DoubleSphere {
         }
         let [x, y, z] = ray;
         let d1 = x.hypot(y).hypot(z);
-        if !(d1 > 0.0) || z <= -self.w2() * d1 {
+        if d1 == 0.0 || !d1.is_finite() || z <= -self.w2() * d1 {
             return None;
         }
         let k = self.xi * d1 + z;
@@ -129,12 +129,12 @@ impl CameraModel for DoubleSphere {
         let my = (px[1] - self.cy) / self.fy;
         let r2 = mx * mx + my * my;
         let disc = 1.0 - (2.0 * a - 1.0) * r2;
-        if !(disc >= 0.0) {
+        if disc.is_nan() || disc < 0.0 {
             return None;
         }
         let mz = (1.0 - a * a * r2) / (a * disc.sqrt() + 1.0 - a);
         let disc2 = mz * mz + (1.0 - xi * xi) * r2;
-        if !(disc2 >= 0.0) {
+        if disc2.is_nan() || disc2 < 0.0 {
             return None;
         }
         let s = (mz * xi + disc2.sqrt()) / (mz * mz + r2);

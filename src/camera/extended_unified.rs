@@ -69,7 +69,7 @@ impl ExtendedUnified {
         }
         let [x, y, z] = ray;
         let d = (self.beta * (x * x + y * y) + z * z).sqrt();
-        if !(d > 0.0) || z <= -unified_w(self.alpha) * d {
+        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
             return None;
         }
         let den = self.alpha * d + (1.0 - self.alpha) * z;
@@ -119,7 +119,7 @@ impl CameraModel for ExtendedUnified {
         let my = (px[1] - self.cy) / self.fy;
         let r2 = mx * mx + my * my;
         let disc = 1.0 - (2.0 * a - 1.0) * b * r2;
-        if !(disc >= 0.0) {
+        if disc.is_nan() || disc < 0.0 {
             return None;
         }
         let mz = (1.0 - b * a * a * r2) / (a * disc.sqrt() + 1.0 - a);

@@ -579,7 +579,7 @@ impl RawExtendedUnified {
         check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
         check_fov(path, self.fov_deg)?;
         check_unit_interval(path, "alpha", self.alpha)?;
-        if !(self.beta > 0.0) {
+        if self.beta <= 0.0 {
             return Err(camera_error(
                 path,
                 "beta",
@@ -669,7 +669,7 @@ impl RawScaramuzza {
             }
         }
         let det = self.c - self.d * self.e;
-        if !(det > 0.0) {
+        if det.is_nan() || det <= 0.0 {
             return Err(camera_error(
                 path,
                 "c, d, e",

@@ -617,7 +617,7 @@ fn kalibr(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> {
         ("omni", "none") | ("omni", "radtan") if zero_coeffs => {
             ints(5, "[xi, fu, fv, pu, pv]")?;
             let xi = intrinsics[0];
-            if !(xi > -1.0) {
+            if xi.is_nan() || xi <= -1.0 {
                 return Err(camera_error(
                     path,
                     &field("intrinsics"),

@@ -171,7 +171,7 @@ impl Scaramuzza {
     fn find_rho_max(&self) -> f64 {
         let ok = |r: f64| r * self.f_derivative(r) - self.f(r) > 0.0 && self.angle_at(r) < PI;
         let limit = 2.0 * (self.width as f64).hypot(self.height as f64);
-        if !ok(0.0) || !(limit > 0.0) {
+        if !ok(0.0) || limit.is_nan() || limit <= 0.0 {
             return 0.0;
         }
         let step = limit / SCAN_STEPS as f64;
@@ -311,7 +311,7 @@ impl CameraModel for Scaramuzza {
         let xs = (self.c * du - self.e * dv) / det;
         let ys = (dv - self.d * du) / det;
         let rho = xs.hypot(ys);
-        if !(rho <= self.rho_max) {
+        if rho.is_nan() || rho > self.rho_max {
             return None;
         }
         normalize([xs, ys, -self.f(rho)])

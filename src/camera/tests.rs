@@ -60,7 +60,7 @@ fn pixel_grid() -> Vec<[f64; 2]> {
 fn ray_grid(theta_max: f64) -> Vec<[f64; 3]> {
     let mut out = Vec::new();
     for i in 0..100 {
-        let t = theta_max.min(3.14) * i as f64 / 100.0;
+        let t = theta_max.min(std::f64::consts::PI * 0.999) * i as f64 / 100.0;
         for phi in [0.0f64, 0.7, 1.9, 3.3, 5.1] {
             out.push([t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()]);
         }

@@ -67,7 +67,7 @@ impl Unified {
         }
         let [x, y, z] = ray;
         let d = x.hypot(y).hypot(z);
-        if !(d > 0.0) || z <= -unified_w(self.alpha) * d {
+        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
             return None;
         }
         let den = self.alpha * d + (1.0 - self.alpha) * z;
@@ -109,7 +109,7 @@ impl CameraModel for Unified {
     /// for a result outside the projection's domain, and for non-finite pixels or `alpha >= 1`.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let a = self.alpha;
-        if !(a < 1.0) {
+        if a.is_nan() || a >= 1.0 {
             return None;
         }
         let xi = a / (1.0 - a);
@@ -117,7 +117,7 @@ impl CameraModel for Unified {
         let my = (1.0 - a) * (px[1] - self.cy) / self.fy;
         let r2 = mx * mx + my * my;
         let disc = 1.0 + (1.0 - xi * xi) * r2;
-        if !(disc >= 0.0) {
+        if disc.is_nan() || disc < 0.0 {
             return None;
         }
         let eta = (xi + disc.sqrt()) / (1.0 + r2);
