@@ -21,7 +21,7 @@ fn import(args: ImportArgs) -> Result<()> {
         opencv_model: args.opencv_model,
     };
     let imported = import_file(args.from, &args.file, &options)
-        .with_context(|| format!("cannot import {} as {}", args.file.display(), args.from))?;
+        .with_context(|| format!("cannot import a {} calibration", args.from))?;
     let file_name = args.file.file_name().map_or_else(
         || args.file.display().to_string(),
         |n| n.to_string_lossy().into_owned(),
@@ -32,7 +32,7 @@ fn import(args: ImportArgs) -> Result<()> {
         .map(|s| s.to_string_lossy().into_owned());
     let description = format!("imported from {file_name}: {}", imported.source);
     let mut header = vec![format!(
-        "Written by `calibconv camera import --from {}` from {file_name} ({}).",
+        "Written by `calibconv camera import --from {}` from {file_name}: {}.",
         args.from, imported.source
     )];
     header.extend(imported.notes.iter().cloned());
