@@ -196,7 +196,7 @@ mod tests {
         let c = cam();
         let w1 = 0.407f64 / 0.593;
         let w2 = (w1 - 0.172) / (2.0 * w1 * -0.172 + 0.172f64.powi(2) + 1.0).sqrt();
-        assert!((c.w2() - w2).abs() < 1e-12);
+        assert!((c.w2() - w2).abs() < ANGLE_TOL);
         let tm = c.theta_max();
         // About 125 deg: past 90 degrees.
         assert!(

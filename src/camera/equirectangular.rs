@@ -29,6 +29,11 @@
 use std::f64::consts::PI;
 
 use super::geometry::finite3;
+
+/// Relative slack on the latitude of the outer pixel edges `v = -0.5` and `v = height - 0.5`:
+/// `(cv + 0.5) / fv` is `pi / 2` only up to the rounding of `fv = height / pi` (an ulp or two), and
+/// the pole rows must unproject; latitudes within the slack are clamped to the pole.
+const POLE_SLACK: f64 = 1e-12;
 use super::{Camera, CameraModel, KernelFrame, PixelConvention};
 
 /// An equirectangular panorama camera.
@@ -117,9 +122,10 @@ impl CameraModel for Equirectangular {
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let lon = (px[0] - self.cu) / self.fu;
         let lat = (self.cv - px[1]) / self.fv;
-        if !(lon.is_finite() && lat.abs() <= PI / 2.0) {
+        if !(lon.is_finite() && lat.abs() <= PI / 2.0 * (1.0 + POLE_SLACK)) {
             return None;
         }
+        let lat = lat.clamp(-PI / 2.0, PI / 2.0);
         let (sl, cl) = lat.sin_cos();
         let (so, co) = lon.sin_cos();
         Some([cl * so, -sl, cl * co])
@@ -167,6 +173,10 @@ mod tests {
 
     /// Trigonometric round trips: a few ulps of angles times ~1e2 px/rad; 1e-9 px is margin.
     const PX_TOL: f64 = 1e-9;
+    /// Unit-vector components from sin/cos of exact angles: within an ulp or two of 1 (2.2e-16).
+    const UNIT_TOL: f64 = 1e-15;
+    /// Angles from atan2 of computed components: a few ulps of pi; 1e-12 rad is margin.
+    const RAD_TOL: f64 = 1e-12;
 
     #[test]
     fn grid_edges_centre_and_poles() {
@@ -183,11 +193,11 @@ mod tests {
         let [u, v] = c.project([0.0, 1.0, 0.0]).unwrap();
         assert!(u.is_finite() && (v - 511.5).abs() < PX_TOL);
         let north = c.unproject([100.0, -0.5]).unwrap();
-        assert!(north.iter().all(|x| x.is_finite()) && (north[1] + 1.0).abs() < 1e-15);
+        assert!(north.iter().all(|x| x.is_finite()) && (north[1] + 1.0).abs() < UNIT_TOL);
         // Backward is the seam: the left and right outer edges.
         let left = c.unproject([-0.5, 255.5]).unwrap();
         let right = c.unproject([1023.5, 255.5]).unwrap();
-        assert!((left[2] + 1.0).abs() < 1e-15 && (right[2] + 1.0).abs() < 1e-15);
+        assert!((left[2] + 1.0).abs() < UNIT_TOL && (right[2] + 1.0).abs() < UNIT_TOL);
         let [u, _] = c.project([1e-300, 0.0, -1.0]).unwrap();
         assert!((u - 1023.5).abs() < PX_TOL, "{u}");
         let [u, _] = c.project([-1e-300, 0.0, -1.0]).unwrap();
@@ -195,11 +205,42 @@ mod tests {
         // Longitude is periodic in u; latitude ends at the poles.
         let a = c.unproject([10.0, 100.0]).unwrap();
         let b = c.unproject([10.0 + 1024.0, 100.0]).unwrap();
-        assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-12));
+        assert!((0..3).all(|i| (a[i] - b[i]).abs() < RAD_TOL));
         assert_eq!(c.unproject([10.0, -0.6]), None);
         assert_eq!(c.unproject([10.0, 511.6]), None);
         assert_eq!(c.project([0.0, 0.0, 0.0]), None);
         assert_eq!(c.project([f64::NAN, 0.0, 1.0]), None);
+    }
+
+    #[test]
+    fn pole_edges_unproject_at_every_size() {
+        for (w, h) in [
+            (360, 180),
+            (1000, 500),
+            (4096, 2048),
+            (1023, 511),
+            (64, 32),
+            (7, 3),
+        ] {
+            let native = Equirectangular::new(w, h);
+            let Camera::Equirectangular(half) =
+                native.rescaled([0.5, 0.5], PixelConvention::HalfPixel)
+            else {
+                unreachable!()
+            };
+            for c in [native, half] {
+                let bottom = c.cv + c.fv * PI / 2.0;
+                let top = c.cv - c.fv * PI / 2.0;
+                let n = c
+                    .unproject([3.0, top])
+                    .unwrap_or_else(|| panic!("{w}x{h} top"));
+                let s = c
+                    .unproject([3.0, bottom])
+                    .unwrap_or_else(|| panic!("{w}x{h} bottom"));
+                assert!(n[1] < -1.0 + UNIT_TOL && s[1] > 1.0 - UNIT_TOL, "{w}x{h}");
+                assert_eq!(c.unproject([3.0, top - 1e-6]), None, "{w}x{h}");
+            }
+        }
     }
 
     #[test]
@@ -208,7 +249,7 @@ mod tests {
         for j in [0usize, 1, 179, 359] {
             let ray = c.unproject([j as f64, 89.5]).unwrap();
             let want = (j as f64 + 0.5) * 2.0 * PI / 360.0 - PI;
-            assert!((ray[0].atan2(ray[2]) - want).abs() < 1e-12, "{j}");
+            assert!((ray[0].atan2(ray[2]) - want).abs() < RAD_TOL, "{j}");
         }
     }
 }

@@ -818,8 +818,9 @@ mod tests {
     use super::*;
     use crate::camera::{load, CameraModel, PixelConvention};
 
-    /// Pixel round trips: Newton stops at |step| < 1e-12 rad with quadratic convergence, so the
-    /// error is round-off, ~fx * 1e-15 ~ 1e-12 px; 1e-9 px is margin, not slack for a bug.
+    /// Pixel round trips: the iterative inverses (Kannala-Brandt, radial-tangential, Scaramuzza)
+    /// stop at quadratically shrinking steps below 1e-10 px or less, the closed forms are exact,
+    /// so the error is round-off, ~1e-12 px; 1e-9 px is margin, not slack for a bug.
     const PX_TOL: f64 = 1e-9;
     /// Ray round trips in angle: round-off is ~1e-15 rad; 1e-9 rad is margin.
     const ANGLE_TOL: f64 = 1e-9;

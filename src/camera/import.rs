@@ -3,7 +3,7 @@
 //! | `--from` | file | models read |
 //! |---|---|---|
 //! | `kalibr` | camchain YAML (`camN:` blocks) | `pinhole-equi`, `pinhole-radtan`, `pinhole-none`, `ds-none`, `eucm-none`, `omni-none` (and `omni-radtan` with zero coefficients) |
-//! | `opencv` | `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or JSON, or plain YAML / JSON | fisheye (`K`, `D` = k1..k4) and standard (`D` = k1 k2 p1 p2 [k3], longer `D` only with zero extra terms) |
+//! | `opencv` | `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or JSON, or plain YAML / JSON | fisheye (`K`, `D` = k1..k4) and standard (`D` = k1 k2 p1 p2 (k3), longer `D` only with zero extra terms) |
 //! | `basalt` | calibration JSON (`value0.intrinsics[N]`) | `kb4`, `ds`, `eucm`, `ucm`, `pinhole` |
 //! | `colmap` | `cameras.txt` | `OPENCV_FISHEYE`, `OPENCV`, `FULL_OPENCV` (zero k4..k6), `PINHOLE`, `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL` |
 //! | `ocamcalib` | `calib_results.txt` | Scaramuzza's model |

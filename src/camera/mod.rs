@@ -125,13 +125,21 @@ pub enum KernelFrame {
 /// A camera of any supported model, as read from a camera file.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Camera {
+    /// `model = "kannala-brandt"`.
     KannalaBrandt(KannalaBrandt),
+    /// `model = "pinhole"`.
     Pinhole(Pinhole),
+    /// `model = "pinhole-radtan"`.
     PinholeRadTan(PinholeRadTan),
+    /// `model = "double-sphere"`.
     DoubleSphere(DoubleSphere),
+    /// `model = "unified"`.
     Unified(Unified),
+    /// `model = "extended-unified"`.
     ExtendedUnified(ExtendedUnified),
+    /// `model = "scaramuzza"`.
     Scaramuzza(Scaramuzza),
+    /// `model = "equirectangular"`.
     Equirectangular(Equirectangular),
 }
 

@@ -20,7 +20,7 @@
 //! Unprojection solves `distort(x', y') = (x'', y'')` by Newton's method on the 2x2 system from
 //! `(x'', y'')` (OpenCV's `undistortPoints` uses a fixed-point iteration instead), halving any step
 //! that would leave the domain or not reduce the residual; converged when the step is below
-//! [`EPS`] within [`MAX_ITER`] iterations, else `None`.
+//! `EPS` within `MAX_ITER` iterations, else `None`.
 //!
 //! The field of view is derived: the angle between the rays of the left and right image edges
 //! (`u = -0.5` and `u = width - 0.5`) on the principal row. Pixels are `[u, v]` = (column, row),
@@ -233,7 +233,7 @@ impl PinholeRadTan {
     }
 
     /// Solves `distort(m) = target` by damped Newton (module docs). Returns `(m, iterations)`,
-    /// or `None` without convergence in [`MAX_ITER`] steps.
+    /// or `None` without convergence in `MAX_ITER` steps.
     pub(crate) fn undistort(&self, target: [f64; 2]) -> Option<([f64; 2], usize)> {
         if !(target[0].is_finite() && target[1].is_finite()) {
             return None;
@@ -312,7 +312,7 @@ impl CameraModel for PinholeRadTan {
     }
 
     /// The unit ray along `[x', y', 1]` with `(x', y')` the undistorted point (Newton, see
-    /// [`MAX_ITER`], [`EPS`]); `None` without convergence or outside the domain.
+    /// `MAX_ITER`, `EPS`); `None` without convergence or outside the domain.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let target = [(px[0] - self.cx) / self.fx, (px[1] - self.cy) / self.fy];
         let (m, _) = self.undistort(target)?;
@@ -356,6 +356,8 @@ mod tests {
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
     const PX_TOL: f64 = 1e-9;
+    /// A bisected root or a sum of two atans: a few ulps; 1e-12 is margin.
+    const ROUND_OFF_TOL: f64 = 1e-12;
 
     /// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
     fn euroc() -> PinholeRadTan {
@@ -388,7 +390,7 @@ mod tests {
             480,
         );
         assert!(
-            (c.r_max() - (2.0f64 / 3.0).sqrt()).abs() < 1e-12,
+            (c.r_max() - (2.0f64 / 3.0).sqrt()).abs() < ROUND_OFF_TOL,
             "{}",
             c.r_max()
         );
@@ -438,7 +440,7 @@ mod tests {
         for ray in [[0.3, -0.2, 1.0], [2.0, 1.0, 0.5], [-1e-3, 4.0, 0.1]] {
             assert_eq!(c.project(ray), pin.project(ray));
         }
-        assert!((c.fov() - pin.fov()).abs() < 1e-12);
+        assert!((c.fov() - pin.fov()).abs() < ROUND_OFF_TOL);
         assert_eq!(c.project([0.3, 0.1, 0.0]), None);
     }
 }

@@ -20,7 +20,7 @@
 //!            u = w (x + e y) + cx,   v = w (d x + c y) + cy
 //! ```
 //!
-//! `project` solves the direct polynomial exactly (safeguarded Newton, [`MAX_ITER`], [`EPS`]), so
+//! `project` solves the direct polynomial exactly (safeguarded Newton, `MAX_ITER`, `EPS`), so
 //! pixels round-trip; OCamCalib's `world2cam` instead evaluates its fitted inverse polynomial
 //! `rho = b0 + b1 t + b2 t^2 + ...` of `t = atan(-z / sqrt(x^2 + y^2)) = theta - pi/2`, which differs
 //! from the exact inverse by its fit error (hundredths of a pixel). Here that inverse polynomial
@@ -40,7 +40,7 @@ use super::{Camera, CameraModel, PixelConvention};
 /// a handful of steps (measured on the example camera: 3 inside its field of view, 11 next to
 /// `theta_max` where the angle is nearly flat); failed steps fall back to
 /// bisection, which shrinks the bracket (at most twice the image diagonal, ~1e4 px) below
-/// [`EPS`] in ~50 steps; 100 leaves room for both.
+/// `EPS` in ~50 steps; 100 leaves room for both.
 pub const MAX_ITER: usize = 100;
 
 /// Convergence threshold on the Newton step, in pixels of `rho`: far below anything visible,
@@ -360,6 +360,10 @@ mod tests {
     /// Newton to |step| < 1e-10 px with quadratic convergence: round-off only (~1e-13 px);
     /// 1e-9 px is margin.
     const PX_TOL: f64 = 1e-9;
+    /// Angles after Newton on the angle itself: round-off of atan2 (~1e-16 rad); 1e-12 is margin.
+    const ANGLE_TOL: f64 = 1e-12;
+    /// The same formula evaluated in a different frame order: a few ulps of a unit vector.
+    const SAME_FORMULA_TOL: f64 = 1e-15;
     /// The example's inverse polynomial was fitted to 0.041 px max error over rho <= 340 px
     /// (tools: numpy polyfit, degree 11): OCamCalib's world2cam may differ from the exact
     /// inverse by that much, and 0.05 px bounds it.
@@ -443,7 +447,11 @@ mod tests {
             let [xo, yo, zo] = ocam_cam2world(&m, [v, u]);
             // OCamCalib x = our y (rows), y = our x (columns), z = -our z.
             let err = (ours[0] - yo).abs() + (ours[1] - xo).abs() + (ours[2] + zo).abs();
-            assert!(err < 1e-15, "({u}, {v}): {ours:?} vs {:?}", [xo, yo, zo]);
+            assert!(
+                err < SAME_FORMULA_TOL,
+                "({u}, {v}): {ours:?} vs {:?}",
+                [xo, yo, zo]
+            );
         }
     }
 
@@ -482,11 +490,11 @@ mod tests {
             if t <= m.fov() / 2.0 {
                 worst_in_fov = worst_in_fov.max(iters);
             }
-            assert!((m.angle_at(rho) - t).abs() < 1e-12, "{t}");
+            assert!((m.angle_at(rho) - t).abs() < ANGLE_TOL, "{t}");
             let ray = [t.sin(), 0.0, t.cos()];
             let px = m.project(ray).unwrap();
             let back = m.unproject(px).unwrap();
-            assert!((angle_to_axis(back) - t).abs() < 1e-12);
+            assert!((angle_to_axis(back) - t).abs() < ANGLE_TOL);
             let again = m.project(back).unwrap();
             assert!((again[0] - px[0]).hypot(again[1] - px[1]) < PX_TOL);
         }
