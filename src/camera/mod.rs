@@ -4,7 +4,8 @@
 //! - pixel coordinates are `[u, v]` = (column, row), in pixels, with the centre of the top-left
 //!   pixel at `(0, 0)` (the OpenCV convention);
 //! - rays are `[x, y, z]` in the camera frame: x right, y down, z forward (optical axis);
-//!   [`CameraModel::unproject`] returns unit rays; [`CameraModel::project`] accepts any non-zero ray;
+//!   [`CameraModel::unproject`] returns unit rays; [`CameraModel::project`] accepts any non-zero
+//!   ray;
 //! - angles are radians everywhere except in camera files (`fov_deg`).
 //!
 //! Models, one file each, each documenting its formula and source: [`KannalaBrandt`] (paper

@@ -5,9 +5,9 @@
 //!
 //! OCamCalib's own frame: its image "x" is the **row** and "y" the **column**; the sensor-plane
 //! point `(xp, yp)` maps to the 3-D direction `(xp, yp, f(rho))` with
-//! `f(rho) = a0 + a1 rho + a2 rho^2 + ...` (`a0 < 0`: the camera looks along OCamCalib's `-z`), and
-//! pixels are `[row, col] = A [xp, yp] + [xc, yc]` with the affine `A = [[c, d], [e, 1]]` (zero-based
-//! centre, "C convention"). In this crate's frame (x right, y down, z forward; pixels `[u, v]` =
+//! `f(rho) = a0 + a1 rho + a2 rho^2 + ...` (`a0 < 0`: the camera looks along OCamCalib's `-z`),
+//! and pixels are `[row, col] = A [xp, yp] + [xc, yc]` with the affine `A = [[c, d], [e, 1]]`
+//! (zero-based centre, "C convention"). In this crate's frame (x right, y down, z forward; pixels `[u, v]` =
 //! (column, row)) that reads, with `cx = yc` (column) and `cy = xc` (row):
 //!
 //! ```text
@@ -22,8 +22,8 @@
 //!
 //! `project` solves the direct polynomial exactly (safeguarded Newton, `MAX_ITER`, `EPS`), so
 //! pixels round-trip; OCamCalib's `world2cam` instead evaluates its fitted inverse polynomial
-//! `rho = b0 + b1 t + b2 t^2 + ...` of `t = atan(-z / sqrt(x^2 + y^2)) = theta - pi/2`, which differs
-//! from the exact inverse by its fit error (hundredths of a pixel). Here that inverse polynomial
+//! `rho = b0 + b1 t + b2 t^2 + ...` of `t = atan(-z / sqrt(x^2 + y^2)) = theta - pi/2`, which
+//! differs from the exact inverse by its fit error (hundredths of a pixel). Here that inverse polynomial
 //! (`inv_poly`, optional) only seeds Newton.
 //!
 //! The model is valid where the angle to the axis, `g(rho) = atan2(rho, -f(rho))`, increases:

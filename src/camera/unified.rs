@@ -26,8 +26,8 @@
 //!
 //! defined where `1 + (1 - xi^2) r^2 >= 0` (Eq. 21 of Usenko et al. in the other
 //! parametrisation). This is deliberately a different formula from the Extended Unified model's
-//! (`super::ExtendedUnified`, which reduces to this model at `beta = 1`), so that the two cross-check
-//! each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
+//! (`super::ExtendedUnified`, which reduces to this model at `beta = 1`), so that the two
+//! cross-check each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
 use super::geometry::{finite3, normalize, unified_w};

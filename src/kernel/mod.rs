@@ -10,8 +10,8 @@
 //!
 //! (k = kernel width, W_fm = feature-map width) is rotated by the minimal rotation taking the
 //! optical axis onto the anchor's back-projected ray (or, for cameras that ask for
-//! [`KernelFrame::Upright`], by yaw and pitch without roll), and each tap is projected with the camera
-//! scaled to the feature map. Offsets are the projected taps minus the regular grid.
+//! [`KernelFrame::Upright`], by yaw and pitch without roll), and each tap is projected with the
+//! camera scaled to the feature map. Offsets are the projected taps minus the regular grid.
 //!
 //! Conventions:
 //! - Resolution scaling: the network input is the camera image padded by `(p_w, p_h)` pixels on
