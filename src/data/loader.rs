@@ -233,12 +233,32 @@ impl Dataset {
             }
         };
         if config.augment.hflip {
-            let cx = match &camera {
-                Camera::KannalaBrandt(m) => m.cx,
-                Camera::Pinhole(m) => m.cx,
+            // Radially symmetric models mirror onto themselves about the vertical line through
+            // the principal point; radial-tangential (p2) and Scaramuzza (affine c, d, e) in
+            // general do not.
+            let symmetric = match &camera {
+                Camera::KannalaBrandt(_)
+                | Camera::Pinhole(_)
+                | Camera::DoubleSphere(_)
+                | Camera::Unified(_)
+                | Camera::ExtendedUnified(_)
+                | Camera::Equirectangular(_) => true,
+                Camera::PinholeRadTan(_) | Camera::Scaramuzza(_) => false,
             };
+            if !symmetric {
+                return Err(Error::data(
+                    &camera_path,
+                    format!(
+                        "field `model`: horizontal flips need a mirror-symmetric model; a {} \
+                         camera is not one in general",
+                        camera.model_name()
+                    ),
+                ));
+            }
+            let cx = camera.project([0.0, 0.0, 1.0]).map_or(f64::NAN, |c| c[0]);
             let off = cx - (w as f64 - 1.0) / 2.0;
-            if off.abs() > FLIP_MAX_PP_OFFSET_PX {
+            let centred = off.abs() <= FLIP_MAX_PP_OFFSET_PX; // false for NaN
+            if !centred {
                 return Err(Error::data(
                     &camera_path,
                     format!(

@@ -62,7 +62,7 @@ use crate::data::format::{
 };
 use crate::data::panorama::{render_procedural, Panorama};
 use crate::data::rng::{tag, Rng};
-use crate::data::views::{rectified_camera, RayGrid, Rectifier, View, ViewSampling};
+use crate::data::views::{max_ray_angle, rectified_camera, RayGrid, Rectifier, View, ViewSampling};
 use crate::data::{CLASSES, UNKNOWN_PNG_LABEL};
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
@@ -392,14 +392,17 @@ impl RawSynthConfig {
             }
             let (camera, fisheye) = match raw.kind {
                 ViewKind::Pers => {
-                    if !matches!(cam, Camera::Pinhole(_)) {
-                        return Err(model_error("pinhole"));
+                    if !matches!(cam, Camera::Pinhole(_) | Camera::PinholeRadTan(_)) {
+                        return Err(model_error("perspective (pinhole, pinhole-radtan)"));
                     }
                     (scaled, None)
                 }
                 ViewKind::Fisheye => {
-                    if !matches!(cam, Camera::KannalaBrandt(_)) {
-                        return Err(model_error("fisheye (kannala-brandt)"));
+                    if max_ray_angle(&cam).is_none() {
+                        return Err(model_error(
+                            "fisheye (kannala-brandt, double-sphere, unified, extended-unified, \
+                             scaramuzza)",
+                        ));
                     }
                     (scaled, None)
                 }
@@ -545,8 +548,8 @@ impl SynthPlan {
         };
         let canonical = serde_json::json!({
             "kind": set.kind.as_str(),
-            "camera": set.camera.to_toml(None, None),
-            "fisheye": set.fisheye.as_ref().map(|c| c.to_toml(None, None)),
+            "camera": camera::to_toml(&set.camera, &[], None, None),
+            "fisheye": set.fisheye.as_ref().map(|c| camera::to_toml(c, &[], None, None)),
             "rectify_hfov_deg": set.rectify_hfov_deg,
             "source": source,
             "views": {
@@ -906,7 +909,7 @@ pub fn prepare_set(
     Ok(SetJob {
         set: set.clone(),
         renderer: SetRenderer::new(plan, set)?,
-        camera_toml: set.camera.to_toml(Some(&set.name), Some(&description)),
+        camera_toml: camera::to_toml(&set.camera, &[], Some(&set.name), Some(&description)),
         dir,
         manifest,
         todo,

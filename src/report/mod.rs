@@ -4,3 +4,4 @@
 
 pub mod draw;
 pub mod kernels;
+pub mod plots;
