@@ -21,10 +21,12 @@
 pub mod camera;
 pub mod data;
 pub mod error;
+pub mod eval;
 pub mod io;
 pub mod kernel;
 pub mod nn;
 pub mod ops;
 pub mod report;
+pub mod train;
 
 pub use error::{Error, Result};

@@ -1,6 +1,5 @@
 //! The `calibconv` binary end to end: files written, shapes, and clear errors on bad input.
 
-
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

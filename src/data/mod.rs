@@ -28,6 +28,9 @@
 //! DATASET/previews/ID.png   colourised RGB | depth | labels, for people
 //! ```
 
+pub mod memory;
+pub mod toy;
+
 use tch::Tensor;
 
 use crate::error::Result;
