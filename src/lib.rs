@@ -22,6 +22,7 @@ pub mod camera;
 pub mod data;
 pub mod error;
 pub mod eval;
+pub mod experiment;
 pub mod io;
 pub mod kernel;
 pub mod nn;

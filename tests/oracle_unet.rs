@@ -104,5 +104,8 @@ fn a_pytorch_checkpoint_for_another_architecture_names_the_mismatching_tensors()
     let err = checkpoint::load(&golden("unet_tiny_bilinear.safetensors"), &vs, &cfg)
         .unwrap_err()
         .to_string();
-    assert!(err.contains("missing from the file: `up1.up.bias`"), "{err}");
+    assert!(
+        err.contains("missing from the file: `up1.up.bias`"),
+        "{err}"
+    );
 }
