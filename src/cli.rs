@@ -25,6 +25,38 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
+    /// Train the U-Net an experiment file describes, then run its evaluations (run directory:
+    /// OUTPUT/NAME with checkpoints, CSV logs, TensorBoard events and evaluation results).
+    Train(TrainArgs),
+    /// Evaluate an experiment's checkpoint (default: its best) with its [[eval]] entries.
+    Eval(EvalArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Experiment file (TOML, see experiments/).
+    pub experiment: PathBuf,
+    /// Continue the interrupted run at its last checkpoint (same step, same data order).
+    #[arg(long)]
+    pub resume: bool,
+    /// No progress bars or status lines.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Experiment file (TOML, see experiments/).
+    pub experiment: PathBuf,
+    /// Checkpoint to evaluate (default: the run's best, else its last).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Run only these evaluations (by name; repeatable).
+    #[arg(long = "only", value_name = "NAME")]
+    pub only: Vec<String>,
+    /// No progress bars or status lines.
+    #[arg(long, short)]
+    pub quiet: bool,
 }
 
 /// How the network input relates to the camera image.

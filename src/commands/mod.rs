@@ -2,8 +2,10 @@
 //! wire files and output). Shared helpers live here.
 
 mod demo;
+mod eval;
 mod kernels;
 mod offsets;
+mod train;
 
 use std::path::Path;
 
@@ -21,6 +23,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Eval(args) => eval::run(args),
     }
 }
 
