@@ -37,3 +37,4 @@ bench: setup
 
 fixtures: setup
 	.venv/bin/python tools/make_fixtures.py tests/golden
+	.venv/bin/python tools/make_unet_fixture.py tests/golden

@@ -30,7 +30,12 @@ fn every_experiment_file_parses_and_resolves() {
     for f in &files {
         let exp = experiment::load(f).unwrap_or_else(|e| panic!("{e}"));
         if let Some(prev) = by_name.insert(exp.name.clone(), f.clone()) {
-            panic!("experiment name `{}` used by {} and {}", exp.name, prev.display(), f.display());
+            panic!(
+                "experiment name `{}` used by {} and {}",
+                exp.name,
+                prev.display(),
+                f.display()
+            );
         }
         if let Some(InitSpec::Experiment { name, .. }) = &exp.init {
             inits.push((f.clone(), name.clone()));

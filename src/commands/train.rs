@@ -17,8 +17,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         verbose: !args.quiet,
         opener: &DefaultOpener,
     };
-    let outcome = experiment::train(&exp, &opts)
-        .with_context(|| format!("training {} failed", exp.name))?;
+    let outcome =
+        experiment::train(&exp, &opts).with_context(|| format!("training {} failed", exp.name))?;
     let s = &outcome.summary;
     println!(
         "{}: {} steps, loss {:.4} -> {:.4}, {:.1} images/s{}; run directory {}",

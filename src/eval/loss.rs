@@ -25,8 +25,11 @@ pub const BERHU_FRACTION: f64 = 0.2;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum DepthLoss {
+    /// Mean absolute error.
     #[default]
     L1,
+    /// Reverse Huber.
+    #[serde(rename = "berhu")]
     BerHu,
 }
 

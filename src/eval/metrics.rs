@@ -49,15 +49,25 @@ pub const DELTA_THRESHOLDS: [f64; 3] = [1.25, 1.25 * 1.25, 1.25 * 1.25 * 1.25];
 pub enum Metric {
     /// The training loss on the evaluation set (mean over valid pixels).
     Loss,
+    /// Mean relative error `mean(|d - g| / g)`.
     Mre,
+    /// Mean absolute error, metres.
     Mae,
+    /// Root mean square error, metres.
     Rmse,
+    /// Root mean square error of `ln d - ln g`.
     RmseLog,
+    /// Fraction with `max(d/g, g/d) < 1.25`.
     Delta1,
+    /// ... `< 1.25^2`.
     Delta2,
+    /// ... `< 1.25^3`.
     Delta3,
+    /// Mean intersection over union over classes.
     MIoU,
+    /// Mean per-class accuracy.
     MAcc,
+    /// Fraction of labelled pixels classified correctly.
     PixelAcc,
 }
 
@@ -164,6 +174,7 @@ impl FromStr for Metric {
 /// Running mean and population standard deviation (Welford).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct MeanStd {
+    /// Values pushed.
     pub n: u64,
     mean: f64,
     m2: f64,
@@ -198,11 +209,14 @@ impl MeanStd {
 /// Float64 sums of the depth errors over a set of valid pixels.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct DepthSums {
+    /// Pixels.
     pub count: f64,
+    /// Sums of `|d - g| / g`, `|d - g|`, `(d - g)^2` and `(ln d - ln g)^2`.
     pub abs_rel: f64,
     pub abs: f64,
     pub sq: f64,
     pub sq_log: f64,
+    /// Pixels under each of [`DELTA_THRESHOLDS`].
     pub delta: [f64; 3],
 }
 
@@ -326,6 +340,7 @@ pub struct SegScores {
     pub acc: Vec<Option<f64>>,
     /// Ground-truth pixels per class.
     pub support: Vec<u64>,
+    /// The means ([`Metric::MIoU`], [`Metric::MAcc`], [`Metric::PixelAcc`]).
     pub miou: f64,
     pub macc: f64,
     pub pixel_acc: f64,
@@ -404,7 +419,7 @@ impl RadialBins {
                 * (1.0 + 1e-9)
                 + 1e-9
         });
-        if !(r_max > 0.0) {
+        if r_max.is_nan() || r_max <= 0.0 {
             return Err(Error::InvalidArgument(format!(
                 "radial bins: r_max must be positive, got {r_max}"
             )));

@@ -463,6 +463,11 @@ pub fn parse(text: &str, path: &Path) -> Result<RawExperiment> {
     })
 }
 
+/// `x > 0` (false for NaN).
+fn positive(x: f64) -> bool {
+    x > 0.0
+}
+
 fn absolute(p: &Path) -> Result<PathBuf> {
     std::path::absolute(p).map_err(|e| Error::io(p, e))
 }
@@ -790,7 +795,7 @@ impl RawExperiment {
         if !adam.betas.iter().all(|b| (0.0..1.0).contains(b)) {
             return Err(bad("optimizer.betas", "each must be in [0, 1)".into()));
         }
-        if !(adam.eps > 0.0) || !(adam.weight_decay >= 0.0) {
+        if !positive(adam.eps) || adam.weight_decay.is_nan() || adam.weight_decay < 0.0 {
             return Err(bad(
                 "optimizer",
                 "eps must be positive and weight_decay non-negative".into(),
@@ -822,7 +827,7 @@ impl RawExperiment {
                             bad("schedule.every", "a positive step count is required".into())
                         })?;
                         let gamma = s.gamma.unwrap_or(0.1);
-                        if !(gamma > 0.0) {
+                        if !positive(gamma) {
                             return Err(bad("schedule.gamma", "must be positive".into()));
                         }
                         Decay::Step { every, gamma }
@@ -919,7 +924,7 @@ impl RawExperiment {
                 return Err(bad(&f("radial_bins"), "must be positive".into()));
             }
             if let Some(r) = e.radial_max {
-                if !(r > 0.0) {
+                if !positive(r) {
                     return Err(bad(&f("radial_max"), "must be positive".into()));
                 }
             }

@@ -273,6 +273,7 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         checkpoint_every: t.checkpoint_every,
         device,
         progress: opts.progress,
+        verbose: opts.verbose,
     };
     let info = CheckpointInfo {
         format: FORMAT.into(),
@@ -296,7 +297,7 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
     ];
     if opts.verbose {
         eprintln!(
-            "training {} ({} U-Net, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
+            "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
             exp.name,
             checkpoint::describe(&exp.model),
             exp.kernel.as_str(),

@@ -316,11 +316,11 @@ impl UNet {
             ),
         )?;
         let mut downs = Vec::with_capacity(d);
-        for l in 1..=d {
+        for (l, &size) in sizes.iter().enumerate().skip(1) {
             let p = vs / format!("down{l}") / "maxpool_conv" / 1;
             downs.push(at_level(
                 l,
-                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, sizes[l]),
+                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size),
             )?);
         }
         let mut ups = Vec::with_capacity(d);

@@ -20,7 +20,7 @@
 //!
 //! All are written atomically, so a crash never leaves a truncated checkpoint. A non-finite
 //! loss or gradient norm stops training *before* the update with
-//! [`Error::NonFinite`](crate::Error::NonFinite), naming the step and the last good checkpoint
+//! [`Error::NonFinite`], naming the step and the last good checkpoint
 //! (which the failed step never touched).
 
 pub mod adam;
@@ -106,13 +106,16 @@ pub struct TrainConfig {
     pub val_every: Option<u64>,
     /// The validation metric that picks `best.safetensors`.
     pub val_metric: Metric,
-    /// Log training scalars every this many steps.
+    /// Log training scalars (means since the last log) at multiples of this many steps, and at
+    /// the end.
     pub log_every: u64,
     /// Also write `last` every this many steps (validations always write it).
     pub checkpoint_every: Option<u64>,
     pub device: Device,
     /// Show progress bars (stderr).
     pub progress: bool,
+    /// Print a status line at every validation (stderr).
+    pub verbose: bool,
 }
 
 /// One training run.
@@ -136,7 +139,7 @@ pub struct TrainSummary {
     /// Steps done in total (including those before a resume) and in this call.
     pub steps: u64,
     pub steps_this_run: u64,
-    /// Mean training loss over the first and the last `log_every` steps of this call.
+    /// Mean training loss over the first and the last logging window of this call.
     pub first_loss: f64,
     pub last_loss: f64,
     /// Best validation value of `val_metric` and its step.
@@ -262,9 +265,9 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
     let bar = progress_bar(total, "train", cfg.progress);
     bar.set_position(step);
     let say = |msg: String| {
-        if bar.is_hidden() {
+        if cfg.verbose && bar.is_hidden() {
             eprintln!("{msg}");
-        } else {
+        } else if cfg.verbose {
             bar.println(msg);
         }
     };
@@ -340,7 +343,7 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
             window.1 += 1;
             train_secs += t0.elapsed().as_secs_f64();
 
-            if window.1 >= cfg.log_every || step == total {
+            if step % cfg.log_every == 0 || step == total {
                 let mean = window.0 / window.1 as f64;
                 if first_loss.is_nan() {
                     first_loss = mean;
