@@ -204,6 +204,15 @@ fn resume_continues_at_the_same_step_with_the_same_data_order() {
         resume: true,
         ..quiet()
     };
+    // Another batch size would change the data order: refused, and the run is left alone.
+    let other = experiment_text(&b_dir, "r", "standard", 10, "checkpoint_every = 2")
+        .replace("batch_size = 4", "batch_size = 2");
+    let e = experiment::train(&load(&b_dir, &other), &resume)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("batch size 4, not 2"), "{e}");
+    let stored = std::fs::read_to_string(b.run_dir.join("experiment.toml")).unwrap();
+    assert!(stored.contains("steps = 6"));
     let out = experiment::train(&b, &resume).unwrap();
     assert_eq!((out.summary.steps, out.summary.steps_this_run), (10, 4));
     let (va, vb) = (

@@ -116,6 +116,7 @@ fn record_invocation(exp: &Experiment, command: &str, extra: serde_json::Value) 
         "git": git_revision(),
         "calibconv_version": env!("CARGO_PKG_VERSION"),
         "device": exp.device,
+        "resolved_device": exp.device().ok().map(|d| format!("{d:?}")),
         "torch_threads": tch::get_num_threads(),
         "args": std::env::args().collect::<Vec<_>>(),
         "details": extra,
@@ -213,11 +214,18 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
             }
         }
     }
-    write_bytes_atomic(&stored, exp.text.as_bytes())?;
-    write_json(
-        &exp.run_dir.join("config.json"),
-        &serde_json::to_value(exp).expect("experiment serialises"),
-    )?;
+    // The files that describe the run: written now for a new run; for a resumed one only once
+    // it has resumed (a refused resume leaves the run's description alone).
+    let describe_run = || -> Result<()> {
+        write_bytes_atomic(&stored, exp.text.as_bytes())?;
+        write_json(
+            &exp.run_dir.join("config.json"),
+            &serde_json::to_value(exp).expect("experiment serialises"),
+        )
+    };
+    if !opts.resume {
+        describe_run()?;
+    }
 
     tch::manual_seed(exp.seed as i64);
     let vs = VarStore::new(device);
@@ -326,6 +334,9 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         &cfg,
     )?;
     drop(reporters); // closes the event file
+    if opts.resume {
+        describe_run()?;
+    }
     write_json(
         &exp.run_dir.join("summary.json"),
         &json!({

@@ -242,6 +242,18 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
                 ),
             });
         }
+        let saved_batch = meta.get("batch_size").and_then(|s| s.parse::<usize>().ok());
+        if saved_batch.is_some_and(|b| b != cfg.batch_size) {
+            return Err(Error::Checkpoint {
+                path: last_optim.clone(),
+                message: format!(
+                    "the run was trained with batch size {}, not {}: resuming would change \
+                     the data order",
+                    saved_batch.unwrap_or(0),
+                    cfg.batch_size
+                ),
+            });
+        }
         (step, epoch, pos) = (li.step, li.epoch, li.batch_in_epoch);
         if let (Some(m), Some(v), Some(s)) = (
             meta.get("best_metric")
@@ -289,6 +301,7 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
         info.batch_in_epoch = p;
         let mut meta = HashMap::new();
         meta.insert("step".to_string(), step.to_string());
+        meta.insert("batch_size".to_string(), cfg.batch_size.to_string());
         if let Some(b) = best {
             meta.insert("best_metric".into(), b.metric.name().into());
             meta.insert("best_value".into(), format!("{:e}", b.value));
