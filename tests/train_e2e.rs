@@ -2,6 +2,10 @@
 //! its run directory, evaluates, and its checkpoint reloads into a fresh network that gives the
 //! same metrics; an interrupted run resumes to the same weights as an uninterrupted one; a NaN
 //! stops training with the last good checkpoint intact; the binary runs `train` and `eval`.
+//!
+//! Tests run in parallel threads and libtorch's random generator is global: every network here
+//! is built through `train::seeded` (which holds a lock) and nothing else draws random numbers,
+//! so initial weights depend on the seeds only.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -55,7 +59,7 @@ radial_bins = 4
 {extra_train}
 
 [optimizer]
-lr = 3e-3
+lr = 1e-2
 "#,
         out = dir.display()
     )
@@ -92,9 +96,11 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
         );
         let out = experiment::train(&exp, &quiet()).unwrap();
         let s = &out.summary;
+        eprintln!("{kernel}: loss {} -> {}", s.first_loss, s.last_loss);
         assert_eq!(s.steps, 24, "{kernel}");
+        // Observed 4.69 -> 2.86 (standard) and 4.69 -> 2.87 (calibrated).
         assert!(
-            s.last_loss < 0.85 * s.first_loss,
+            s.last_loss < 0.8 * s.first_loss,
             "{kernel}: loss {} -> {}",
             s.first_loss,
             s.last_loss
@@ -153,9 +159,10 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
 
         // Reload into a fresh network (other initial weights): the weights are the file's, and
         // evaluating again gives the same numbers.
-        tch::manual_seed(99);
+        let mut other = exp.clone();
+        other.seed = 99;
         let vs = VarStore::new(Device::Cpu);
-        experiment::run::build_model(&exp, &vs, exp.evals[0].kernel, &exp.input).unwrap();
+        experiment::run::build_model(&other, &vs, exp.evals[0].kernel, &exp.input).unwrap();
         checkpoint::load(&best_file, &vs, &exp.model).unwrap();
         for (name, t) in vars(&best_file) {
             assert!(vs.variables()[&name].equal(&t), "{kernel}: {name}");
@@ -245,7 +252,11 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     // 8 samples in order, batches of 2: the fourth batch (samples 6, 7) holds a NaN pixel.
     let (n, h, w) = (8i64, 16i64, 16i64);
-    let image = Tensor::rand([n, 3, h, w], (Kind::Float, Device::Cpu));
+    // No random numbers: the other tests of this binary rely on seeded initialisation.
+    let image = (Tensor::arange(n * 3 * h * w, (Kind::Float, Device::Cpu)) * 0.37)
+        .sin()
+        .abs()
+        .view([n, 3, h, w]);
     let _ = image.get(6).get(0).get(3).get(3).fill_(f64::NAN);
     let source = MemorySource::new(
         image,
@@ -259,7 +270,10 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
     .unwrap();
     let cfg = UNetConfig::preset("tiny", Head::Depth).unwrap();
     let vs = VarStore::new(Device::Cpu);
-    let model = UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [h, w]).unwrap();
+    let model = train::seeded(0, || {
+        UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [h, w])
+    })
+    .unwrap();
     let info = CheckpointInfo {
         format: FORMAT.into(),
         version: FORMAT_VERSION,
@@ -325,7 +339,10 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
     );
     // The last good checkpoint is from step 2 and loads, with finite weights.
     let vs2 = VarStore::new(Device::Cpu);
-    UNet::new(&vs2.root(), &cfg, &ConvKind::Standard, [h, w]).unwrap();
+    train::seeded(1, || {
+        UNet::new(&vs2.root(), &cfg, &ConvKind::Standard, [h, w])
+    })
+    .unwrap();
     let loaded = checkpoint::load(&last, &vs2, &cfg).unwrap();
     assert_eq!(loaded.info.unwrap().step, 2);
     for (name, t) in vs2.variables() {
@@ -357,12 +374,14 @@ fn the_binary_trains_and_evaluates_and_names_a_wrong_checkpoint() {
     // A checkpoint of another architecture (a small U-Net) is refused, naming a tensor.
     let other = dir.path().join("other.safetensors");
     let vs = VarStore::new(Device::Cpu);
-    UNet::new(
-        &vs.root(),
-        &UNetConfig::preset("small", Head::Depth).unwrap(),
-        &ConvKind::Standard,
-        [48, 48],
-    )
+    train::seeded(0, || {
+        UNet::new(
+            &vs.root(),
+            &UNetConfig::preset("small", Head::Depth).unwrap(),
+            &ConvKind::Standard,
+            [48, 48],
+        )
+    })
     .unwrap();
     checkpoint::write_tensors(
         &other,

@@ -78,14 +78,17 @@ pub fn git_revision() -> Option<String> {
         .filter(|s| !s.is_empty())
 }
 
-/// Builds the experiment's U-Net under `vs` for `kernel` on `input`.
+/// Builds the experiment's U-Net under `vs` for `kernel` on `input`, initialised from the
+/// experiment's seed (see [`train::seeded`]).
 pub fn build_model(
     exp: &Experiment,
     vs: &VarStore,
     kernel: KernelName,
     input: &InputSpec,
 ) -> Result<UNet> {
-    UNet::new(&vs.root(), &exp.model, &input.conv_kind(kernel), input.size)
+    train::seeded(exp.seed, || {
+        UNet::new(&vs.root(), &exp.model, &input.conv_kind(kernel), input.size)
+    })
 }
 
 /// The best checkpoint of a run directory's `checkpoints/`, else its last, if any.
@@ -227,7 +230,6 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         describe_run()?;
     }
 
-    tch::manual_seed(exp.seed as i64);
     let vs = VarStore::new(device);
     let model = build_model(exp, &vs, exp.kernel, &exp.input)?;
     let mut init_from = None;

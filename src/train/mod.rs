@@ -154,6 +154,17 @@ pub struct TrainSummary {
     pub best_checkpoint: Option<PathBuf>,
 }
 
+/// Runs `f` (typically: build a network) right after `tch::manual_seed(seed)`, holding a
+/// process-wide lock, so that the random initialisation depends on `seed` only, even when
+/// several threads build networks or draw random numbers through this function at once
+/// (libtorch's default generator is global).
+pub fn seeded<T>(seed: u64, f: impl FnOnce() -> T) -> T {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = LOCK.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    tch::manual_seed(seed as i64);
+    f()
+}
+
 /// File of the latest weights in `dir`.
 pub fn last_path(dir: &Path) -> PathBuf {
     dir.join("last.safetensors")
@@ -261,11 +272,14 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
             meta.get("best_value").and_then(|v| v.parse::<f64>().ok()),
             meta.get("best_step").and_then(|v| v.parse::<u64>().ok()),
         ) {
-            best = Some(Best {
-                metric: m,
-                value: v,
-                step: s,
-            });
+            // A changed `val_metric` starts a new competition.
+            if m == cfg.val_metric {
+                best = Some(Best {
+                    metric: m,
+                    value: v,
+                    step: s,
+                });
+            }
         }
     } else if last.exists() {
         return Err(Error::Checkpoint {
