@@ -3,9 +3,11 @@
 
 mod camera;
 mod demo;
+mod eval;
 mod kernels;
 mod offsets;
 pub(crate) mod synth;
+mod train;
 
 use std::path::Path;
 
@@ -25,6 +27,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Demo(args) => demo::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Camera(args) => camera::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Eval(args) => eval::run(args),
     }
 }
 
