@@ -37,6 +37,57 @@ pub enum Command {
     Train(TrainArgs),
     /// Evaluate an experiment's checkpoint (default: its best) with its [[eval]] entries.
     Eval(EvalArgs),
+    /// Run every experiment of a folder (e.g. experiments/paper) with a profile, in dependency
+    /// order (fine-tunings after their baseline): complete runs are skipped, interrupted ones
+    /// resumed, failures reported at the end (exit status 1) without stopping the others.
+    Sweep(SweepArgs),
+    /// Tables (Markdown, CSV), radial plots, qualitative grids, a point cloud and REPORT.md from
+    /// the run directories of a sweep's output folder (e.g. results/quick).
+    Report(ReportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SweepArgs {
+    /// Folder of experiment files (*.toml; profiles in its profiles/ subfolder).
+    pub dir: PathBuf,
+    /// Profile: NAME for DIR/profiles/NAME.toml (quick, paper), or a file.
+    #[arg(long)]
+    pub profile: Option<String>,
+    /// Run only experiments matching PATTERN (`*` globs; without `*`: names containing it; an
+    /// exact name: that run only). Repeatable.
+    #[arg(long = "only", value_name = "PATTERN")]
+    pub only: Vec<String>,
+    /// Runs at a time within a dependency level.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// libtorch CPU threads per process (default: libtorch's choice). On a shared or small
+    /// machine, `--jobs 2 --threads 1` is much faster than one run on 2 threads: busy-waiting
+    /// OpenMP threads collapse when the cores are oversubscribed.
+    #[arg(long)]
+    pub threads: Option<i32>,
+    /// Override a key of every experiment after the profile (`optimizer.lr=1e-4`,
+    /// `train.steps=10`); recorded in each run's sweep.json. Repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Write SLURM scripts (one job array per dependency level, chained with
+    /// --dependency=afterok) to DIR instead of running.
+    #[arg(long, value_name = "DIR")]
+    pub emit_slurm: Option<PathBuf>,
+    /// List the plan (level, state) and stop.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// No progress bar.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// A sweep's output folder: one run directory per experiment (e.g. results/quick).
+    pub results: PathBuf,
+    /// Write the report here (default: RESULTS).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]

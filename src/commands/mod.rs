@@ -6,6 +6,8 @@ mod demo;
 mod eval;
 mod kernels;
 mod offsets;
+mod report;
+mod sweep;
 pub(crate) mod synth;
 mod train;
 
@@ -29,6 +31,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Sweep(args) => sweep::run(args),
+        Command::Report(args) => report::run(args),
     }
 }
 

@@ -14,6 +14,8 @@
 //! seed = 0                            # network initialisation and data order
 //! output = "runs"                     # default "runs"
 //! device = "auto"                     # auto (CUDA if available) | cpu | cuda | cuda:N
+//! data_root = "data/synth"            # relative `dataset` paths are relative to this
+//!                                     # (itself relative to the current directory; default ".")
 //!
 //! [model]
 //! preset = "small"                    # classic | classic-bilinear | small | tiny
@@ -24,6 +26,9 @@
 //!
 //! [input]
 //! camera = "data/cameras/f195.toml"
+//! width = 128                         # scale every camera of the experiment (input and evals)
+//!                                     # to this image width, half-pixel convention, as
+//!                                     # `calibconv synth --width` does (default: as written)
 //! padding = [8, 0]                    # [right, bottom] added to the camera image, camera px
 //! size = [120, 136]                   # [H, W] network input (default camera size + padding)
 //! convention = "half-pixel"           # or "paper"
@@ -67,9 +72,11 @@
 //! images = 4                          # prediction PNGs
 //! ```
 
+pub mod profile;
 pub mod run;
 pub mod source;
 pub mod suggest;
+pub mod sweep;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -154,6 +161,7 @@ pub struct RawExperiment {
     pub seed: Option<u64>,
     pub output: Option<PathBuf>,
     pub device: Option<String>,
+    pub data_root: Option<PathBuf>,
     pub model: RawModel,
     pub input: RawInput,
     pub data: RawData,
@@ -190,6 +198,7 @@ pub struct RawInit {
 #[serde(deny_unknown_fields)]
 pub struct RawInput {
     pub camera: PathBuf,
+    pub width: Option<usize>,
     pub padding: Option<[usize; 2]>,
     pub size: Option<[i64; 2]>,
     pub convention: Option<PixelConvention>,
@@ -473,7 +482,7 @@ fn absolute(p: &Path) -> Result<PathBuf> {
 }
 
 impl RawSource {
-    fn resolve(self, cfg: &Path, field: &str) -> Result<SourceSpec> {
+    fn resolve(self, cfg: &Path, field: &str, root: &Path) -> Result<SourceSpec> {
         let bad = |message: &str| Error::Config {
             path: cfg.to_path_buf(),
             field: field.to_string(),
@@ -484,7 +493,7 @@ impl RawSource {
         }
         match (self.dataset, self.toy) {
             (Some(p), None) => Ok(SourceSpec::Dataset {
-                path: absolute(&p)?,
+                path: absolute(&root.join(p))?,
                 split: self.split,
             }),
             (None, Some(0)) => Err(bad("`toy` needs at least one sample")),
@@ -504,6 +513,7 @@ fn input_spec(
     cfg: &Path,
     field: &str,
     camera_path: &Path,
+    width: Option<usize>,
     padding: Option<[usize; 2]>,
     size: Option<[i64; 2]>,
     convention: Option<PixelConvention>,
@@ -516,7 +526,22 @@ fn input_spec(
     let camera_file = absolute(camera_path)?;
     let camera_toml = std::fs::read_to_string(&camera_file)
         .map_err(|e| bad(field, format!("{}: {e}", camera_file.display())))?;
-    let camera = camera::load(&camera_file).map_err(|e| bad(field, e.to_string()))?;
+    let mut camera = camera::load(&camera_file).map_err(|e| bad(field, e.to_string()))?;
+    let mut camera_toml = camera_toml;
+    if let Some(w) = width {
+        if w == 0 {
+            return Err(bad("input.width", "must be positive".into()));
+        }
+        let s = w as f64 / camera.size()[0] as f64;
+        camera = camera.rescaled([s, s], PixelConvention::HalfPixel);
+        let note = format!(
+            "{} rescaled to {}x{} (half-pixel convention) by input.width",
+            camera_file.display(),
+            camera.size()[0],
+            camera.size()[1]
+        );
+        camera_toml = camera::to_toml(&camera, &[], None, Some(&note));
+    }
     let padding = padding.unwrap_or([0, 0]);
     let [w, h] = camera.size();
     let size = size.unwrap_or([(h + padding[1]) as i64, (w + padding[0]) as i64]);
@@ -671,10 +696,12 @@ impl RawExperiment {
 
         // Input.
         let i = self.input;
+        let width = i.width;
         let input = input_spec(
             cfg,
             "input.camera",
             &i.camera,
+            width,
             i.padding,
             i.size,
             i.convention,
@@ -684,17 +711,19 @@ impl RawExperiment {
         }
 
         // Data.
-        let train_data = self.data.train.resolve(cfg, "data.train")?;
+        let root = self.data_root.unwrap_or_else(|| PathBuf::from("."));
+        let root = root.as_path();
+        let train_data = self.data.train.resolve(cfg, "data.train", root)?;
         let val_data = self
             .data
             .val
-            .map(|s| s.resolve(cfg, "data.val"))
+            .map(|s| s.resolve(cfg, "data.val", root))
             .transpose()?;
         let raw_test = self.data.test.clone();
         let test_data = self
             .data
             .test
-            .map(|s| s.resolve(cfg, "data.test"))
+            .map(|s| s.resolve(cfg, "data.test", root))
             .transpose()?;
 
         // Training.
@@ -891,25 +920,31 @@ impl RawExperiment {
             if evals.iter().any(|e: &EvalSpec| e.name == name) {
                 return Err(bad(&f("name"), format!("`{name}` is used twice")));
             }
-            let data = e.data.resolve(cfg, &f("data"))?;
+            let data = e.data.resolve(cfg, &f("data"), root)?;
             let ek = e.kernel.unwrap_or(kernel);
             let einput = match (e.camera, e.padding, e.size, e.convention) {
                 (None, None, None, None) => input.clone(),
                 (cam, pad, size, conv) => {
-                    // Another camera gets its own defaults (no padding, its own size); the
-                    // same camera keeps the input's padding, and its size if the padding is
-                    // kept too.
+                    // A camera of another image size gets its own defaults (no padding, its
+                    // own size); the same camera, or one with the same image size, keeps the
+                    // input's padding, and its size if the padding is kept too.
                     let cam_path = match cam {
                         Some(c) => absolute(&c)?,
                         None => input.camera_file.clone(),
                     };
-                    let same = cam_path == input.camera_file;
+                    let same = cam_path == input.camera_file
+                        || camera::load(&cam_path).is_ok_and(|c| {
+                            let s = width.map_or(1.0, |w| w as f64 / c.size()[0] as f64);
+                            let scaled = c.rescaled([s, s], PixelConvention::HalfPixel);
+                            scaled.size() == input.camera.size()
+                        });
                     let size = size.or((same && pad.is_none()).then_some(input.size));
                     let pad = pad.or(same.then_some(input.padding));
                     input_spec(
                         cfg,
                         &f("camera"),
                         &cam_path,
+                        width,
                         pad,
                         size,
                         conv.or(Some(input.convention)),

@@ -12,6 +12,8 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use crate::camera::Camera;
+use crate::data::format::Split;
+use crate::data::loader::{Augment, Dataset, InputSize, LoaderConfig};
 use crate::data::toy::{field_of_view_mask, toy_source};
 use crate::data::BatchSource;
 use crate::error::{Error, Result};
@@ -118,13 +120,70 @@ pub fn open_source(req: &SourceRequest<'_>) -> Result<Box<dyn BatchSource>> {
     Ok(source)
 }
 
+/// Largest disagreement, in pixels, between the projections of the data set's camera and the
+/// experiment's camera for the same ray before they count as different cameras. Both come from
+/// the same file scaled the same way, so they agree to float rounding; 0.05 px still tells F165
+/// from F195 at 16 px wide (they differ by 0.6 px at 80 deg there).
+pub const CAMERA_MATCH_TOL_PX: f64 = 0.05;
+
+/// Polar angles (degrees from the optical axis) of the rays [`cameras_match`] compares, at four
+/// azimuths each; 80 deg is inside every camera of the paper (a pinhole projects it far outside
+/// its image, which still compares).
+const MATCH_ANGLES_DEG: [f64; 5] = [0.0, 20.0, 40.0, 60.0, 80.0];
+
+/// Whether `a` and `b` are the same camera for the network: the same image size and the same
+/// projection (within [`CAMERA_MATCH_TOL_PX`]) of rays at [`MATCH_ANGLES_DEG`] from the axis.
+/// `Err` says how they differ.
+pub fn cameras_match(a: &Camera, b: &Camera) -> std::result::Result<(), String> {
+    use crate::camera::CameraModel;
+    if a.size() != b.size() {
+        return Err(format!(
+            "image size {}x{} vs {}x{}",
+            a.size()[0],
+            a.size()[1],
+            b.size()[0],
+            b.size()[1]
+        ));
+    }
+    for theta in MATCH_ANGLES_DEG {
+        for k in 0..4 {
+            let (t, phi) = (theta.to_radians(), k as f64 * std::f64::consts::FRAC_PI_2);
+            let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
+            match (a.project(ray), b.project(ray)) {
+                (None, None) => {}
+                (Some(p), Some(q)) => {
+                    let d = (p[0] - q[0]).hypot(p[1] - q[1]);
+                    if d > CAMERA_MATCH_TOL_PX {
+                        return Err(format!(
+                            "a ray {theta} deg off axis lands {d:.2} px apart ({:.2}, {:.2}) vs \
+                             ({:.2}, {:.2})",
+                            p[0], p[1], q[0], q[1]
+                        ));
+                    }
+                }
+                _ => {
+                    return Err(format!(
+                        "a ray {theta} deg off axis is seen by one camera only"
+                    ))
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Opens split `split` of the data set folder `path` (see the on-disk layout in
-/// [`crate::data`]).
+/// [`crate::data`]) with [`Dataset::open`]: batches of `req.batch_size`, shuffled per epoch
+/// with `req.shuffle`, padded right / bottom to `req.input_size`, no augmentation.
 ///
-/// The folder must exist and hold `manifest.json`. Reading the folder itself is the data
-/// module's loader (batches of `req.batch_size`, shuffled with `req.shuffle`, resized and padded
-/// to `req.input_size`), which is wired here; this build does not contain it yet, which is an
-/// error naming the folder.
+/// The rule for cameras: the data set's `camera.toml` (the camera its images were rendered
+/// with) must be the experiment's camera (`req.camera`: the `[input]` or `[[eval]]` camera,
+/// scaled to `input.width` if given) up to [`CAMERA_MATCH_TOL_PX`], and its padding the
+/// experiment's. This holds for standard kernels too: the network input size, the padding
+/// mask and the radial bins (around the principal point) all come from the experiment's camera,
+/// and calibrated kernels are only right for the camera of the images. An experiment that
+/// evaluates a Pers-trained network on fisheye images names the fisheye camera in its
+/// `[[eval]]`.
 pub fn open_dataset_folder(
     path: &Path,
     split: &str,
@@ -146,12 +205,42 @@ pub fn open_dataset_folder(
             path.display()
         )));
     }
-    let _ = req;
-    Err(err(
-        "this build has no data set folder loader yet (it comes with `calibconv::data`'s \
-         loader); use `{ toy = N, split = ... }` sources meanwhile"
-            .to_string(),
-    ))
+    let split_name: Split = split.parse().map_err(err)?;
+    let [h, w] = req.input_size;
+    let config = LoaderConfig {
+        batch_size: req.batch_size,
+        seed: req.shuffle.unwrap_or(0),
+        shuffle: req.shuffle.is_some(),
+        drop_last: false,
+        input: InputSize::Exact([h.max(0) as usize, w.max(0) as usize]),
+        augment: Augment::default(),
+        prefetch: 2,
+    };
+    let dataset = Dataset::open(path, split_name, config)
+        .map_err(|e| err(format!("split `{split}`: {e}")))?;
+    cameras_match(dataset.camera(), req.camera).map_err(|why| {
+        use crate::camera::CameraModel;
+        err(format!(
+            "its camera ({} {}x{}, camera.toml) is not the experiment's ({} {}x{}): {why}; point \
+             the experiment's camera at the lens of this data set (and set `input.width` to its \
+             image width)",
+            dataset.camera().model_name(),
+            dataset.camera().size()[0],
+            dataset.camera().size()[1],
+            req.camera.model_name(),
+            req.camera.size()[0],
+            req.camera.size()[1],
+        ))
+    })?;
+    let padding = dataset.input_frame().padding;
+    if padding != req.frame.padding {
+        return Err(err(format!(
+            "a {h}x{w} input pads its images by {padding:?} (right, bottom), the experiment \
+             says {:?}",
+            req.frame.padding
+        )));
+    }
+    Ok(Box::new(dataset))
 }
 
 #[cfg(test)]

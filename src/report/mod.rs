@@ -8,4 +8,5 @@ pub mod csv;
 pub mod draw;
 pub mod kernels;
 pub mod plots;
+pub mod results;
 pub mod tensorboard;
