@@ -28,9 +28,21 @@ test: setup
 	cargo build --release --all-targets
 	cargo test --release
 
+# The paper's experiments end to end on the embedded data (`quick` profile): synthesise the data
+# sets at 64 px, run the sweep (both tasks: 2 baselines, 10 fine-tunings), write the report.
+# Re-running skips what is complete and resumes what was interrupted.
+DEMO_JOBS ?= 2
 demo: setup
 	cargo build --release
-	./target/release/calibconv demo
+	@start=$$(date +%s); \
+	./target/release/calibconv synth --width 64 --views-per-panorama 8 --out data/synth-quick && \
+	./target/release/calibconv sweep experiments/paper --profile quick --jobs $(DEMO_JOBS) --threads 1; \
+	status=$$?; \
+	./target/release/calibconv kernels --camera data/cameras/f195.toml --out results/quick/kernels_f195.png >/dev/null && \
+	./target/release/calibconv report results/quick >/dev/null || status=1; \
+	echo "make demo: synth + sweep + report in $$(( $$(date +%s) - start )) s (exit status $$status)"; \
+	echo "report: $(CURDIR)/results/quick/REPORT.md"; \
+	exit $$status
 
 bench: setup
 	cargo run --release -- bench

@@ -31,10 +31,13 @@
 //!   best checkpoint, exact resume, stop on NaN / Inf. Output goes through the
 //!   [`train::Reporter`] trait.
 //! - [`experiment`]: experiment TOML files (raw -> resolved, did-you-mean errors), the hook that
-//!   opens data sources, and the run directory: training then evaluations, as
-//!   `calibconv train` / `calibconv eval` run them.
-//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots) and
-//!   the training reporters (TensorBoard event files, CSV logs).
+//!   opens data sources (data set folders whose camera matches, or the toy task), and the run
+//!   directory: training then evaluations, as `calibconv train` / `calibconv eval` run them;
+//!   profiles and `--set` overrides (TOML overlays) and sweeps over a folder in dependency order
+//!   (skip, resume, keep going past failures, SLURM scripts), as `calibconv sweep` runs them.
+//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots, point
+//!   clouds), the training reporters (TensorBoard event files, CSV logs), and the report of a
+//!   sweep's results (the paper's tables, radial plots, qualitative grids, `REPORT.md`).
 //! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;

@@ -1,11 +1,26 @@
-//! `calibconv report RESULTS [--out DIR]`.
+//! `calibconv report RESULTS [--out DIR]`: the library's report, plus a point cloud from the
+//! predicted and true depth of one test image (it needs a network, so it is built here, where
+//! the experiment and report layers meet).
 
-use anyhow::{Context, Result};
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use tch::nn::VarStore;
+use tch::{Device, Kind, Tensor};
+
+use calibconv::experiment::{self, run, SourceRequest};
+use calibconv::report::pointcloud::{back_project, top_view, write_ply};
 
 use crate::cli::ReportArgs;
 
 pub fn run(args: ReportArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.results.clone());
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    match point_cloud(&args.results, &out) {
+        Ok(Some(run)) => println!("point cloud of the first test image of {run}"),
+        Ok(None) => {}
+        Err(e) => eprintln!("warning: no point cloud: {e:#}"),
+    }
     let written = calibconv::report::results::write_report(&args.results, &out)
         .with_context(|| format!("cannot report on {}", args.results.display()))?;
     for f in &written {
@@ -13,4 +28,98 @@ pub fn run(args: ReportArgs) -> Result<()> {
     }
     println!("report: {}", out.join("REPORT.md").display());
     Ok(())
+}
+
+/// The depth run to show: a fine-tuned calibrated one, the widest field of view first.
+fn pick_run(results: &Path) -> Option<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(results)
+        .ok()?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join("summary.json").is_file())
+        .collect();
+    dirs.sort();
+    for want in ["depth-ft-f195-calibrated", "depth-ft-f165-calibrated"] {
+        if let Some(d) = dirs.iter().find(|d| {
+            d.file_name()
+                .is_some_and(|n| n.to_string_lossy().ends_with(want))
+        }) {
+            return Some(d.clone());
+        }
+    }
+    None
+}
+
+fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
+    Ok(Vec::<f32>::try_from(
+        t.to_kind(Kind::Float).contiguous().flatten(0, -1),
+    )?)
+}
+
+/// `pointcloud_{pred,true}.ply` and `pointcloud_top.png` in `out`; the run's name, or `None`
+/// when there is no fine-tuned calibrated depth run.
+fn point_cloud(results: &Path, out: &Path) -> Result<Option<String>> {
+    let Some(dir) = pick_run(results) else {
+        return Ok(None);
+    };
+    let file = dir.join("experiment.toml");
+    let text = std::fs::read_to_string(&file)?;
+    let exp = experiment::parse(&text, &file)?
+        .resolve(&file, &text)
+        .with_context(|| {
+            format!(
+                "{} (run the report from the sweep's folder)",
+                file.display()
+            )
+        })?;
+    let Some(spec) = exp
+        .test_data
+        .clone()
+        .or(exp.evals.first().map(|e| e.data.clone()))
+    else {
+        bail!("{}: no test data", exp.name);
+    };
+    let vs = VarStore::new(Device::Cpu);
+    let model = run::build_model(&exp, &vs, exp.kernel, &exp.input)?;
+    let ckpt = run::best_or_last(&run::checkpoint_dir(&exp))
+        .with_context(|| format!("{}: no checkpoint", exp.name))?;
+    calibconv::train::checkpoint::load(&ckpt, &vs, &exp.model)?;
+    let source = experiment::open_source(&SourceRequest {
+        spec: &spec,
+        batch_size: 1,
+        shuffle: None,
+        input_size: exp.input.size,
+        camera: &exp.input.camera,
+        frame: exp.input.frame(),
+    })?;
+    let batch = source.batches(0, 0).next().context("empty test split")??;
+    let pred = tch::no_grad(|| model.f_forward_t(&batch.image, false))?;
+    let [h, w] = [exp.input.size[0] as usize, exp.input.size[1] as usize];
+    let rgb: Vec<f32> = to_vec(&batch.image.get(0).permute([1, 2, 0]))?;
+    let byte = |x: f32| (x * 255.0).round().clamp(0.0, 255.0) as u8;
+    let rgb: Vec<[u8; 3]> = rgb
+        .chunks(3)
+        .map(|c| [byte(c[0]), byte(c[1]), byte(c[2])])
+        .collect();
+    let mask: Vec<bool> = to_vec(&batch.mask)?.into_iter().map(|m| m > 0.5).collect();
+    let truth: Vec<f32> = to_vec(&batch.depth)?;
+    let predicted: Vec<f32> = to_vec(&pred)?;
+    let cam = &exp.input.camera;
+    let p = back_project(cam, [h, w], &predicted, &mask, &rgb);
+    let t = back_project(cam, [h, w], &truth, &mask, &rgb);
+    write_ply(&out.join("pointcloud_pred.ply"), &p)?;
+    write_ply(&out.join("pointcloud_true.ply"), &t)?;
+    top_view(
+        &out.join("pointcloud_top.png"),
+        &[(&t, [110, 110, 110]), (&p, [31, 119, 180])],
+        512,
+    )?;
+    let about = format!(
+        "run {}, checkpoint {}, test image {}",
+        exp.name,
+        ckpt.display(),
+        batch.ids.first().cloned().unwrap_or_default()
+    );
+    std::fs::write(out.join("pointcloud.txt"), &about)?;
+    Ok(Some(exp.name))
 }

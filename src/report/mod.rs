@@ -8,5 +8,6 @@ pub mod csv;
 pub mod draw;
 pub mod kernels;
 pub mod plots;
+pub mod pointcloud;
 pub mod results;
 pub mod tensorboard;

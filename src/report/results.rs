@@ -594,6 +594,23 @@ pub fn write_report(results: &Path, out: &Path) -> Result<Vec<PathBuf>> {
         }
         files.extend(grids);
     }
+    if out.join("pointcloud_top.png").is_file() {
+        let about = std::fs::read_to_string(out.join("pointcloud.txt")).unwrap_or_default();
+        report += &format!(
+            "## Point cloud\n\nPredicted (blue) and true (grey) depth of one test image \
+             back-projected with the camera model (depth = distance along the ray), seen from \
+             above, camera at the black dot ({about}); [predicted](pointcloud_pred.ply), \
+             [true](pointcloud_true.ply) as PLY.\n\n![top view](pointcloud_top.png)\n\n"
+        );
+    }
+    for k in ["kernels_f195.png", "kernels_f165.png"] {
+        if out.join(k).is_file() {
+            report += &format!(
+                "## Calibrated kernels\n\nThe sampling positions of calibrated 3x3 kernels over \
+                 the image (paper Fig. 1a): ![{k}]({k})\n\n"
+            );
+        }
+    }
     report += "## Runs\n\n| run | task | block | steps | training (s) | sweep wall (s) | git | \
                overrides |\n|---|---|---|---:|---:|---:|---|---|\n";
     for r in &runs {
