@@ -7,7 +7,7 @@ REQ_HASH := $(shell sha256sum requirements.txt | cut -c1-16)
 VENV_CACHE ?= $(HOME)/.cache/calibconv/venv-$(REQ_HASH)
 STAMP := $(VENV_CACHE)/.complete
 
-.PHONY: setup test demo bench fixtures clean-venv-link
+.PHONY: setup test demo bench fixtures lint
 
 setup: .venv/.complete
 
@@ -38,3 +38,7 @@ bench: setup
 fixtures: setup
 	.venv/bin/python tools/make_fixtures.py tests/golden
 	.venv/bin/python tools/make_unet_fixture.py tests/golden
+
+lint: setup
+	cargo fmt --check
+	cargo clippy --release --all-targets -- -D warnings

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
+use calibconv::camera::import::{Format, OpenCvModel};
 use calibconv::camera::PixelConvention;
 
 /// Calibrated convolutions for fisheye cameras: kernel offsets from a camera calibration, and
@@ -25,6 +26,12 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
+    /// Camera files: import a calibration from another tool.
+    Camera(CameraArgs),
+    /// Write data sets of fisheye / perspective / rectified views (RGB, depth, labels, mask)
+    /// rendered from panoramas, procedural or Stanford 2D-3D-S, as a config describes
+    /// (default: the embedded data/synth.toml); deterministic and resumable.
+    Synth(crate::commands::synth::SynthArgs),
     /// Train the U-Net an experiment file describes, then run its evaluations (run directory:
     /// OUTPUT/NAME with checkpoints, CSV logs, TensorBoard events and evaluation results).
     Train(TrainArgs),
@@ -57,6 +64,44 @@ pub struct EvalArgs {
     /// No progress bars or status lines.
     #[arg(long, short)]
     pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct CameraArgs {
+    #[command(subcommand)]
+    pub command: CameraCommand,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum CameraCommand {
+    /// Convert a calibration of Kalibr (camchain YAML), OpenCV (FileStorage YAML / JSON), Basalt
+    /// (calibration JSON), COLMAP (cameras.txt) or OCamCalib (calib_results.txt) into a camera
+    /// file (TOML with named fields), checked like any camera file.
+    Import(ImportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ImportArgs {
+    /// Source tool: kalibr, opencv, basalt, colmap or ocamcalib.
+    #[arg(long = "from")]
+    pub from: Format,
+    /// The calibration file.
+    pub file: PathBuf,
+    /// Which camera: Kalibr camN and Basalt intrinsics[N] (default 0), COLMAP CAMERA_ID
+    /// (default: the first listed).
+    #[arg(long)]
+    pub camera: Option<usize>,
+    /// Full field of view of a fisheye lens in degrees (default: the angle the image width
+    /// spans on the principal row; calibration files rarely hold the lens's own).
+    #[arg(long)]
+    pub fov_deg: Option<f64>,
+    /// OpenCV files only: fisheye or standard, when the file does not say (4 coefficients fit
+    /// both).
+    #[arg(long)]
+    pub opencv_model: Option<OpenCvModel>,
+    /// Output camera file (.toml), written atomically.
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 /// How the network input relates to the camera image.

@@ -23,6 +23,10 @@ pub enum Error {
         field: String,
         message: String,
     },
+    /// A calibration file of another tool (Kalibr, OpenCV, Basalt, COLMAP, OCamCalib) did not
+    /// parse as that tool writes it.
+    #[error("{path}: {message}")]
+    Format { path: PathBuf, message: String },
     /// A function argument is outside what the operation supports.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
@@ -32,6 +36,16 @@ pub enum Error {
     /// An image could not be encoded or decoded.
     #[error("{path}: {message}")]
     Image { path: PathBuf, message: String },
+    /// A data set file is missing, malformed or inconsistent (wrong size, unknown class index,
+    /// manifest from another generator version...); `message` names the field where there is
+    /// one.
+    #[error("{path}: {message}")]
+    Data {
+        /// The offending file (or folder).
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
     /// A checkpoint could not be read or written, or does not fit the network.
     #[error("checkpoint {path}: {message}")]
     Checkpoint { path: PathBuf, message: String },
@@ -42,9 +56,6 @@ pub enum Error {
         field: String,
         message: String,
     },
-    /// A data source could not be opened or does not fit the experiment.
-    #[error("data source {path}: {message}")]
-    Dataset { path: PathBuf, message: String },
     /// Training produced a NaN or infinite value; nothing after `step` was saved.
     #[error(
         "training stopped: non-finite {what} ({value}) at step {step}; {}",
@@ -70,6 +81,14 @@ impl Error {
         Error::Io {
             path: path.into(),
             source,
+        }
+    }
+
+    /// An [`Error::Data`] for `path`.
+    pub fn data(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Data {
+            path: path.into(),
+            message: message.into(),
         }
     }
 }

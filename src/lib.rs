@@ -6,8 +6,9 @@
 //!
 //! Data flows one way through the modules:
 //!
-//! - [`camera`]: camera models in plain `f64` Rust (Kannala-Brandt, pinhole) behind one trait,
-//!   read from TOML files in `data/cameras/`. No tensors.
+//! - [`camera`]: camera models in plain `f64` Rust (Kannala-Brandt, pinhole, radial-tangential,
+//!   double sphere, (extended) unified, Scaramuzza, equirectangular) behind one trait, read from
+//!   TOML files in `data/cameras/` or imported from other tools' calibrations. No tensors.
 //! - [`kernel`]: the paper's "fisheye calibrated kernel" (Section 3.2): for a layer geometry and
 //!   feature-map size, the offsets of every kernel tap relative to the regular deformable grid,
 //!   in torchvision's layout, computed in parallel and cached. Tensors begin here.
@@ -18,9 +19,9 @@
 //!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
 //!   network with milesial/Pytorch-UNet's parameter names (so PyTorch weights load by name and
 //!   standard-kernel checkpoints load into calibrated networks unchanged).
-//! - [`data`]: the [`data::Batch`] / [`data::BatchSource`] contract between data and training,
-//!   in-memory sources with seeded per-epoch order ([`data::memory`]) and a built-in toy task
-//!   ([`data::toy`]) for tests and smoke runs.
+//! - [`data`]: the data sets and the [`data::Batch`] / [`data::BatchSource`] contract training
+//!   consumes, plus in-memory sources ([`data::memory`]) and a built-in toy task ([`data::toy`])
+//!   for tests and smoke runs.
 //! - [`eval`]: losses on valid pixels, the paper's metrics (depth MRE..delta3, segmentation
 //!   mIoU / mAcc from one confusion matrix over the set), radial bins around the principal
 //!   point, prediction pictures, and the evaluator that writes metrics JSON / CSV.
@@ -31,8 +32,9 @@
 //! - [`experiment`]: experiment TOML files (raw -> resolved, did-you-mean errors), the hook that
 //!   opens data sources, and the run directory: training then evaluations, as
 //!   `calibconv train` / `calibconv eval` run them.
-//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a) and the training
-//!   reporters (TensorBoard event files, CSV logs).
+//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots) and
+//!   the training reporters (TensorBoard event files, CSV logs).
+//! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;
 pub mod data;

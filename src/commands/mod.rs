@@ -1,10 +1,12 @@
 //! What each subcommand does, one file per subcommand (the library does the work; these files
 //! wire files and output). Shared helpers live here.
 
+mod camera;
 mod demo;
 mod eval;
 mod kernels;
 mod offsets;
+pub(crate) mod synth;
 mod train;
 
 use std::path::Path;
@@ -12,7 +14,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use tch::Tensor;
 
-use calibconv::camera::{self, Camera};
+use calibconv::camera::Camera;
 use calibconv::io::{write_atomic, write_bytes_atomic};
 use calibconv::kernel::InputFrame;
 
@@ -23,6 +25,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Synth(args) => synth::run(args),
+        Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
     }
@@ -36,7 +40,8 @@ fn frame(args: &FrameArgs) -> InputFrame {
 }
 
 fn load_camera(path: &Path) -> Result<Camera> {
-    camera::load(path).with_context(|| format!("cannot use camera file {}", path.display()))
+    calibconv::camera::load(path)
+        .with_context(|| format!("cannot use camera file {}", path.display()))
 }
 
 fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {

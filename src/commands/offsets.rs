@@ -11,7 +11,7 @@ use crate::cli::OffsetsArgs;
 
 pub fn run(args: OffsetsArgs) -> Result<()> {
     let camera = load_camera(&args.camera)?;
-    if args.kernel % 2 == 0 || args.stride == 0 || args.dilation == 0 {
+    if args.kernel.is_multiple_of(2) || args.stride == 0 || args.dilation == 0 {
         bail!("--kernel must be odd, --stride and --dilation at least 1");
     }
     let pad = args

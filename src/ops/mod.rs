@@ -15,7 +15,7 @@
 
 mod plan;
 
-pub use plan::SamplingPlan;
+pub use plan::{Border, SamplingPlan};
 
 use tch::{Kind, Tensor};
 

@@ -112,7 +112,7 @@ fn gradients_match_finite_differences() {
         let n = g.numel();
         for e in (0..n).step_by(7) {
             let fd = tch::no_grad(|| {
-                let mut vars = [x.detach().copy(), w.detach().copy(), b.detach().copy()];
+                let vars = [x.detach().copy(), w.detach().copy(), b.detach().copy()];
                 let flat = vars[which].view(-1);
                 let v0 = flat.double_value(&[e as i64]);
                 let _ = flat.get(e as i64).fill_(v0 + eps);

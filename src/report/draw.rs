@@ -8,8 +8,8 @@ pub fn blend(img: &mut RgbImage, x: i64, y: i64, colour: [u8; 3], alpha: f32) {
         return;
     }
     let p = img.get_pixel_mut(x as u32, y as u32);
-    for c in 0..3 {
-        p.0[c] = (p.0[c] as f32 * (1.0 - alpha) + colour[c] as f32 * alpha).round() as u8;
+    for (v, c) in p.0.iter_mut().zip(colour) {
+        *v = (*v as f32 * (1.0 - alpha) + c as f32 * alpha).round() as u8;
     }
 }
 

@@ -7,4 +7,5 @@
 pub mod csv;
 pub mod draw;
 pub mod kernels;
+pub mod plots;
 pub mod tensorboard;
