@@ -91,6 +91,7 @@ fn point_cloud(results: &Path, out: &Path) -> Result<Option<String>> {
         input_size: exp.input.size,
         camera: &exp.input.camera,
         frame: exp.input.frame(),
+        augment: Default::default(),
     })?;
     let batch = source.batches(0, 0).next().context("empty test split")??;
     let pred = tch::no_grad(|| model.f_forward_t(&batch.image, false))?;

@@ -20,6 +20,7 @@ use serde_json::json;
 use tch::nn::VarStore;
 
 use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
+use crate::data::loader::Augment;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{RadialBins, ALL_METRICS};
 use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
@@ -135,6 +136,7 @@ fn source_for<'a>(
     input: &'a InputSpec,
     batch_size: usize,
     shuffle: Option<u64>,
+    augment: Augment,
 ) -> SourceRequest<'a> {
     SourceRequest {
         spec,
@@ -143,6 +145,7 @@ fn source_for<'a>(
         input_size: input.size,
         camera: &input.camera,
         frame: input.frame(),
+        augment,
     }
 }
 
@@ -253,14 +256,16 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         &exp.input,
         t.batch_size,
         Some(exp.seed),
+        t.augment,
     ))?;
     let val_src = match &exp.val_data {
-        Some(spec) => {
-            Some(
-                opts.opener
-                    .open(&source_for(spec, &exp.input, t.eval_batch_size, None))?,
-            )
-        }
+        Some(spec) => Some(opts.opener.open(&source_for(
+            spec,
+            &exp.input,
+            t.eval_batch_size,
+            None,
+            Augment::default(),
+        ))?),
         None => None,
     };
     let val_opts = EvalOptions {
@@ -427,9 +432,13 @@ pub fn evaluate(
         let vs = VarStore::new(device);
         let model = build_model(exp, &vs, spec.kernel, &spec.input)?;
         checkpoint::load(&ckpt, &vs, &exp.model)?;
-        let source =
-            opts.opener
-                .open(&source_for(&spec.data, &spec.input, spec.batch_size, None))?;
+        let source = opts.opener.open(&source_for(
+            &spec.data,
+            &spec.input,
+            spec.batch_size,
+            None,
+            Augment::default(),
+        ))?;
         let eopts = EvalOptions {
             bins: radial_bins(&spec.input, spec.radial_bins, spec.radial_max)?,
             panels: spec.images,

@@ -10,9 +10,11 @@
 //! Loading compares names and shapes first and reports *every* mismatch (missing, unexpected,
 //! wrong shape; the first one named first) before touching a variable, so a wrong checkpoint
 //! never half-loads. Files without calibconv metadata load too (a PyTorch `state_dict` saved
-//! with `safetensors.torch.save_file`, e.g. milesial/Pytorch-UNet weights): their BatchNorm
-//! `num_batches_tracked` entries are ignored (tch has no such buffer), every other name must
-//! match. Values of another float dtype (float16, bfloat16, float64) are converted.
+//! with `safetensors.torch.save_file`, or by `tools/convert_checkpoint.py` from a `.pth`, e.g.
+//! milesial/Pytorch-UNet weights): their BatchNorm `num_batches_tracked` entries are ignored (tch
+//! has no such buffer), every other name must match, and the converter's `architecture`
+//! metadata, when present, must describe the network. Values of another float dtype (float16,
+//! bfloat16, float64) are converted.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
@@ -25,7 +27,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
 use crate::io::write_atomic;
-use crate::nn::UNetConfig;
+use crate::nn::{UNetConfig, UpMode};
 
 /// Value of the `format` metadata key of calibconv model checkpoints.
 pub const FORMAT: &str = "calibconv-checkpoint";
@@ -354,8 +356,58 @@ pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded>
             ));
         }
     }
+    if info.is_none() {
+        check_converted_architecture(path, &file.metadata()?, expected)?;
+    }
     let ignored = file.copy_into(&named_variables(vs))?;
     Ok(Loaded { info, ignored })
+}
+
+/// Checks the `architecture` metadata that `tools/convert_checkpoint.py` writes for a PyTorch
+/// milesial U-Net (`{"name": "milesial-unet", "variant": "transposed" | "bilinear",
+/// "in_channels", "classes", "base", "depth"}`) against `expected`; files without it pass.
+fn check_converted_architecture(
+    path: &Path,
+    meta: &HashMap<String, String>,
+    expected: &UNetConfig,
+) -> Result<()> {
+    let Some(arch) = meta
+        .get("architecture")
+        .and_then(|a| serde_json::from_str::<serde_json::Value>(a).ok())
+    else {
+        return Ok(());
+    };
+    if arch["name"] != "milesial-unet" {
+        return Ok(());
+    }
+    let up = match arch["variant"].as_str() {
+        Some("bilinear") => UpMode::Bilinear,
+        _ => UpMode::Transposed,
+    };
+    let int = |k: &str| arch[k].as_i64();
+    let fits = int("in_channels") == Some(expected.in_channels)
+        && int("base") == Some(expected.base)
+        && int("depth") == Some(expected.depth as i64)
+        && int("classes") == Some(expected.head.channels())
+        && up == expected.up;
+    if fits {
+        Ok(())
+    } else {
+        Err(ckpt_error(
+            path,
+            format!(
+                "converted from a milesial U-Net ({} up-sampling, in {}, {} output channels, base \
+                 {}, depth {}); this network is a {} with {} output channels",
+                arch["variant"].as_str().unwrap_or("?"),
+                arch["in_channels"],
+                arch["classes"],
+                arch["base"],
+                arch["depth"],
+                describe(expected),
+                expected.head.channels()
+            ),
+        ))
+    }
 }
 
 /// A one-line description of an architecture.
@@ -477,6 +529,28 @@ mod tests {
         );
         assert!(
             err.contains("1 in the file but not in the network: `extra.weight` [2]"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn the_converters_architecture_metadata_is_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.safetensors");
+        let cfg = UNetConfig::preset("tiny", Head::Depth).unwrap();
+        let vars = named_variables(&net(&cfg));
+        let arch = |classes: i64| {
+            let a = format!(
+                r#"{{"name": "milesial-unet", "variant": "transposed", "in_channels": 3, "classes": {classes}, "base": 8, "depth": 3}}"#
+            );
+            [("architecture".to_string(), a)].into_iter().collect()
+        };
+        write_tensors(&path, &vars, arch(1)).unwrap();
+        load(&path, &net(&cfg), &cfg).unwrap();
+        write_tensors(&path, &vars, arch(2)).unwrap();
+        let err = load(&path, &net(&cfg), &cfg).unwrap_err().to_string();
+        assert!(
+            err.contains("converted from a milesial U-Net") && err.contains("2 output channels"),
             "{err}"
         );
     }
