@@ -91,45 +91,6 @@ pub struct ReportArgs {
 }
 
 #[derive(Debug, Args)]
-pub struct CameraArgs {
-    #[command(subcommand)]
-    pub command: CameraCommand,
-}
-
-#[derive(Debug, Subcommand)]
-pub enum CameraCommand {
-    /// Convert a calibration of Kalibr (camchain YAML), OpenCV (FileStorage YAML / JSON), Basalt
-    /// (calibration JSON), COLMAP (cameras.txt) or OCamCalib (calib_results.txt) into a camera
-    /// file (TOML with named fields), checked like any camera file.
-    Import(ImportArgs),
-}
-
-#[derive(Debug, Args)]
-pub struct ImportArgs {
-    /// Source tool: kalibr, opencv, basalt, colmap or ocamcalib.
-    #[arg(long = "from")]
-    pub from: Format,
-    /// The calibration file.
-    pub file: PathBuf,
-    /// Which camera: Kalibr camN and Basalt intrinsics[N] (default 0), COLMAP CAMERA_ID
-    /// (default: the first listed).
-    #[arg(long)]
-    pub camera: Option<usize>,
-    /// Full field of view of a fisheye lens in degrees (default: the angle the image width
-    /// spans on the principal row; calibration files rarely hold the lens's own).
-    #[arg(long)]
-    pub fov_deg: Option<f64>,
-    /// OpenCV files only: fisheye or standard, when the file does not say (4 coefficients fit
-    /// both).
-    #[arg(long)]
-    pub opencv_model: Option<OpenCvModel>,
-    /// Output camera file (.toml), written atomically.
-    #[arg(long)]
-    pub out: PathBuf,
-}
-
-
-#[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Experiment file (TOML, see experiments/).
     pub experiment: PathBuf,

@@ -134,7 +134,7 @@ mod tests {
         write_ply(&dir.path().join("a.ply"), &pts).unwrap();
         let text = std::fs::read_to_string(dir.path().join("a.ply")).unwrap();
         assert!(text.contains(&format!("element vertex {}\n", pts.len())));
-        assert_eq!(text.lines().count(), 10 + pts.len());
+        assert_eq!(text.lines().count(), 11 + pts.len()); // 11 header lines
         top_view(&dir.path().join("a.png"), &[(&pts, [0, 0, 255])], 64).unwrap();
     }
 }
