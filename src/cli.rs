@@ -37,6 +37,12 @@ pub enum Command {
     Train(TrainArgs),
     /// Evaluate an experiment's checkpoint (default: its best) with its [[eval]] entries.
     Eval(EvalArgs),
+    /// Convert a PyTorch checkpoint (.pth / .pt, e.g. milesial/Pytorch-UNet) to safetensors +
+    /// JSON sidecar, usable as an experiment's initial weights (needs the .venv of make setup).
+    Convert(crate::commands::convert::ConvertArgs),
+    /// Write a calibconv checkpoint as a PyTorch state_dict (safetensors, milesial/Pytorch-UNet
+    /// names) that UNet.load_state_dict(..., strict=True) accepts.
+    Export(crate::commands::export::ExportArgs),
 }
 
 #[derive(Debug, Args)]

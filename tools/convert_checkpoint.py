@@ -50,11 +50,19 @@ def strip_prefix(key):
 
 
 def detect_architecture(tensors):
-    """Recognise milesial/Pytorch-UNet by its keys; `None` for anything else."""
+    """Recognise milesial/Pytorch-UNet by its keys; `None` for anything else.
+
+    The depth is the number of `downK` blocks (4 in the public network), the base width the
+    output channels of `inc`, the variant `transposed` if `up1.up.weight` exists (bilinear
+    up-sampling has no parameters).
+    """
     inc = tensors.get("inc.double_conv.0.weight")
     outc = tensors.get("outc.conv.weight")
-    if inc is None or outc is None or "down4.maxpool_conv.1.double_conv.0.weight" not in tensors:
+    if inc is None or outc is None or "down1.maxpool_conv.1.double_conv.0.weight" not in tensors:
         return None
+    depth = 0
+    while f"down{depth + 1}.maxpool_conv.1.double_conv.0.weight" in tensors:
+        depth += 1
     bilinear = "up1.up.weight" not in tensors
     return {
         "name": "milesial-unet",
@@ -62,7 +70,7 @@ def detect_architecture(tensors):
         "in_channels": int(inc.shape[1]),
         "classes": int(outc.shape[0]),
         "base": int(inc.shape[0]),
-        "depth": 4,
+        "depth": depth,
     }
 
 

@@ -10,9 +10,11 @@
 //! Loading compares names and shapes first and reports *every* mismatch (missing, unexpected,
 //! wrong shape; the first one named first) before touching a variable, so a wrong checkpoint
 //! never half-loads. Files without calibconv metadata load too (a PyTorch `state_dict` saved
-//! with `safetensors.torch.save_file`, e.g. milesial/Pytorch-UNet weights): their BatchNorm
-//! `num_batches_tracked` entries are ignored (tch has no such buffer), every other name must
-//! match. Values of another float dtype (float16, bfloat16, float64) are converted.
+//! with `safetensors.torch.save_file` or converted by `tools/convert_checkpoint.py`, e.g.
+//! milesial/Pytorch-UNet weights): names map by the one table in [`super::pytorch`] (BatchNorm
+//! `num_batches_tracked` is dropped, tch has no such buffer; every other name must match), and
+//! the converter's `architecture` record, if any, must describe the network being loaded.
+//! Values of another float dtype (float16, bfloat16, float64) are converted.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
@@ -26,13 +28,12 @@ use tch::{Device, Kind, Tensor};
 use crate::error::{Error, Result};
 use crate::io::write_atomic;
 use crate::nn::UNetConfig;
+use crate::train::pytorch::{self, TorchArchitecture};
 
 /// Value of the `format` metadata key of calibconv model checkpoints.
 pub const FORMAT: &str = "calibconv-checkpoint";
 /// Version of [`CheckpointInfo`]'s layout.
 pub const FORMAT_VERSION: u32 = 1;
-/// Names ending with this are PyTorch BatchNorm buffers tch does not have; loading skips them.
-pub const IGNORED_SUFFIX: &str = ".num_batches_tracked";
 /// How many mismatching names an error lists per category before "and N more".
 const MAX_LISTED: usize = 8;
 
@@ -215,8 +216,26 @@ impl TensorFile {
             .collect())
     }
 
+    /// Every tensor of the file as a CPU tensor of its own dtype, sorted by name.
+    pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let st = self.parse()?;
+        let mut out = Vec::new();
+        for (name, view) in st.tensors() {
+            let kind = kind_of(view.dtype()).ok_or_else(|| {
+                ckpt_error(
+                    &self.path,
+                    format!("`{name}`: unsupported dtype {:?}", view.dtype()),
+                )
+            })?;
+            let shape: Vec<i64> = view.shape().iter().map(|&s| s as i64).collect();
+            out.push((name, Tensor::f_from_data_size(view.data(), &shape, kind)?));
+        }
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(out)
+    }
+
     /// Copies the file's tensors into `targets` (name, variable), after checking that the names
-    /// and shapes match exactly (names ending in [`IGNORED_SUFFIX`] in the file are skipped).
+    /// and shapes match exactly (names [`pytorch::dropped_on_import`] drops are skipped).
     /// On any mismatch nothing is copied and the error lists all of them. Returns the names
     /// that were skipped.
     pub fn copy_into(&self, targets: &[(String, Tensor)]) -> Result<Vec<String>> {
@@ -224,7 +243,7 @@ impl TensorFile {
         let mut file: BTreeMap<String, _> = st.tensors().into_iter().collect();
         let ignored: Vec<String> = file
             .keys()
-            .filter(|n| n.ends_with(IGNORED_SUFFIX))
+            .filter(|n| pytorch::dropped_on_import(n))
             .cloned()
             .collect();
         for n in &ignored {
@@ -329,19 +348,41 @@ pub fn save(path: &Path, vs: &VarStore, info: &CheckpointInfo) -> Result<()> {
 pub struct Loaded {
     /// The file's calibconv metadata (`None` for a foreign state dict).
     pub info: Option<CheckpointInfo>,
-    /// Names in the file that were skipped ([`IGNORED_SUFFIX`]).
+    /// Names in the file that were skipped ([`pytorch::dropped_on_import`]).
     pub ignored: Vec<String>,
+    /// The converter's architecture record of a converted PyTorch checkpoint, if it has one
+    /// (checked against the network).
+    pub torch_architecture: Option<TorchArchitecture>,
 }
 
 /// Loads the checkpoint at `path` into `vs`, which holds a network of architecture `expected`.
 ///
 /// Errors (naming the file): unreadable file; calibconv metadata for another architecture
 /// (e.g. another task or width; the kernel kind, camera and input size may differ: that is how
-/// standard-kernel weights become a calibrated network); any tensor missing, unexpected or of
-/// another shape (all listed, the first mismatch first). Nothing is modified on error.
+/// standard-kernel weights become a calibrated network); a converted PyTorch checkpoint whose
+/// architecture record ([`TorchArchitecture::of_file`]) differs (every difference listed); any
+/// tensor missing, unexpected or of another shape (all listed, the first mismatch first).
+/// Nothing is modified on error.
 pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded> {
     let file = TensorFile::open(path)?;
     let info = file.info()?;
+    let torch_architecture = match info {
+        Some(_) => None,
+        None => TorchArchitecture::of_file(path, &file)?,
+    };
+    if let Some(arch) = &torch_architecture {
+        let diff = arch.differences(expected);
+        if !diff.is_empty() {
+            return Err(ckpt_error(
+                path,
+                format!(
+                    "converted PyTorch checkpoint for another architecture ({}): {}",
+                    describe(expected),
+                    diff.join("; ")
+                ),
+            ));
+        }
+    }
     if let Some(info) = &info {
         if info.model != *expected {
             return Err(ckpt_error(
@@ -355,7 +396,11 @@ pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded>
         }
     }
     let ignored = file.copy_into(&named_variables(vs))?;
-    Ok(Loaded { info, ignored })
+    Ok(Loaded {
+        info,
+        ignored,
+        torch_architecture,
+    })
 }
 
 /// A one-line description of an architecture.
