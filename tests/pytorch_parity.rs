@@ -19,6 +19,7 @@ use std::sync::{Arc, OnceLock};
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
+use calibconv::experiment::{self, DefaultOpener, Experiment, RunOptions};
 use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::train::checkpoint::{self, CheckpointInfo};
@@ -97,7 +98,7 @@ fn fixtures() -> &'static Path {
         std::fs::create_dir_all(&dir).unwrap();
         python(&[Path::new("torch-to-rust"), &dir]);
         for (mode, _) in MODES {
-            for suffix in ["", "_nested"] {
+            for suffix in ["", "_nested", "_1class"] {
                 let pth = dir.join(format!("{mode}{suffix}.pth"));
                 let out = dir.join(format!("{mode}{suffix}.safetensors"));
                 ok(&calibconv(&[
@@ -140,6 +141,7 @@ fn converted_pytorch_checkpoints_give_pytorchs_outputs_in_eval_mode() {
                     sidecar["key_mapping"]["module.outc.conv.bias"],
                     "outc.conv.bias"
                 );
+                assert_eq!(sidecar["outside_state_dict"][1]["key"], "mask_values");
             }
             let cfg = config(up);
             let vs = VarStore::new(Device::Cpu);
@@ -199,6 +201,82 @@ fn a_converted_checkpoint_for_another_architecture_lists_every_difference() {
     ] {
         assert!(err.contains(part), "{part}: {err}");
     }
+}
+
+/// A depth experiment on the toy task whose initial weights are `init`.
+fn experiment(dir: &Path, name: &str, kernel: &str, up: &str, init: &Path) -> Experiment {
+    let text = format!(
+        r#"
+name = "{name}"
+task = "depth"
+seed = 1
+output = "{out}"
+device = "cpu"
+
+[model]
+preset = "tiny"
+kernel = "{kernel}"
+base = 8
+depth = 4
+up = "{up}"
+init = {{ checkpoint = "{init}" }}
+
+[input]
+camera = "{camera}"
+padding = [0, 120]
+size = [64, 64]
+
+[data]
+train = {{ toy = 4, split = "train" }}
+
+[train]
+steps = 1
+batch_size = 2
+log_every = 1
+
+[optimizer]
+lr = 1e-3
+"#,
+        out = dir.display(),
+        init = init.display(),
+        camera = root().join("data/cameras/f195.toml").display(),
+    );
+    let path = dir.join(format!("{name}.toml"));
+    std::fs::write(&path, text).unwrap();
+    experiment::load(&path).unwrap()
+}
+
+#[test]
+fn an_experiment_starts_from_a_converted_checkpoint_with_either_kernel() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = RunOptions {
+        resume: false,
+        progress: false,
+        verbose: false,
+        opener: &DefaultOpener,
+    };
+    for (mode, _) in MODES {
+        let init = fixtures().join(format!("{mode}_1class.safetensors"));
+        for kernel in ["standard", "calibrated"] {
+            let exp = experiment(dir.path(), &format!("{mode}-{kernel}"), kernel, mode, &init);
+            let out = experiment::train(&exp, &opts).unwrap();
+            assert_eq!(out.summary.steps, 1, "{mode} {kernel}");
+            let run = common::read_text(&exp.run_dir.join("run.json"));
+            assert!(run.contains(&format!("{mode}_1class.safetensors")), "{run}");
+        }
+    }
+    // A 3-class segmentation checkpoint for a depth network: the architecture record says why.
+    let init = fixtures().join("bilinear.safetensors");
+    let exp = experiment(dir.path(), "wrong", "standard", "transposed", &init);
+    let err = format!("{:#}", experiment::train(&exp, &opts).unwrap_err());
+    assert!(
+        err.contains("up-sampling: bilinear in the file, transposed"),
+        "{err}"
+    );
+    assert!(
+        err.contains("classes: 3 in the file, 1 in the network"),
+        "{err}"
+    );
 }
 
 fn randomise_batchnorm(vs: &VarStore) {
@@ -271,6 +349,12 @@ fn exported_checkpoints_load_strictly_into_pytorch_and_give_the_same_outputs() {
         assert_eq!(keys.len(), want, "{mode}");
         let n = &keys["down4.maxpool_conv.1.double_conv.4.num_batches_tracked"];
         assert_eq!((n.size(), n.kind()), (vec![], Kind::Int64));
+        // And it loads back into calibconv: the same network.
+        let vs2 = VarStore::new(Device::Cpu);
+        let back = UNet::new(&vs2.root(), &cfg, &ConvKind::Standard, SIZE).unwrap();
+        checkpoint::load(&state, &vs2, &cfg).unwrap();
+        let y2 = tch::no_grad(|| back.f_forward_raw_t(&x, false)).unwrap();
+        assert!(y2.equal(&y), "{mode}: export -> load round trip");
     }
 }
 

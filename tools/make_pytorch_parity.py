@@ -15,7 +15,9 @@ identity), and writes
 - ``MODE_nested.pth``: the same weights from a channels-last model wrapped in ``DataParallel``
   (``module.`` prefix, non-contiguous 4-D tensors), nested as ``{"model": ..., "epoch": 5}``;
 - ``MODE_io.safetensors``: ``input`` [2, 3, 37, 45] (odd sizes exercise ``F.pad`` centring at
-  every level) and ``output`` (``model.eval()``, raw logits).
+  every level) and ``output`` (``model.eval()``, raw logits);
+- ``MODE_1class.pth``: a ``UNet(3, 1, bilinear, base=8)`` saved the same way, the shape of a
+  calibconv depth network (initial weights of an experiment in the tests).
 
 ``rust-to-torch``: builds the network the ``architecture`` metadata of STATE_DICT names, loads
 STATE_DICT with ``load_state_dict(strict=True)``, runs IO's ``input`` in eval mode and writes
@@ -72,6 +74,11 @@ def torch_to_rust(out_dir):
                    out_dir / f"{mode}_nested.pth")
         save_file({"input": x, "output": y.contiguous()}, out_dir / f"{mode}_io.safetensors",
                   metadata={"about": f"tools/make_pytorch_parity.py, torch {torch.__version__}"})
+        one = UNet(3, 1, bilinear=bilinear, base=8)
+        randomise_batchnorm(one)
+        state = one.state_dict()
+        state["mask_values"] = [0, 1]
+        torch.save(state, out_dir / f"{mode}_1class.pth")
         print(f"{mode}: {len(model.state_dict())} keys, output {tuple(y.shape)}")
 
 

@@ -376,7 +376,7 @@ pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded>
             return Err(ckpt_error(
                 path,
                 format!(
-                    "converted PyTorch checkpoint for another architecture ({}): {}",
+                    "converted PyTorch checkpoint that does not fit this {}: {}",
                     describe(expected),
                     diff.join("; ")
                 ),
@@ -524,6 +524,40 @@ mod tests {
             err.contains("1 in the file but not in the network: `extra.weight` [2]"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn missing_unexpected_and_misshapen_tensors_are_listed_in_one_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.safetensors");
+        let tiny = UNetConfig::preset("tiny", Head::Depth).unwrap();
+        let mut vars = named_variables(&net(&tiny));
+        vars.retain(|(n, _)| n != "inc.double_conv.1.running_var");
+        for (n, t) in vars.iter_mut() {
+            if n == "outc.conv.weight" {
+                *t = Tensor::zeros([2, 8, 1, 1], (Kind::Float, Device::Cpu));
+            }
+        }
+        vars.push((
+            "up1.extra.bias".into(),
+            Tensor::zeros([3], (Kind::Float, Device::Cpu)),
+        ));
+        // PyTorch's BatchNorm counters are dropped by the key table, not reported.
+        vars.push((
+            "inc.double_conv.4.num_batches_tracked".into(),
+            Tensor::zeros([], (Kind::Int64, Device::Cpu)),
+        ));
+        write_tensors(&path, &vars, HashMap::new()).unwrap();
+        let err = load(&path, &net(&tiny), &tiny).unwrap_err().to_string();
+        for part in [
+            "1 with another shape: `outc.conv.weight`: [2, 8, 1, 1] in the file, [1, 8, 1, 1] in \
+             the network",
+            "1 missing from the file: `inc.double_conv.1.running_var` [8]",
+            "1 in the file but not in the network: `up1.extra.bias` [3]",
+        ] {
+            assert!(err.contains(part), "{part}: {err}");
+        }
+        assert!(!err.contains("num_batches_tracked"), "{err}");
     }
 
     #[test]
