@@ -164,6 +164,32 @@ fn converted_pytorch_checkpoints_give_pytorchs_outputs_in_eval_mode() {
 }
 
 #[test]
+fn milesials_own_size_converts_loads_into_the_classic_presets_and_matches() {
+    // Base 64 (31 M / 17 M parameters): the presets are milesial's network, not just alike.
+    let dir = tempfile::tempdir().unwrap();
+    python(&[Path::new("classic"), dir.path()]);
+    for (mode, preset) in [("transposed", "classic"), ("bilinear", "classic-bilinear")] {
+        let pth = dir.path().join(format!("classic_{mode}.pth"));
+        let file = dir.path().join(format!("classic_{mode}.safetensors"));
+        ok(&calibconv(&[
+            "convert",
+            pth.to_str().unwrap(),
+            "--out",
+            file.to_str().unwrap(),
+        ]));
+        let cfg = UNetConfig::preset(preset, Head::Segmentation { classes: 2 }).unwrap();
+        let vs = VarStore::new(Device::Cpu);
+        let net = UNet::new(&vs.root(), &cfg, &ConvKind::Standard, SIZE).unwrap();
+        checkpoint::load(&file, &vs, &cfg).unwrap();
+        let io = read_safetensors(&dir.path().join(format!("classic_{mode}_io.safetensors")));
+        let y = tch::no_grad(|| net.f_forward_raw_t(&io["input"], false)).unwrap();
+        let e = max_rel(&y, &io["output"]);
+        eprintln!("torch -> calibconv, {preset}: max relative error {e:.3e}");
+        assert!(e < TOL, "{preset}: {e}");
+    }
+}
+
+#[test]
 fn converted_pytorch_checkpoints_load_into_calibrated_networks_for_fine_tuning() {
     let dir = fixtures();
     for (mode, up) in MODES {

@@ -3,6 +3,7 @@
 state dicts out, with the reference network of ``tools/reference_unet.py`` (``torch`` only).
 
     .venv/bin/python tools/make_pytorch_parity.py torch-to-rust OUT_DIR
+    .venv/bin/python tools/make_pytorch_parity.py classic OUT_DIR
     .venv/bin/python tools/make_pytorch_parity.py rust-to-torch STATE_DICT IO OUT
 
 ``torch-to-rust``: for each up-sampling mode (``transposed``, ``bilinear``) builds
@@ -18,6 +19,10 @@ identity), and writes
   every level) and ``output`` (``model.eval()``, raw logits);
 - ``MODE_1class.pth``: a ``UNet(3, 1, bilinear, base=8)`` saved the same way, the shape of a
   calibconv depth network (initial weights of an experiment in the tests).
+
+``classic OUT_DIR``: the same for milesial's own size, ``UNet(3, 2, bilinear)`` (base 64,
+31,037,698 / 17,263,042 parameters): ``classic_MODE.pth`` and ``classic_MODE_io.safetensors``
+(input [1, 3, 37, 45]).
 
 ``rust-to-torch``: builds the network the ``architecture`` metadata of STATE_DICT names, loads
 STATE_DICT with ``load_state_dict(strict=True)``, runs IO's ``input`` in eval mode and writes
@@ -82,6 +87,26 @@ def torch_to_rust(out_dir):
         print(f"{mode}: {len(model.state_dict())} keys, output {tuple(y.shape)}")
 
 
+def classic(out_dir):
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for seed, (mode, bilinear) in enumerate(MODES.items()):
+        torch.manual_seed(200 + seed)
+        model = UNet(3, 2, bilinear=bilinear)
+        randomise_batchnorm(model)
+        model.eval()
+        x = torch.rand(1, 3, 37, 45)
+        with torch.no_grad():
+            y = model(x)
+        state = model.state_dict()
+        state["mask_values"] = [0, 1]
+        torch.save(state, out_dir / f"classic_{mode}.pth")
+        save_file({"input": x, "output": y.contiguous()},
+                  out_dir / f"classic_{mode}_io.safetensors")
+        n = sum(p.numel() for p in model.parameters())
+        print(f"classic {mode}: {len(model.state_dict())} keys, {n} parameters")
+
+
 def rust_to_torch(state_path, io_path, out_path):
     with safe_open(state_path, "pt") as f:
         arch = json.loads(f.metadata()["architecture"])
@@ -102,6 +127,8 @@ def rust_to_torch(state_path, io_path, out_path):
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "torch-to-rust":
         torch_to_rust(sys.argv[2])
+    elif len(sys.argv) == 3 and sys.argv[1] == "classic":
+        classic(sys.argv[2])
     elif len(sys.argv) == 5 and sys.argv[1] == "rust-to-torch":
         rust_to_torch(*sys.argv[2:])
     else:
