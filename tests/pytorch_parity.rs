@@ -6,7 +6,8 @@
 //!   `train.py` does (`state_dict` + `mask_values`) and as a nested, `module.`-prefixed,
 //!   channels-last checkpoint; `calibconv convert`; loaded into `calibconv::nn::UNet`; the same
 //!   input in eval mode gives PyTorch's output, for transposed and bilinear up-sampling.
-//! - calibconv -> torch: a calibconv checkpoint; `calibconv export`; PyTorch loads it with
+//! - calibconv -> torch: a calibconv checkpoint (random, and fine-tuned by an experiment from a
+//!   converted checkpoint); `calibconv export`; PyTorch loads it with
 //!   `load_state_dict(strict=True)` and gives calibconv's output.
 
 mod common;
@@ -22,6 +23,7 @@ use tch::{Device, Kind, Tensor};
 use calibconv::experiment::{self, DefaultOpener, Experiment, RunOptions};
 use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
+use calibconv::train;
 use calibconv::train::checkpoint::{self, CheckpointInfo};
 use common::{max_rel, read_safetensors};
 
@@ -273,7 +275,7 @@ lr = 1e-3
 }
 
 #[test]
-fn an_experiment_starts_from_a_converted_checkpoint_with_either_kernel() {
+fn an_experiment_fine_tunes_a_converted_checkpoint_with_either_kernel_and_exports_it_back() {
     let dir = tempfile::tempdir().unwrap();
     let opts = RunOptions {
         resume: false,
@@ -289,6 +291,18 @@ fn an_experiment_starts_from_a_converted_checkpoint_with_either_kernel() {
             assert_eq!(out.summary.steps, 1, "{mode} {kernel}");
             let run = common::read_text(&exp.run_dir.join("run.json"));
             assert!(run.contains(&format!("{mode}_1class.safetensors")), "{run}");
+            if kernel == "standard" {
+                // Fine-tuned here, exported, and PyTorch computes the same as calibconv.
+                let e = export_and_compare(
+                    &train::last_path(&exp.run_dir.join("checkpoints")),
+                    &exp.model,
+                    [64, 64],
+                    dir.path(),
+                    &exp.name,
+                );
+                eprintln!("calibconv (trained) -> torch, {mode}: max relative error {e:.3e}");
+                assert!(e < TOL, "{mode}: {e}");
+            }
         }
     }
     // A 3-class segmentation checkpoint for a depth network: the architecture record says why.
@@ -303,6 +317,39 @@ fn an_experiment_starts_from_a_converted_checkpoint_with_either_kernel() {
         err.contains("classes: 3 in the file, 1 in the network"),
         "{err}"
     );
+}
+
+/// Exports the calibconv checkpoint `ckpt` (a standard-kernel `cfg` network) with `calibconv
+/// export` to `dir/STEM_state_dict.safetensors`, runs the same random input through it in calibconv and, after a strict
+/// `load_state_dict`, in PyTorch (eval mode, raw `outc` output), and returns the largest
+/// relative difference.
+fn export_and_compare(
+    ckpt: &Path,
+    cfg: &UNetConfig,
+    size: [i64; 2],
+    dir: &Path,
+    stem: &str,
+) -> f64 {
+    let state = dir.join(format!("{stem}_state_dict.safetensors"));
+    ok(&calibconv(&[
+        "export",
+        ckpt.to_str().unwrap(),
+        "--out",
+        state.to_str().unwrap(),
+    ]));
+    let vs = VarStore::new(Device::Cpu);
+    let net = UNet::new(&vs.root(), cfg, &ConvKind::Standard, size).unwrap();
+    checkpoint::load(ckpt, &vs, cfg).unwrap();
+    let x = Tensor::rand(
+        [2, cfg.in_channels, size[0], size[1]],
+        (Kind::Float, Device::Cpu),
+    );
+    let y = tch::no_grad(|| net.f_forward_raw_t(&x, false)).unwrap();
+    let io = dir.join(format!("{stem}_io.safetensors"));
+    Tensor::write_safetensors(&[("input", &x)], &io).unwrap();
+    let out = dir.join(format!("{stem}_torch.safetensors"));
+    python(&[Path::new("rust-to-torch"), &state, &io, &out]);
+    max_rel(&y, &read_safetensors(&out)["output"])
 }
 
 fn randomise_batchnorm(vs: &VarStore) {
