@@ -38,6 +38,7 @@ import torch.nn as nn
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+sys.dont_write_bytecode = True  # no tools/__pycache__ in the working tree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_unet import UNet  # noqa: E402
 
