@@ -2,8 +2,10 @@
 //! wire files and output). Shared helpers live here.
 
 mod camera;
+pub(crate) mod convert;
 mod demo;
 mod eval;
+pub(crate) mod export;
 mod kernels;
 mod offsets;
 pub(crate) mod synth;
@@ -29,6 +31,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Convert(args) => convert::run(args),
+        Command::Export(args) => export::run(args),
     }
 }
 
