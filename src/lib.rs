@@ -19,9 +19,10 @@
 //!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
 //!   network with milesial/Pytorch-UNet's parameter names (so PyTorch weights load by name and
 //!   standard-kernel checkpoints load into calibrated networks unchanged).
-//! - [`data`]: the data sets and the [`data::Batch`] / [`data::BatchSource`] contract training
-//!   consumes, plus in-memory sources ([`data::memory`]) and a built-in toy task ([`data::toy`])
-//!   for tests and smoke runs.
+//! - [`data`]: the [`data::Batch`] / [`data::BatchSource`] contract between data and training;
+//!   procedural indoor panoramas, fisheye / perspective / rectified view synthesis, the
+//!   Stanford 2D-3D-S loader, on-disk data sets and their prefetching loader; in-memory
+//!   sources ([`data::memory`]) and a toy task ([`data::toy`]) for tests and smoke runs.
 //! - [`eval`]: losses on valid pixels, the paper's metrics (depth MRE..delta3, segmentation
 //!   mIoU / mAcc from one confusion matrix over the set), radial bins around the principal
 //!   point, prediction pictures, and the evaluator that writes metrics JSON / CSV.

@@ -125,6 +125,8 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
             "eval/test/metrics.json",
             "eval/test/metrics.csv",
             "eval/test/radial.csv",
+            "eval/test/radial_rmse.png",
+            "eval/test/radial_delta1.png",
         ] {
             assert!(run.join(f).is_file(), "{kernel}: no {f}");
         }

@@ -2,8 +2,10 @@
 //! wire files and output). Shared helpers live here.
 
 mod camera;
+pub(crate) mod convert;
 mod demo;
 mod eval;
+pub(crate) mod export;
 mod kernels;
 mod offsets;
 mod report;
@@ -31,6 +33,8 @@ pub fn run(command: Command) -> Result<()> {
         Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Convert(args) => convert::run(args),
+        Command::Export(args) => export::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Report(args) => report::run(args),
     }

@@ -17,7 +17,6 @@
 use tch::{Device, Kind, Tensor};
 
 use super::memory::{MemorySource, SplitMix64};
-use super::views::pixel_ray;
 use super::{IGNORE_LABEL, NUM_CLASSES};
 use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
@@ -45,9 +44,9 @@ const UNKNOWN_COLOUR: [f32; 3] = [0.5, 0.5, 0.5];
 
 /// The pixels of a `[H, W]` network input that see inside the camera's field of view and are
 /// not padding, `[H, W]` bool. The input is the camera image padded by `frame.padding` and
-/// scaled to `size` (as the calibrated offsets assume); "inside" is
-/// [`crate::data::views::pixel_ray`]'s rule (fisheye models: within `fov / 2` of the axis;
-/// perspective models: the whole image).
+/// scaled to `size` (as the calibrated offsets assume); fisheye models: the ray is within
+/// `fov / 2` of the optical axis ([`crate::data::views::max_ray_angle`]); perspective: every
+/// pixel of the image.
 pub fn field_of_view_mask(camera: &Camera, frame: &InputFrame, size: [i64; 2]) -> Tensor {
     let [cw, ch] = camera.size();
     let s = [
@@ -55,13 +54,19 @@ pub fn field_of_view_mask(camera: &Camera, frame: &InputFrame, size: [i64; 2]) -
         size[0] as f64 / (ch + frame.padding[1]) as f64,
     ];
     let scaled = camera.rescaled(s, frame.convention);
+    let half_fov = crate::data::views::max_ray_angle(camera);
     let (h, w) = (size[0] as usize, size[1] as usize);
     let mut valid = vec![false; h * w];
     for v in 0..h {
         for u in 0..w {
             let inside =
                 (u as f64 + 0.5) <= cw as f64 * s[0] && (v as f64 + 0.5) <= ch as f64 * s[1];
-            valid[v * w + u] = inside && pixel_ray(&scaled, [u as f64, v as f64]).is_some();
+            let sees = match (half_fov, scaled.unproject([u as f64, v as f64])) {
+                (_, None) => false,
+                (None, Some(_)) => true,
+                (Some(hf), Some(ray)) => ray[2].clamp(-1.0, 1.0).acos() <= hf,
+            };
+            valid[v * w + u] = inside && sees;
         }
     }
     Tensor::from_slice(&valid).view([size[0], size[1]])

@@ -10,11 +10,11 @@
 //! Loading compares names and shapes first and reports *every* mismatch (missing, unexpected,
 //! wrong shape; the first one named first) before touching a variable, so a wrong checkpoint
 //! never half-loads. Files without calibconv metadata load too (a PyTorch `state_dict` saved
-//! with `safetensors.torch.save_file`, or by `tools/convert_checkpoint.py` from a `.pth`, e.g.
-//! milesial/Pytorch-UNet weights): their BatchNorm `num_batches_tracked` entries are ignored (tch
-//! has no such buffer), every other name must match, and the converter's `architecture`
-//! metadata, when present, must describe the network. Values of another float dtype (float16,
-//! bfloat16, float64) are converted.
+//! with `safetensors.torch.save_file` or converted by `tools/convert_checkpoint.py`, e.g.
+//! milesial/Pytorch-UNet weights): names map by the one table in [`super::pytorch`] (BatchNorm
+//! `num_batches_tracked` is dropped, tch has no such buffer; every other name must match), and
+//! the converter's `architecture` record, if any, must describe the network being loaded.
+//! Values of another float dtype (float16, bfloat16, float64) are converted.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
@@ -27,14 +27,13 @@ use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
 use crate::io::write_atomic;
-use crate::nn::{UNetConfig, UpMode};
+use crate::nn::UNetConfig;
+use crate::train::pytorch::{self, TorchArchitecture};
 
 /// Value of the `format` metadata key of calibconv model checkpoints.
 pub const FORMAT: &str = "calibconv-checkpoint";
 /// Version of [`CheckpointInfo`]'s layout.
 pub const FORMAT_VERSION: u32 = 1;
-/// Names ending with this are PyTorch BatchNorm buffers tch does not have; loading skips them.
-pub const IGNORED_SUFFIX: &str = ".num_batches_tracked";
 /// How many mismatching names an error lists per category before "and N more".
 const MAX_LISTED: usize = 8;
 
@@ -217,8 +216,26 @@ impl TensorFile {
             .collect())
     }
 
+    /// Every tensor of the file as a CPU tensor of its own dtype, sorted by name.
+    pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let st = self.parse()?;
+        let mut out = Vec::new();
+        for (name, view) in st.tensors() {
+            let kind = kind_of(view.dtype()).ok_or_else(|| {
+                ckpt_error(
+                    &self.path,
+                    format!("`{name}`: unsupported dtype {:?}", view.dtype()),
+                )
+            })?;
+            let shape: Vec<i64> = view.shape().iter().map(|&s| s as i64).collect();
+            out.push((name, Tensor::f_from_data_size(view.data(), &shape, kind)?));
+        }
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(out)
+    }
+
     /// Copies the file's tensors into `targets` (name, variable), after checking that the names
-    /// and shapes match exactly (names ending in [`IGNORED_SUFFIX`] in the file are skipped).
+    /// and shapes match exactly (names [`pytorch::dropped_on_import`] drops are skipped).
     /// On any mismatch nothing is copied and the error lists all of them. Returns the names
     /// that were skipped.
     pub fn copy_into(&self, targets: &[(String, Tensor)]) -> Result<Vec<String>> {
@@ -226,7 +243,7 @@ impl TensorFile {
         let mut file: BTreeMap<String, _> = st.tensors().into_iter().collect();
         let ignored: Vec<String> = file
             .keys()
-            .filter(|n| n.ends_with(IGNORED_SUFFIX))
+            .filter(|n| pytorch::dropped_on_import(n))
             .cloned()
             .collect();
         for n in &ignored {
@@ -331,19 +348,41 @@ pub fn save(path: &Path, vs: &VarStore, info: &CheckpointInfo) -> Result<()> {
 pub struct Loaded {
     /// The file's calibconv metadata (`None` for a foreign state dict).
     pub info: Option<CheckpointInfo>,
-    /// Names in the file that were skipped ([`IGNORED_SUFFIX`]).
+    /// Names in the file that were skipped ([`pytorch::dropped_on_import`]).
     pub ignored: Vec<String>,
+    /// The converter's architecture record of a converted PyTorch checkpoint, if it has one
+    /// (checked against the network).
+    pub torch_architecture: Option<TorchArchitecture>,
 }
 
 /// Loads the checkpoint at `path` into `vs`, which holds a network of architecture `expected`.
 ///
 /// Errors (naming the file): unreadable file; calibconv metadata for another architecture
 /// (e.g. another task or width; the kernel kind, camera and input size may differ: that is how
-/// standard-kernel weights become a calibrated network); any tensor missing, unexpected or of
-/// another shape (all listed, the first mismatch first). Nothing is modified on error.
+/// standard-kernel weights become a calibrated network); a converted PyTorch checkpoint whose
+/// architecture record ([`TorchArchitecture::of_file`]) differs (every difference listed); any
+/// tensor missing, unexpected or of another shape (all listed, the first mismatch first).
+/// Nothing is modified on error.
 pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded> {
     let file = TensorFile::open(path)?;
     let info = file.info()?;
+    let torch_architecture = match info {
+        Some(_) => None,
+        None => TorchArchitecture::of_file(path, &file)?,
+    };
+    if let Some(arch) = &torch_architecture {
+        let diff = arch.differences(expected);
+        if !diff.is_empty() {
+            return Err(ckpt_error(
+                path,
+                format!(
+                    "converted PyTorch checkpoint that does not fit this {}: {}",
+                    describe(expected),
+                    diff.join("; ")
+                ),
+            ));
+        }
+    }
     if let Some(info) = &info {
         if info.model != *expected {
             return Err(ckpt_error(
@@ -356,58 +395,12 @@ pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded>
             ));
         }
     }
-    if info.is_none() {
-        check_converted_architecture(path, &file.metadata()?, expected)?;
-    }
     let ignored = file.copy_into(&named_variables(vs))?;
-    Ok(Loaded { info, ignored })
-}
-
-/// Checks the `architecture` metadata that `tools/convert_checkpoint.py` writes for a PyTorch
-/// milesial U-Net (`{"name": "milesial-unet", "variant": "transposed" | "bilinear",
-/// "in_channels", "classes", "base", "depth"}`) against `expected`; files without it pass.
-fn check_converted_architecture(
-    path: &Path,
-    meta: &HashMap<String, String>,
-    expected: &UNetConfig,
-) -> Result<()> {
-    let Some(arch) = meta
-        .get("architecture")
-        .and_then(|a| serde_json::from_str::<serde_json::Value>(a).ok())
-    else {
-        return Ok(());
-    };
-    if arch["name"] != "milesial-unet" {
-        return Ok(());
-    }
-    let up = match arch["variant"].as_str() {
-        Some("bilinear") => UpMode::Bilinear,
-        _ => UpMode::Transposed,
-    };
-    let int = |k: &str| arch[k].as_i64();
-    let fits = int("in_channels") == Some(expected.in_channels)
-        && int("base") == Some(expected.base)
-        && int("depth") == Some(expected.depth as i64)
-        && int("classes") == Some(expected.head.channels())
-        && up == expected.up;
-    if fits {
-        Ok(())
-    } else {
-        Err(ckpt_error(
-            path,
-            format!(
-                "converted from a milesial U-Net ({} up-sampling, in {}, {} output channels, base \
-                 {}, depth {}); this network is a {} with {} output channels",
-                arch["variant"].as_str().unwrap_or("?"),
-                arch["in_channels"],
-                arch["classes"],
-                arch["base"],
-                arch["depth"],
-                describe(expected),
-                expected.head.channels()
-            ),
-        ))
-    }
+    Ok(Loaded {
+        info,
+        ignored,
+        torch_architecture,
+    })
 }
 
 /// A one-line description of an architecture.
@@ -534,25 +527,37 @@ mod tests {
     }
 
     #[test]
-    fn the_converters_architecture_metadata_is_checked() {
+    fn missing_unexpected_and_misshapen_tensors_are_listed_in_one_error() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("c.safetensors");
-        let cfg = UNetConfig::preset("tiny", Head::Depth).unwrap();
-        let vars = named_variables(&net(&cfg));
-        let arch = |classes: i64| {
-            let a = format!(
-                r#"{{"name": "milesial-unet", "variant": "transposed", "in_channels": 3, "classes": {classes}, "base": 8, "depth": 3}}"#
-            );
-            [("architecture".to_string(), a)].into_iter().collect()
-        };
-        write_tensors(&path, &vars, arch(1)).unwrap();
-        load(&path, &net(&cfg), &cfg).unwrap();
-        write_tensors(&path, &vars, arch(2)).unwrap();
-        let err = load(&path, &net(&cfg), &cfg).unwrap_err().to_string();
-        assert!(
-            err.contains("converted from a milesial U-Net") && err.contains("2 output channels"),
-            "{err}"
-        );
+        let tiny = UNetConfig::preset("tiny", Head::Depth).unwrap();
+        let mut vars = named_variables(&net(&tiny));
+        vars.retain(|(n, _)| n != "inc.double_conv.1.running_var");
+        for (n, t) in vars.iter_mut() {
+            if n == "outc.conv.weight" {
+                *t = Tensor::zeros([2, 8, 1, 1], (Kind::Float, Device::Cpu));
+            }
+        }
+        vars.push((
+            "up1.extra.bias".into(),
+            Tensor::zeros([3], (Kind::Float, Device::Cpu)),
+        ));
+        // PyTorch's BatchNorm counters are dropped by the key table, not reported.
+        vars.push((
+            "inc.double_conv.4.num_batches_tracked".into(),
+            Tensor::zeros([], (Kind::Int64, Device::Cpu)),
+        ));
+        write_tensors(&path, &vars, HashMap::new()).unwrap();
+        let err = load(&path, &net(&tiny), &tiny).unwrap_err().to_string();
+        for part in [
+            "1 with another shape: `outc.conv.weight`: [2, 8, 1, 1] in the file, [1, 8, 1, 1] in \
+             the network",
+            "1 missing from the file: `inc.double_conv.1.running_var` [8]",
+            "1 in the file but not in the network: `up1.extra.bias` [3]",
+        ] {
+            assert!(err.contains(part), "{part}: {err}");
+        }
+        assert!(!err.contains("num_batches_tracked"), "{err}");
     }
 
     #[test]

@@ -25,6 +25,7 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod pytorch;
 pub mod schedule;
 
 use std::collections::HashMap;
