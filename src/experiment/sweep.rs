@@ -446,7 +446,16 @@ pub fn emit_slurm(
 ) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let quote = |s: &str| format!("'{}'", s.replace('\'', "'\\''"));
-    let mut common = format!("calibconv sweep {}", quote(&dir.display().to_string()));
+    // The binary that wrote the scripts (the cluster shares the file system), else `calibconv`
+    // from PATH.
+    let exe = std::env::current_exe()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|_| "calibconv".into());
+    let mut common = format!(
+        "{} sweep {}",
+        quote(&exe),
+        quote(&dir.display().to_string())
+    );
     if let Some(f) = &profile.file {
         common += &format!(" --profile {}", quote(&f.display().to_string()));
     }
