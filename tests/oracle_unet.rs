@@ -1,9 +1,9 @@
 //! The U-Net against PyTorch: a milesial/Pytorch-UNet-layout `state_dict` (the reference network
 //! of `tools/reference_unet.py`, written by `tools/make_unet_fixture.py`, `num_batches_tracked`
-//! included) loads by name into
-//! `calibconv::nn::UNet`, and the outputs match in eval and train mode, as do the BatchNorm
-//! running statistics after one training-mode forward (momentum 0.1). (`tests/pytorch_parity.rs`
-//! covers conversion from `.pth` and export back; this file covers training-mode behaviour.)
+//! included) loads by name into `calibconv::nn::UNet`, and the outputs match in eval and train
+//! mode, as do the BatchNorm running statistics after one training-mode forward (momentum 0.1).
+//! `tests/pytorch_parity.rs` covers conversion from `.pth` and export back; this file covers
+//! training-mode behaviour.
 
 mod common;
 
