@@ -25,6 +25,10 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
+    /// Benchmark the calibrated convolution against conv2d (interleaved, in one process): time,
+    /// ratio and peak memory per layer shape, offsets + plans for the camera's U-Net pyramid,
+    /// and a U-Net-shaped training step.
+    Bench(BenchArgs),
 }
 
 /// How the network input relates to the camera image.
@@ -101,6 +105,25 @@ pub struct DemoArgs {
     /// Output folder.
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// A few small shapes only (seconds).
+    #[arg(long)]
+    pub quick: bool,
+    /// Every U-Net level (32..512 channels, 256x256..16x16) at batch 1, 4 and 8 (minutes).
+    #[arg(long)]
+    pub full: bool,
+    /// Also time the ATen composition (the CUDA path and the former CPU path).
+    #[arg(long)]
+    pub aten: bool,
+    /// Camera whose calibrated offsets the layers use.
+    #[arg(long, default_value = "data/cameras/f195.toml")]
+    pub camera: PathBuf,
+    /// Also write the results as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 fn parse_size(s: &str) -> Result<[usize; 2], String> {

@@ -1,6 +1,7 @@
 //! What each subcommand does, one file per subcommand (the library does the work; these files
 //! wire files and output). Shared helpers live here.
 
+mod bench;
 mod demo;
 mod kernels;
 mod offsets;
@@ -21,6 +22,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Bench(args) => bench::run(args),
     }
 }
 

@@ -13,9 +13,11 @@
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
 //! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
 
+#[cfg(calibconv_native)]
+mod native;
 mod plan;
 
-pub use plan::SamplingPlan;
+pub use plan::{SamplingPlan, Transposed};
 
 use tch::{Kind, Tensor};
 
@@ -87,6 +89,22 @@ pub fn f_deform_conv2d(
     deform_conv2d_planned(input, &plan, weight, bias, groups)
 }
 
+/// Which implementation runs the convolution.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Backend {
+    /// The native kernels for CPU tensors (when built, see `build.rs`), the ATen composition
+    /// on other devices.
+    #[default]
+    Auto,
+    /// The composition of device-generic ATen ops, on any device.
+    Aten,
+}
+
+/// Whether the native CPU kernels were compiled into this build.
+pub fn native_available() -> bool {
+    cfg!(calibconv_native)
+}
+
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).
 pub fn deform_conv2d_planned(
     input: &Tensor,
@@ -95,8 +113,37 @@ pub fn deform_conv2d_planned(
     bias: Option<&Tensor>,
     groups: i64,
 ) -> Result<Tensor> {
-    let cols = plan.f_columns(input)?; // [B, P, K, C]
-    let (b, p, taps, c) = cols.size4()?;
+    deform_conv2d_planned_with(input, plan, weight, bias, groups, Backend::Auto)
+}
+
+/// [`deform_conv2d_planned`] with a chosen implementation. Both give the same result up to
+/// floating-point rounding (summation order).
+pub fn deform_conv2d_planned_with(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+    backend: Backend,
+) -> Result<Tensor> {
+    check_call(input, plan, weight, bias, groups)?;
+    #[cfg(calibconv_native)]
+    if backend == Backend::Auto && input.device() == tch::Device::Cpu {
+        return native::deform_conv2d_cpu(input, plan, weight, bias, groups);
+    }
+    let _ = backend;
+    aten_deform_conv2d(input, plan, weight, bias, groups)
+}
+
+/// Checks the arguments of a planned call: shapes, kinds, devices, groups.
+fn check_call(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<()> {
+    let (_, c, _, _) = plan.check_input(input)?;
     let (c_out, c_per_group, kh, kw) = weight.size4().map_err(|_| {
         Error::InvalidArgument(format!(
             "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
@@ -115,7 +162,8 @@ pub fn deform_conv2d_planned(
             weight.size()
         )));
     }
-    if weight.kind() != input.kind() || weight.device() != input.device() {
+    let same = |t: &Tensor| t.kind() == input.kind() && t.device() == input.device();
+    if !same(weight) {
         return Err(Error::InvalidArgument(format!(
             "weight is {:?} on {:?} but input is {:?} on {:?}",
             weight.kind(),
@@ -124,6 +172,32 @@ pub fn deform_conv2d_planned(
             input.device()
         )));
     }
+    if let Some(bias) = bias {
+        if bias.size() != [c_out] || !same(bias) {
+            return Err(Error::InvalidArgument(format!(
+                "bias must be [{c_out}] {:?} on {:?}, got {:?} {:?} on {:?}",
+                input.kind(),
+                input.device(),
+                bias.size(),
+                bias.kind(),
+                bias.device()
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The ATen composition: columns by `embedding_bag`, then one batched `matmul`.
+fn aten_deform_conv2d(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<Tensor> {
+    let cols = plan.f_columns(input)?; // [B, P, K, C]
+    let (b, p, taps, _) = cols.size4()?;
+    let (c_out, c_per_group, _, _) = weight.size4()?;
     let [ho, wo] = plan.output_size();
     let (g, c_out_g) = (groups, c_out / groups);
     // Columns [B, G, P, K*Cg] against weights [G, K*Cg, C_out/G], both tap-major then channel.
@@ -141,12 +215,6 @@ pub fn deform_conv2d_planned(
         .f_permute([0, 1, 3, 2])?
         .f_reshape([b, c_out, ho, wo])?;
     if let Some(bias) = bias {
-        if bias.size() != [c_out] {
-            return Err(Error::InvalidArgument(format!(
-                "bias must be [{c_out}], got {:?}",
-                bias.size()
-            )));
-        }
         out = out.f_add(&bias.view([1, c_out, 1, 1]))?;
     }
     Ok(out)
