@@ -401,7 +401,7 @@ fn ratio(a: Option<f64>, b: Option<f64>) -> Option<f64> {
     }
 }
 
-/// Offsets and sampling plans (with everything the native kernels precompute) for every level
+/// Offsets and sampling plans for every level
 /// of the camera's depth-4 U-Net pyramid (3x3, stride 1, "same"), from scratch, best of three.
 fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     let depth = 4;
@@ -429,7 +429,6 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
                 [1, 1],
                 Kind::Float,
             )?;
-            plan.prepare_native()?;
             plan_bytes += plan.memory_bytes();
         }
         let plans_s = start.elapsed().as_secs_f64();

@@ -17,7 +17,7 @@
 mod native;
 mod plan;
 
-pub use plan::{SamplingPlan, Transposed};
+pub use plan::SamplingPlan;
 
 use tch::{Kind, Tensor};
 

@@ -1,7 +1,4 @@
-//! The sampling plan: bilinear corner indices and weights of every (output pixel, tap), and its
-//! transpose (for every input pixel and tap, the output pixels that sample it).
-
-use std::sync::{Arc, Mutex};
+//! The sampling plan: bilinear corner indices and weights of every (output pixel, tap).
 
 use rayon::prelude::*;
 use tch::kind::Element;
@@ -21,16 +18,17 @@ use crate::error::{Error, Result};
 ///
 /// A column is then one weighted "bag" of four rows of a pixel-major table, which libtorch's
 /// `embedding_bag` computes (and differentiates) in one fused op (the ATen path); the native CPU
-/// kernels read the same indices and weights, and for the input gradient a [`Transposed`] plan
-/// built from them on first use.
+/// kernels read the same indices and weights. `rows` `[items, H_out, 2]` (int32) holds, per
+/// output row, the lowest and highest input row its in-range corners read (lowest > highest if
+/// none): the native input gradient schedules its scatter with it.
 #[derive(Debug)]
 pub struct SamplingPlan {
     /// `[N * 4]` int32: four corners per sample.
     index: Tensor,
     /// `[N * 4]`, same order.
     weight: Tensor,
-    /// The transpose, built on first need (CPU plans only) and shared by shallow clones.
-    transposed: Arc<Mutex<Option<Transposed>>>,
+    /// `[items, H_out, 2]` int32: input rows read by each output row.
+    rows: Tensor,
     input_size: [i64; 2],
     output_size: [i64; 2],
     kernel: [i64; 2],
@@ -38,50 +36,18 @@ pub struct SamplingPlan {
     batch: Option<i64>,
 }
 
-/// The transposed sampling plan in CSR form: for every (plan item, tap `k`, input pixel `q`),
-/// row `(item * K + k) * H*W + q`, the entries `ptr[row] .. ptr[row + 1]` of `src` (output
-/// pixel `p` within the item) and `weight` (the bilinear weight with which sample `(p, k)` reads
-/// pixel `q`). Corners outside the input and corners of weight exactly 0 have no entry. Entries of
-/// a row are in increasing `p`.
-#[derive(Debug)]
-pub struct Transposed {
-    /// `[items * K * H*W + 1]` int32 row starts.
-    pub ptr: Tensor,
-    /// `[E]` int32 output pixels.
-    pub src: Tensor,
-    /// `[E]` weights, in the plan's kind.
-    pub weight: Tensor,
-}
-
-impl Transposed {
-    fn shallow_clone(&self) -> Self {
-        Transposed {
-            ptr: self.ptr.shallow_clone(),
-            src: self.src.shallow_clone(),
-            weight: self.weight.shallow_clone(),
-        }
-    }
-}
-
 /// Plan weights: float32 or float64.
-trait PlanFloat: Element + Copy + Send + Sync + PartialEq {
+trait PlanFloat: Element + Copy + Send + Sync {
     fn from_f64(v: f64) -> Self;
-    fn zero() -> Self;
 }
 impl PlanFloat for f32 {
     fn from_f64(v: f64) -> Self {
         v as f32
     }
-    fn zero() -> Self {
-        0.0
-    }
 }
 impl PlanFloat for f64 {
     fn from_f64(v: f64) -> Self {
         v
-    }
-    fn zero() -> Self {
-        0.0
     }
 }
 
@@ -90,21 +56,21 @@ fn filled<T: Element>(n: usize, fill: impl FnOnce(&mut [T])) -> Tensor {
     let t = Tensor::empty([n as i64], (T::KIND, Device::Cpu));
     // SAFETY: `t` is a fresh contiguous CPU tensor of exactly `n` elements of `T` (same size as
     // `T::KIND`, the contract of `Element`); nothing else refers to its memory while `fill` runs.
-    let data = unsafe { elements_mut::<T>(&t, n) };
+    let data = unsafe { elements_mut::<T>(t.data_ptr(), n) };
     fill(data);
     t
 }
 
-/// The elements of a contiguous CPU tensor of `n` elements of `T`.
+/// The `n` elements of `T` at `data` (a tensor's `data_ptr`).
 ///
 /// # Safety
-/// `t` must be a contiguous CPU tensor of `n` elements of kind `T::KIND`, and no other reference
-/// to its memory may be used while the slice lives.
-unsafe fn elements_mut<T: Element>(t: &Tensor, n: usize) -> &mut [T] {
+/// `data` must be the memory of a live contiguous CPU tensor of `n` elements of kind `T::KIND`
+/// that outlives the slice, and no other reference to that memory may be used while it lives.
+unsafe fn elements_mut<'a, T: Element>(data: *mut std::ffi::c_void, n: usize) -> &'a mut [T] {
     if n == 0 {
         return &mut [];
     }
-    std::slice::from_raw_parts_mut(t.data_ptr() as *mut T, n)
+    std::slice::from_raw_parts_mut(data as *mut T, n)
 }
 
 /// The elements of a contiguous CPU tensor of kind `T::KIND`, read-only.
@@ -140,14 +106,15 @@ struct Layout {
 
 impl Layout {
     /// Fills the corners and weights of the `wo * K` samples of output row `row` (item-major:
-    /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`).
+    /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
+    /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none).
     fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
         &self,
         off: &[O],
         row: usize,
         idx: &mut [i32],
         wts: &mut [W],
-    ) {
+    ) -> [i32; 2] {
         let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
         let [kh, kw] = self.kernel;
         let taps = (kh * kw) as usize;
@@ -157,6 +124,7 @@ impl Layout {
         let base = if self.per_item { item * (h * w + 1) } else { 0 };
         let item_off = &off[item as usize * 2 * taps * plane..];
         let mut s = 0;
+        let mut reach = [i32::MAX, i32::MIN];
         for ox in 0..wo {
             let p = (oy * wo + ox) as usize;
             for i in 0..kh {
@@ -167,6 +135,10 @@ impl Layout {
                     let x = (ox * self.stride[1] - self.padding[1] + j * self.dilation[1]) as f64
                         + item_off[(2 * k + 1) * plane + p].into();
                     for (flat, wt) in bilinear(y, x, h, w) {
+                        if let Some(f) = flat {
+                            let r = (f / w) as i32;
+                            reach = [reach[0].min(r), reach[1].max(r)];
+                        }
                         idx[s] = (base + flat.unwrap_or(h * w)) as i32;
                         wts[s] = W::from_f64(wt);
                         s += 1;
@@ -174,6 +146,7 @@ impl Layout {
                 }
             }
         }
+        reach
     }
 }
 
@@ -259,23 +232,29 @@ impl SamplingPlan {
         let index = Tensor::empty([n as i64], (Kind::Int, Device::Cpu));
         // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `n` elements, only written
         // through this slice (by disjoint row chunks) until it is moved into the plan.
-        let idx = unsafe { elements_mut::<i32>(&index, n) };
+        let idx = unsafe { elements_mut::<i32>(index.data_ptr(), n) };
+        /// Fills `idx` and a new weight tensor; returns it and the rows read per output row.
         fn fill<O: Copy + Into<f64> + Element + Sync, W: PlanFloat>(
             layout: &Layout,
             off: &Tensor,
             idx: &mut [i32],
             row_len: usize,
             n: usize,
-        ) -> Result<Tensor> {
+        ) -> Result<(Tensor, Tensor)> {
             let off = elements::<O>(off)?;
-            Ok(filled::<W>(n, |wts| {
-                idx.par_chunks_mut(row_len)
+            let mut reach = Vec::new();
+            let weight = filled::<W>(n, |wts| {
+                reach = idx
+                    .par_chunks_mut(row_len)
                     .zip(wts.par_chunks_mut(row_len))
                     .enumerate()
-                    .for_each(|(row, (i, w))| layout.fill_row(off, row, i, w));
-            }))
+                    .map(|(row, (i, w))| layout.fill_row(off, row, i, w))
+                    .collect();
+            });
+            let rows: Vec<i32> = reach.into_iter().flatten().collect();
+            Ok((weight, Tensor::from_slice(&rows)))
         }
-        let weight = match (off.kind(), kind) {
+        let (weight, rows) = match (off.kind(), kind) {
             (Kind::Float, Kind::Float) => fill::<f32, f32>(&layout, &off, idx, row_len, n)?,
             (Kind::Float, _) => fill::<f32, f64>(&layout, &off, idx, row_len, n)?,
             (_, Kind::Float) => fill::<f64, f32>(&layout, &off, idx, row_len, n)?,
@@ -284,7 +263,7 @@ impl SamplingPlan {
         Ok(SamplingPlan {
             index,
             weight,
-            transposed: Arc::default(),
+            rows,
             input_size,
             output_size: [ho, wo],
             kernel,
@@ -300,7 +279,7 @@ impl SamplingPlan {
         SamplingPlan {
             index: self.index.to_device(device),
             weight: self.weight.to_device(device),
-            transposed: Arc::default(),
+            rows: self.rows.shallow_clone(),
             ..*self
         }
     }
@@ -310,7 +289,7 @@ impl SamplingPlan {
         SamplingPlan {
             index: self.index.shallow_clone(),
             weight: self.weight.shallow_clone(),
-            transposed: Arc::clone(&self.transposed),
+            rows: self.rows.shallow_clone(),
             ..*self
         }
     }
@@ -355,138 +334,18 @@ impl SamplingPlan {
         (&self.index, &self.weight)
     }
 
-    /// Bytes held by the plan's tensors, its transpose included once built.
+    /// `[items, H_out, 2]` (int32, CPU): the lowest and highest input row read by each output
+    /// row (lowest > highest where it reads none).
+    pub fn rows(&self) -> &Tensor {
+        &self.rows
+    }
+
+    /// Bytes held by the plan's tensors.
     pub fn memory_bytes(&self) -> usize {
-        let bytes = |t: &Tensor| t.numel() * t.kind().elt_size_in_bytes();
-        let transposed = self
-            .transposed
-            .lock()
-            .expect("sampling plan lock poisoned")
-            .as_ref()
-            .map_or(0, |t| bytes(&t.ptr) + bytes(&t.src) + bytes(&t.weight));
-        bytes(&self.index) + bytes(&self.weight) + transposed
-    }
-
-    /// Builds now what the native CPU kernels otherwise build on first need (the transposed
-    /// plan, for input gradients). A no-op for plans on other devices.
-    pub fn prepare_native(&self) -> Result<()> {
-        if self.device() == Device::Cpu {
-            self.transposed()?;
-        }
-        Ok(())
-    }
-
-    /// The transposed plan (CPU plans only), built on first call and kept.
-    pub fn transposed(&self) -> Result<Transposed> {
-        let mut slot = self.transposed.lock().expect("sampling plan lock poisoned");
-        if let Some(t) = slot.as_ref() {
-            return Ok(t.shallow_clone());
-        }
-        let t = match self.weight.kind() {
-            Kind::Float => self.build_transposed::<f32>()?,
-            _ => self.build_transposed::<f64>()?,
-        };
-        *slot = Some(t.shallow_clone());
-        Ok(t)
-    }
-
-    /// Counting sort of the corners by (item, tap, input pixel), in parallel over (item, tap).
-    fn build_transposed<W: PlanFloat>(&self) -> Result<Transposed> {
-        let index = elements::<i32>(&self.index)?;
-        let weight = elements::<W>(&self.weight)?;
-        let hw = (self.input_size[0] * self.input_size[1]) as usize;
-        let taps = (self.kernel[0] * self.kernel[1]) as usize;
-        let p = (self.output_size[0] * self.output_size[1]) as usize;
-        let items = self.batch.unwrap_or(1) as usize;
-        let per_item = self.batch.is_some();
-        let blocks = items * taps;
-        // The corners of (item, tap) block `blk` that land in the input: (pixel, output pixel,
-        // weight), in increasing output pixel.
-        let corners = |blk: usize| {
-            let (item, k) = (blk / taps, blk % taps);
-            let shift = if per_item { item * (hw + 1) } else { 0 };
-            (0..p).flat_map(move |pp| {
-                let s = ((item * p + pp) * taps + k) * 4;
-                (s..s + 4).filter_map(move |c| {
-                    let q = index[c] as usize - shift;
-                    (q != hw && weight[c] != W::zero()).then_some((q, pp as i32, weight[c]))
-                })
-            })
-        };
-        let ptr = filled::<i32>(blocks * hw + 1, |ptr| {
-            // Pass 1: counts per row, then exclusive prefix sums within each block.
-            let totals: Vec<usize> = ptr[..blocks * hw]
-                .par_chunks_mut(hw.max(1))
-                .enumerate()
-                .map(|(blk, rows)| {
-                    rows.fill(0);
-                    for (q, _, _) in corners(blk) {
-                        rows[q] += 1;
-                    }
-                    let mut sum = 0usize;
-                    for r in rows.iter_mut() {
-                        let c = *r as usize;
-                        *r = sum as i32;
-                        sum += c;
-                    }
-                    sum
-                })
-                .collect();
-            // Block bases.
-            let mut bases = Vec::with_capacity(blocks + 1);
-            let mut acc = 0usize;
-            for t in &totals {
-                bases.push(acc);
-                acc += t;
-            }
-            ptr[..blocks * hw]
-                .par_chunks_mut(hw.max(1))
-                .zip(bases.par_iter())
-                .for_each(|(rows, &base)| rows.iter_mut().for_each(|r| *r += base as i32));
-            ptr[blocks * hw] = acc as i32;
-        });
-        let starts = elements::<i32>(&ptr)?;
-        let total = starts[blocks * hw] as usize;
-        let src = Tensor::empty([total as i64], (Kind::Int, Device::Cpu));
-        // SAFETY: fresh contiguous int32 CPU tensor of `total` elements, written only through
-        // this slice (split into disjoint per-block chunks) before it is returned.
-        let src_all = unsafe { elements_mut::<i32>(&src, total) };
-        let weight_t = filled::<W>(total, |wt_all| {
-            // Pass 2: place every corner at its row's cursor; blocks own disjoint ranges.
-            let mut src_chunks = Vec::with_capacity(blocks);
-            let mut wt_chunks = Vec::with_capacity(blocks);
-            let (mut src_rest, mut wt_rest) = (&mut src_all[..], &mut wt_all[..]);
-            for blk in 0..blocks {
-                let len = (starts[(blk + 1) * hw] - starts[blk * hw]) as usize;
-                let (a, b) = std::mem::take(&mut src_rest).split_at_mut(len);
-                let (c, d) = std::mem::take(&mut wt_rest).split_at_mut(len);
-                src_chunks.push(a);
-                wt_chunks.push(c);
-                src_rest = b;
-                wt_rest = d;
-            }
-            src_chunks
-                .into_par_iter()
-                .zip(wt_chunks.into_par_iter())
-                .enumerate()
-                .for_each(|(blk, (src, wt))| {
-                    let base = starts[blk * hw] as usize;
-                    let mut cursor: Vec<usize> = starts[blk * hw..(blk + 1) * hw]
-                        .iter()
-                        .map(|&s| s as usize - base)
-                        .collect();
-                    for (q, pp, w) in corners(blk) {
-                        src[cursor[q]] = pp;
-                        wt[cursor[q]] = w;
-                        cursor[q] += 1;
-                    }
-                });
-        });
-        Ok(Transposed {
-            ptr,
-            src,
-            weight: weight_t,
-        })
+        [&self.index, &self.weight, &self.rows]
+            .iter()
+            .map(|t| t.numel() * t.kind().elt_size_in_bytes())
+            .sum()
     }
 
     /// The column matrix of `input`: for each output pixel, the bilinear samples of every tap

@@ -5,7 +5,7 @@
 
 use std::ffi::{c_char, CStr};
 
-use tch::{Kind, Tensor};
+use tch::Tensor;
 use torch_sys::C_tensor;
 
 use super::plan::SamplingPlan;
@@ -20,9 +20,7 @@ extern "C" {
         bias: *const C_tensor,
         index: *const C_tensor,
         plan_weight: *const C_tensor,
-        tptr: *const C_tensor,
-        tsrc: *const C_tensor,
-        tweight: *const C_tensor,
+        rows: *const C_tensor,
         ho: i64,
         wo: i64,
         groups: i64,
@@ -44,19 +42,6 @@ pub(super) fn deform_conv2d_cpu(
     let kind = input.kind();
     let (index, plan_weight) = plan.samples();
     let plan_weight = plan_weight.to_kind(kind);
-    // The transpose serves the input gradient only: build it when that gradient can exist.
-    let (tptr, tsrc, tweight) = if input.requires_grad() {
-        let t = plan.transposed()?;
-        let w = t.weight.to_kind(kind);
-        (t.ptr, t.src, w)
-    } else {
-        let empty = || Tensor::empty([0], (Kind::Int, tch::Device::Cpu));
-        (
-            empty(),
-            empty(),
-            Tensor::empty([0], (kind, tch::Device::Cpu)),
-        )
-    };
     let [ho, wo] = plan.output_size();
     let mut out: *mut C_tensor = std::ptr::null_mut();
     // SAFETY: every pointer is a live tensor handle borrowed for the duration of the call (the
@@ -69,9 +54,7 @@ pub(super) fn deform_conv2d_cpu(
             bias.map_or(std::ptr::null(), |b| b.as_ptr()),
             index.as_ptr(),
             plan_weight.as_ptr(),
-            tptr.as_ptr(),
-            tsrc.as_ptr(),
-            tweight.as_ptr(),
+            plan.rows().as_ptr(),
             ho,
             wo,
             groups,
