@@ -455,7 +455,7 @@ fn double_backward_is_an_error_not_a_crash() {
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
     let r = Tensor::f_run_backward(&[y.square().sum(Kind::Double)], &[&x], true, true);
     if native_available() {
-        let e = r.err().expect("double backward must fail").to_string();
+        let e = r.expect_err("double backward must fail").to_string();
         assert!(e.contains("double backward"), "{e}");
     }
 }
