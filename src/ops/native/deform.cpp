@@ -42,23 +42,26 @@ using torch::autograd::variable_list;
 // ---------------------------------------------------------------------------------------------
 // Tiling.
 
-// Bytes of a gathered tile: large enough that every GEMM amortises packing the weight (which the
-// BLAS does per call), small enough to stay in the last-level cache.
+// Bytes of a gathered tile: the tile stays in the last-level cache and every GEMM is large
+// enough to amortise packing the weight, which the BLAS does per call. A weight larger than
+// TILE_BYTES per thread raises the budget to its share per thread (the GEMM then spends on the
+// tile at least as much as on packing the weight).
 constexpr int64_t TILE_BYTES = 2 << 20;
 // Rows of a tile: at least MIN_TILE (GEMM efficiency), at most MAX_TILE.
 constexpr int64_t MIN_TILE = 128;
-constexpr int64_t MAX_TILE = 2048;
+constexpr int64_t MAX_TILE = 4096;
 
-// Rows per tile for `rows` rows per batch item of `row_elems` elements, so that there are at least
-// two tiles per thread when that keeps tiles of MIN_TILE rows or more.
-int64_t tile_rows(int64_t batch, int64_t rows, int64_t row_elems, int64_t elem_bytes) {
-  int64_t t = TILE_BYTES / std::max<int64_t>(1, row_elems * elem_bytes);
-  t = std::clamp<int64_t>(t, MIN_TILE, MAX_TILE);
-  const int64_t per_thread = (batch * rows + 2 * at::get_num_threads() - 1) /
-                             (2 * at::get_num_threads());
-  t = std::min(t, std::max<int64_t>(MIN_TILE, per_thread));
-  t = std::min(t, rows);
-  return std::max<int64_t>(1, t);
+// Rows per tile for `rows` rows per batch item of `row_elems` elements each, with a weight of
+// `weight_elems` elements. Tiles never span items; small problems get one tile per thread
+// (every tile repacks the weight, so splitting further only adds packing).
+int64_t tile_rows(int64_t batch, int64_t rows, int64_t row_elems, int64_t weight_elems,
+                  int64_t elem_bytes) {
+  const int64_t threads = at::get_num_threads();
+  const int64_t budget = std::max<int64_t>(TILE_BYTES, weight_elems * elem_bytes / threads);
+  int64_t t = budget / std::max<int64_t>(1, row_elems * elem_bytes);
+  t = std::clamp<int64_t>(t - t % 16, MIN_TILE, MAX_TILE);
+  t = std::min(t, (batch * rows + threads - 1) / threads);
+  return std::clamp<int64_t>(t, 1, std::max<int64_t>(1, rows));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -253,6 +256,61 @@ void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* pw, int
   }
 }
 
+// Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
+// copy for a permutation is several times slower) and parallel over batch items and pixels.
+
+// One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n). Blocks of BLOCK
+// pixels keep the C source rows and the BLOCK destination rows in L1.
+template <typename T>
+void convert_pixels(const T* __restrict src, T* __restrict dst, int64_t C, int64_t HW,
+                    int64_t p0, int64_t n, bool to_cl) {
+  constexpr int64_t BLOCK = 16;
+  for (int64_t q0 = p0; q0 < p0 + n; q0 += BLOCK) {
+    const int64_t q1 = std::min(p0 + n, q0 + BLOCK);
+    for (int64_t c = 0; c < C; ++c) {
+      if (to_cl) {
+        for (int64_t q = q0; q < q1; ++q) dst[q * C + c] = src[c * HW + q];
+      } else {
+        for (int64_t q = q0; q < q1; ++q) dst[c * HW + q] = src[q * C + c];
+      }
+    }
+  }
+}
+
+// Copies x [B, C, H, W] (NCHW-contiguous if `to_cl`, else channels-last-contiguous) into dst of
+// the other layout, in parallel over items and blocks of pixels.
+template <typename T>
+void convert_layout(const T* x, T* dst, int64_t B, int64_t C, int64_t HW, bool to_cl) {
+  constexpr int64_t PIX = 1024;  // pixels per task
+  const int64_t per_item = (HW + PIX - 1) / PIX;
+  at::parallel_for(0, B * per_item, 1, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const int64_t b = t / per_item, p0 = (t % per_item) * PIX;
+      convert_pixels(x + b * C * HW, dst + b * C * HW, C, HW, p0, std::min(PIX, HW - p0), to_cl);
+    }
+  });
+}
+
+// The input as channels-last-contiguous (a view if it already is).
+template <typename T>
+at::Tensor channels_last(const at::Tensor& input) {
+  if (input.is_contiguous(at::MemoryFormat::ChannelsLast)) return input;
+  const at::Tensor x = input.contiguous();
+  at::Tensor out = at::empty_like(x, x.options().memory_format(at::MemoryFormat::ChannelsLast));
+  convert_layout<T>(x.const_data_ptr<T>(), out.mutable_data_ptr<T>(), x.size(0), x.size(1),
+                    x.size(2) * x.size(3), true);
+  return out;
+}
+
+// A channels-last-contiguous tensor as NCHW-contiguous.
+template <typename T>
+at::Tensor nchw(const at::Tensor& x) {
+  at::Tensor out = at::empty_like(x, x.options().memory_format(at::MemoryFormat::Contiguous));
+  convert_layout<T>(x.const_data_ptr<T>(), out.mutable_data_ptr<T>(), x.size(0), x.size(1),
+                    x.size(2) * x.size(3), false);
+  return out;
+}
+
 // The layout of the output (and input gradient) for an input: channels-last if the input is
 // channels-last (as conv2d), else NCHW.
 at::MemoryFormat memory_format(const at::Tensor& input) {
@@ -271,7 +329,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
                         const at::Tensor& bias, const at::Tensor& index, const at::Tensor& pw) {
   const auto fmt = memory_format(input);
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
-  const at::Tensor x = input.contiguous(at::MemoryFormat::ChannelsLast);
+  const at::Tensor x = channels_last<T>(input);
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
   const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
   const T* bp = bias.defined() ? bias_c.const_data_ptr<T>() : nullptr;
@@ -281,7 +339,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const T* pwp = pw.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
-  const int64_t tile = tile_rows(g.B, g.P, kc, sizeof(T));
+  const int64_t tile = tile_rows(g.B, g.P, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (g.P + tile - 1) / tile;
   auto init = [&] { return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(g.C, T(0))}; };
   parallel_tasks(g.B * tiles, init, [&](int64_t task, Scratch<T>& s) {
@@ -306,14 +364,14 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   return out;
 }
 
-// Gradient of the packed weight, [G, C_out/G, K, C/G].
+// Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
                             const at::Tensor& index, const at::Tensor& pw) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
-  const at::Tensor x = input.contiguous(at::MemoryFormat::ChannelsLast);
+  const at::Tensor x = channels_last<T>(input);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
-  const int64_t tile = tile_rows(g.B, g.P, kc, sizeof(T));
+  const int64_t tile = tile_rows(g.B, g.P, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (g.P + tile - 1) / tile;
   const int64_t tasks = g.B * tiles;
   // One accumulator per chunk of tasks; chunks are fixed (not handed out dynamically) so that the
@@ -343,7 +401,23 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       }
     }
   });
-  return acc.sum(0);
+  // Sum the chunks and swap back (tap, channel) -> (channel, tap): [C_out, C/G, K].
+  at::Tensor gw = at::empty({g.Cout, g.Cg, g.K}, gy.options());
+  T* gwp = gw.mutable_data_ptr<T>();
+  at::parallel_for(0, g.Cout, 1, [&](int64_t o0, int64_t o1) {
+    for (int64_t o = o0; o < o1; ++o) {
+      for (int64_t k = 0; k < g.K; ++k) {
+        for (int64_t c = 0; c < g.Cg; ++c) {
+          T sum = 0;
+          for (int64_t chunk = 0; chunk < chunks; ++chunk) {
+            sum += ap[chunk * wsize + (o * g.K + k) * g.Cg + c];
+          }
+          gwp[(o * g.Cg + c) * g.K + k] = sum;
+        }
+      }
+    }
+  });
+  return gw;
 }
 
 // Bands of output rows for the scatter: the smallest band height R such that, within each of
@@ -396,7 +470,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const int64_t r = band_rows(g, rows.const_data_ptr<int32_t>());
   const int64_t bands = (g.Ho + r - 1) / r;
   const int64_t band_pixels = r * g.Wo;
-  const int64_t tile = tile_rows(g.B, std::min(band_pixels, g.P), kc, sizeof(T));
+  const int64_t tile = tile_rows(g.B, std::min(band_pixels, g.P), kc, g.Cout * kcg, sizeof(T));
   auto init = [&] { return Scratch<T>{std::vector<T>(tile * kc), {}}; };
   for (int64_t phase = 0; phase < 2; ++phase) {
     const int64_t phase_bands = (bands - phase + 1) / 2;
@@ -416,7 +490,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     });
   }
   if (memory_format(input) == at::MemoryFormat::ChannelsLast) return gx;
-  return gx.contiguous();
+  return nchw<T>(gx);
 }
 
 struct DeformConv : public torch::autograd::Function<DeformConv> {
@@ -428,8 +502,9 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
                            per_item);
     const at::Tensor wp = pack_weight(weight, g);
-    ctx->save_for_backward({input});
-    ctx->saved_data["wp"] = wp;
+    // The weight (a parameter, alive anyway) rather than its packed copy: the backward pass
+    // repacks it, so no weight-sized buffer lives from forward to backward.
+    ctx->save_for_backward({input, weight});
     ctx->saved_data["index"] = index;
     ctx->saved_data["pw"] = pw;
     ctx->saved_data["rows"] = rows;
@@ -438,7 +513,6 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["groups"] = groups;
     ctx->saved_data["per_item"] = per_item;
     ctx->saved_data["has_bias"] = has_bias;
-    ctx->saved_data["weight_sizes"] = weight.sizes().vec();
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
       out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, pw);
@@ -449,12 +523,13 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
   static variable_list backward(AutogradContext* ctx, variable_list grads) {
     TORCH_CHECK(!at::GradMode::is_enabled(),
                 "calibconv deform_conv2d: double backward (create_graph) is not supported");
-    const at::Tensor input = ctx->get_saved_variables()[0];
+    const auto saved = ctx->get_saved_variables();
+    const at::Tensor& input = saved[0];
+    const at::Tensor& weight = saved[1];
     auto& d = ctx->saved_data;
-    const at::Tensor wp = d["wp"].toTensor();
-    const auto wsizes = d["weight_sizes"].toIntVector();
-    const Geo g = geometry(input, wsizes[0], wsizes[2] * wsizes[3], d["ho"].toInt(),
-                           d["wo"].toInt(), d["groups"].toInt(), d["per_item"].toBool());
+    const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3),
+                           d["ho"].toInt(), d["wo"].toInt(), d["groups"].toInt(),
+                           d["per_item"].toBool());
     // The output gradient is read in place if it is NCHW- or channels-last-contiguous.
     at::Tensor gy = grads[0];
     if (!gy.is_contiguous() && !gy.is_contiguous(at::MemoryFormat::ChannelsLast)) {
@@ -463,13 +538,11 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     at::Tensor gx, gw, gb;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       if (ctx->needs_input_grad(1)) {
-        // [G, C_out/G, K, C/G] -> [C_out, C/G, kh, kw]
         gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["pw"].toTensor())
-                 .transpose(2, 3)
-                 .reshape(wsizes);
+                 .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
-        gx = grad_input_impl<scalar_t>(g, input, wp, gy, d["index"].toTensor(),
+        gx = grad_input_impl<scalar_t>(g, input, pack_weight(weight, g), gy, d["index"].toTensor(),
                                        d["pw"].toTensor(), d["rows"].toTensor());
       }
     });
