@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
+use calibconv::camera::import::{Format, OpenCvModel};
 use calibconv::camera::PixelConvention;
 
 /// Calibrated convolutions for fisheye cameras: kernel offsets from a camera calibration, and
@@ -29,6 +30,46 @@ pub enum Command {
     /// ratio and peak memory per layer shape, offsets + plans for the camera's U-Net pyramid,
     /// and a U-Net-shaped training step.
     Bench(BenchArgs),
+    /// Camera files: import a calibration from another tool.
+    Camera(CameraArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CameraArgs {
+    #[command(subcommand)]
+    pub command: CameraCommand,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum CameraCommand {
+    /// Convert a calibration of Kalibr (camchain YAML), OpenCV (FileStorage YAML / JSON), Basalt
+    /// (calibration JSON), COLMAP (cameras.txt) or OCamCalib (calib_results.txt) into a camera
+    /// file (TOML with named fields), checked like any camera file.
+    Import(ImportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct ImportArgs {
+    /// Source tool: kalibr, opencv, basalt, colmap or ocamcalib.
+    #[arg(long = "from")]
+    pub from: Format,
+    /// The calibration file.
+    pub file: PathBuf,
+    /// Which camera: Kalibr camN and Basalt intrinsics[N] (default 0), COLMAP CAMERA_ID
+    /// (default: the first listed).
+    #[arg(long)]
+    pub camera: Option<usize>,
+    /// Full field of view of a fisheye lens in degrees (default: the angle the image width
+    /// spans on the principal row; calibration files rarely hold the lens's own).
+    #[arg(long)]
+    pub fov_deg: Option<f64>,
+    /// OpenCV files only: fisheye or standard, when the file does not say (4 coefficients fit
+    /// both).
+    #[arg(long)]
+    pub opencv_model: Option<OpenCvModel>,
+    /// Output camera file (.toml), written atomically.
+    #[arg(long)]
+    pub out: PathBuf,
 }
 
 /// How the network input relates to the camera image.

@@ -23,6 +23,10 @@ pub enum Error {
         field: String,
         message: String,
     },
+    /// A calibration file of another tool (Kalibr, OpenCV, Basalt, COLMAP, OCamCalib) did not
+    /// parse as that tool writes it.
+    #[error("{path}: {message}")]
+    Format { path: PathBuf, message: String },
     /// A function argument is outside what the operation supports.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),

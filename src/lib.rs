@@ -6,8 +6,9 @@
 //!
 //! Data flows one way through the modules:
 //!
-//! - [`camera`]: camera models in plain `f64` Rust (Kannala-Brandt, pinhole) behind one trait,
-//!   read from TOML files in `data/cameras/`. No tensors.
+//! - [`camera`]: camera models in plain `f64` Rust (Kannala-Brandt, pinhole, radial-tangential,
+//!   double sphere, (extended) unified, Scaramuzza, equirectangular) behind one trait, read from
+//!   TOML files in `data/cameras/` or imported from other tools' calibrations. No tensors.
 //! - [`kernel`]: the paper's "fisheye calibrated kernel" (Section 3.2): for a layer geometry and
 //!   feature-map size, the offsets of every kernel tap relative to the regular deformable grid,
 //!   in torchvision's layout, computed in parallel and cached. Tensors begin here.

@@ -10,11 +10,14 @@ Writes, deterministically (fixed seeds):
 - ``deform_conv2d.safetensors``: ``torchvision.ops.deform_conv2d`` outputs and gradients for a
   set of layer geometries (read by ``tests/oracle_torchvision.rs``);
 - ``opencv_fisheye.json``: ``cv2.fisheye.projectPoints`` / ``cv2.fisheye.undistortPoints`` for two
-  Kannala-Brandt cameras (read by ``tests/oracle_opencv.rs``).
+  Kannala-Brandt cameras (read by ``tests/oracle_opencv.rs``);
+- ``opencv_radtan.json``: ``cv2.projectPoints`` / ``cv2.undistortPoints`` for two pinhole
+  cameras with OpenCV's radial-tangential distortion (read by ``tests/oracle_opencv_radtan.rs``).
 
 Every oracle value is double-checked here before it is written: the deformable convolution
 against a direct NumPy loop and against torchvision in float32, the fisheye values against a
-direct evaluation of the Kannala-Brandt polynomial. A failed check aborts without writing.
+direct evaluation of the Kannala-Brandt polynomial, the radial-tangential values against a
+direct evaluation of OpenCV's distortion formula. A failed check aborts without writing.
 """
 
 import json
@@ -337,6 +340,114 @@ def make_fisheye_fixtures(path):
     print(f"wrote {path}")
 
 
+# ----------------------------------------------------------------------------------------------
+# OpenCV standard model (radial-tangential, k1 k2 p1 p2 k3)
+# ----------------------------------------------------------------------------------------------
+
+RADTAN_CAMERAS = [
+    {
+        # EuRoC MAV cam0 (sensor.yaml; Kalibr pinhole-radtan, so k3 = 0), as in
+        # data/cameras/radtan_example.toml.
+        "name": "EuRoC cam0",
+        "fx": 458.654, "fy": 457.296, "cx": 367.215, "cy": 248.375,
+        "k": [-0.28340811, 0.07395907, 0.0], "p": [0.00019359, 1.76187114e-05],
+        "width": 752, "height": 480,
+    },
+    {
+        # Made up: all five coefficients non-zero, strong tangential terms, fx != fy, a
+        # fractional principal point.
+        "name": "five-coefficient test camera",
+        "fx": 610.0, "fy": 604.5, "cx": 331.7, "cy": 242.2,
+        "k": [-0.21, 0.09, -0.012], "p": [0.004, -0.003],
+        "width": 640, "height": 480,
+    },
+]
+
+# Rays up to 40 deg off-axis (r = tan(theta) <= 0.84 on the z = 1 plane) for projection; the
+# distortion must be invertible there (checked below).
+RADTAN_PROJECT_THETA_MAX_DEG = 40.0
+RADTAN_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+
+def radtan_distort(cam, x, y):
+    k1, k2, k3 = cam["k"]
+    p1, p2 = cam["p"]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
+def make_radtan_fixtures(path):
+    rng = np.random.default_rng(19700102)
+    out_cams = []
+    for cam in RADTAN_CAMERAS:
+        K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+        D = np.array([cam["k"][0], cam["k"][1], cam["p"][0], cam["p"][1], cam["k"][2]])
+
+        # The distortion map must not fold over the projected range nor over the image: its
+        # Jacobian determinant (central differences) stays positive on a dense grid.
+        r_max = 1.3 * math.tan(math.radians(RADTAN_PROJECT_THETA_MAX_DEG))
+        g = np.linspace(-r_max, r_max, 801)
+        gx, gy = np.meshgrid(g, g)
+        h = 1e-6
+        ax, ay = radtan_distort(cam, gx + h, gy)
+        bx, by = radtan_distort(cam, gx - h, gy)
+        cx_, cy_ = radtan_distort(cam, gx, gy + h)
+        dx_, dy_ = radtan_distort(cam, gx, gy - h)
+        det = ((ax - bx) * (cy_ - dy_) - (ay - by) * (cx_ - dx_)) / (4 * h * h)
+        assert (det > 0).all(), cam["name"]
+
+        # Project: rays within 40 deg of the axis (plus the axis), random azimuth and length.
+        theta = np.radians(rng.uniform(0.0, RADTAN_PROJECT_THETA_MAX_DEG, N_POINTS))
+        theta[0] = 0.0
+        phi = rng.uniform(-math.pi, math.pi, N_POINTS)
+        length = rng.uniform(0.05, 20.0, N_POINTS)
+        rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                         np.cos(theta)], axis=1) * length[:, None]
+        pixels, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
+        pixels = pixels.reshape(-1, 2)
+        # Double check against the formula evaluated here.
+        xd, yd = radtan_distort(cam, rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2])
+        mine = np.stack([cam["fx"] * xd + cam["cx"], cam["fy"] * yd + cam["cy"]], axis=1)
+        err = np.abs(mine - pixels).max()
+        assert err < 1e-9, f"{cam['name']}: projectPoints vs formula {err:.3e} px"
+
+        # Unproject: pixels anywhere in the image (the first at the principal point), solved by
+        # OpenCV's fixed-point iteration run to convergence (OpenCV 5's undistortPoints takes the
+        # criteria; without them it stops after 5 iterations).
+        pix = np.stack([rng.uniform(-0.5, cam["width"] - 0.5, N_POINTS),
+                        rng.uniform(-0.5, cam["height"] - 0.5, N_POINTS)], axis=1)
+        pix[0] = [cam["cx"], cam["cy"]]
+        normalized = cv2.undistortPoints(pix.reshape(-1, 1, 2), K, D, None, None, None,
+                                         RADTAN_UNDISTORT_CRITERIA).reshape(-1, 2)
+        assert np.isfinite(normalized).all(), cam["name"]
+        # Double check: the normalized point projects back onto the pixel.
+        back, _ = cv2.projectPoints(
+            np.concatenate([normalized, np.ones((N_POINTS, 1))], axis=1).reshape(-1, 1, 3),
+            np.zeros(3), np.zeros(3), K, D)
+        err = np.abs(back.reshape(-1, 2) - pix).max()
+        assert err < 1e-9, f"{cam['name']}: undistort/project round trip {err:.3e} px"
+
+        out_cams.append({
+            **cam,
+            "project": {"theta_max_deg": RADTAN_PROJECT_THETA_MAX_DEG, "rays": rays.tolist(),
+                        "pixels": pixels.tolist()},
+            "unproject": {"criteria": "COUNT|EPS, 100, 1e-14", "pixels": pix.tolist(),
+                          "normalized": normalized.tolist()},
+        })
+        print(f"  {cam['name']}: {N_POINTS} projections, {N_POINTS} unprojections")
+
+    doc = {
+        "generator": f"tools/make_fixtures.py with OpenCV {cv2.__version__} "
+                     f"(cv2.projectPoints, cv2.undistortPoints with criteria), NumPy {np.__version__}, "
+                     f"float64",
+        "cameras": out_cams,
+    }
+    path.write_text(dump_json(doc) + "\n")
+    print(f"wrote {path}")
+
+
 def main():
     if len(sys.argv) != 2:
         sys.exit(f"usage: {sys.argv[0]} OUT_DIR   (e.g. tests/golden)")
@@ -347,6 +458,7 @@ def main():
           f"OpenCV {cv2.__version__}, NumPy {np.__version__}, safetensors {safetensors.__version__}")
     make_deform_fixtures(out / "deform_conv2d.safetensors")
     make_fisheye_fixtures(out / "opencv_fisheye.json")
+    make_radtan_fixtures(out / "opencv_radtan.json")
 
 
 if __name__ == "__main__":

@@ -4,16 +4,35 @@
 //! - pixel coordinates are `[u, v]` = (column, row), in pixels, with the centre of the top-left
 //!   pixel at `(0, 0)` (the OpenCV convention);
 //! - rays are `[x, y, z]` in the camera frame: x right, y down, z forward (optical axis);
-//!   [`CameraModel::unproject`] returns unit rays; [`CameraModel::project`] accepts any non-zero ray;
+//!   [`CameraModel::unproject`] returns unit rays; [`CameraModel::project`] accepts any non-zero
+//!   ray;
 //! - angles are radians everywhere except in camera files (`fov_deg`).
 //!
-//! Paper: Section 3.1 (Kannala-Brandt projection model).
+//! Models, one file each, each documenting its formula and source: [`KannalaBrandt`] (paper
+//! Section 3.1), [`Pinhole`], [`PinholeRadTan`] (OpenCV's 5-parameter distortion),
+//! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Scaramuzza`]
+//! (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model whose kernels wrap
+//! horizontally). [`import`] reads the calibration files of other tools.
 
+mod double_sphere;
+mod equirectangular;
+mod extended_unified;
+mod geometry;
+pub mod import;
 mod kannala_brandt;
 mod pinhole;
+mod pinhole_radtan;
+mod scaramuzza;
+mod unified;
 
+pub use double_sphere::DoubleSphere;
+pub use equirectangular::Equirectangular;
+pub use extended_unified::ExtendedUnified;
 pub use kannala_brandt::KannalaBrandt;
 pub use pinhole::Pinhole;
+pub use pinhole_radtan::PinholeRadTan;
+pub use scaramuzza::Scaramuzza;
+pub use unified::Unified;
 
 use std::path::Path;
 
@@ -74,13 +93,55 @@ pub trait CameraModel: Send + Sync + std::fmt::Debug {
     /// The same camera seen at another resolution: intrinsics scaled by `[sx, sy]` (new / old),
     /// the principal point moved by `convention`, the image size rounded.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera;
+    /// Whether the image is periodic horizontally (a 360-degree panorama): kernels then continue
+    /// across the left/right edge, offsets are taken modulo the feature-map width and the
+    /// sampling plan wraps columns instead of reading zeros.
+    fn wraps_horizontally(&self) -> bool {
+        false
+    }
+    /// How calibrated kernels are oriented on the sphere (see [`KernelFrame`]).
+    fn kernel_frame(&self) -> KernelFrame {
+        KernelFrame::MinimalRotation
+    }
+}
+
+/// The orientation of a calibrated kernel's virtual perspective patch around its anchor ray.
+///
+/// Any smooth choice of orientation over the whole sphere has a singular point (the hairy-ball
+/// theorem); each choice puts it somewhere else.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum KernelFrame {
+    /// The paper's choice (Section 3.2): the minimal rotation taking the optical axis onto the
+    /// anchor ray. Singular only at the backward ray `-z`, outside any fisheye's view.
+    #[default]
+    MinimalRotation,
+    /// Yaw then pitch, no roll: the patch's rows stay horizontal (its x axis along increasing
+    /// longitude, its y axis towards the south pole), as in the tangent-plane kernels of Tateno et
+    /// al. and EquiConvs. Singular only at the poles. Used by panoramas, where the minimal
+    /// rotation's singular point (straight back) lies on the seam and turns the kernels around it
+    /// by up to 180 degrees between neighbouring pixels.
+    Upright,
 }
 
 /// A camera of any supported model, as read from a camera file.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Camera {
+    /// `model = "kannala-brandt"`.
     KannalaBrandt(KannalaBrandt),
+    /// `model = "pinhole"`.
     Pinhole(Pinhole),
+    /// `model = "pinhole-radtan"`.
+    PinholeRadTan(PinholeRadTan),
+    /// `model = "double-sphere"`.
+    DoubleSphere(DoubleSphere),
+    /// `model = "unified"`.
+    Unified(Unified),
+    /// `model = "extended-unified"`.
+    ExtendedUnified(ExtendedUnified),
+    /// `model = "scaramuzza"`.
+    Scaramuzza(Scaramuzza),
+    /// `model = "equirectangular"`.
+    Equirectangular(Equirectangular),
 }
 
 macro_rules! dispatch {
@@ -88,8 +149,37 @@ macro_rules! dispatch {
         match $self {
             Camera::KannalaBrandt($m) => $e,
             Camera::Pinhole($m) => $e,
+            Camera::PinholeRadTan($m) => $e,
+            Camera::DoubleSphere($m) => $e,
+            Camera::Unified($m) => $e,
+            Camera::ExtendedUnified($m) => $e,
+            Camera::Scaramuzza($m) => $e,
+            Camera::Equirectangular($m) => $e,
         }
     };
+}
+
+impl Camera {
+    /// The model's name in camera files (`model = "..."`).
+    pub fn model_name(&self) -> &'static str {
+        match self {
+            Camera::KannalaBrandt(_) => "kannala-brandt",
+            Camera::Pinhole(_) => "pinhole",
+            Camera::PinholeRadTan(_) => "pinhole-radtan",
+            Camera::DoubleSphere(_) => "double-sphere",
+            Camera::Unified(_) => "unified",
+            Camera::ExtendedUnified(_) => "extended-unified",
+            Camera::Scaramuzza(_) => "scaramuzza",
+            Camera::Equirectangular(_) => "equirectangular",
+        }
+    }
+
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] (each model's
+    /// `project_jacobian`), or `None` where `project` is `None` (and, for the equirectangular
+    /// camera, at the poles).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        dispatch!(self, m => m.project_jacobian(ray))
+    }
 }
 
 impl CameraModel for Camera {
@@ -108,6 +198,12 @@ impl CameraModel for Camera {
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
         dispatch!(self, m => m.rescaled(scale, convention))
     }
+    fn wraps_horizontally(&self) -> bool {
+        dispatch!(self, m => m.wraps_horizontally())
+    }
+    fn kernel_frame(&self) -> KernelFrame {
+        dispatch!(self, m => m.kernel_frame())
+    }
 }
 
 /// Reads a camera file (TOML, see `data/cameras/`) and returns its model.
@@ -116,3 +212,8 @@ pub fn load(path: impl AsRef<Path>) -> Result<Camera> {
 }
 
 mod file;
+
+pub use file::{parse, to_toml, MODELS};
+
+#[cfg(test)]
+mod tests;

@@ -2,6 +2,7 @@
 //! wire files and output). Shared helpers live here.
 
 mod bench;
+mod camera;
 mod demo;
 mod kernels;
 mod offsets;
@@ -11,7 +12,7 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use tch::Tensor;
 
-use calibconv::camera::{self, Camera};
+use calibconv::camera::Camera;
 use calibconv::io::{write_atomic, write_bytes_atomic};
 use calibconv::kernel::InputFrame;
 
@@ -23,6 +24,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Camera(args) => camera::run(args),
     }
 }
 
@@ -34,7 +36,8 @@ fn frame(args: &FrameArgs) -> InputFrame {
 }
 
 fn load_camera(path: &Path) -> Result<Camera> {
-    camera::load(path).with_context(|| format!("cannot use camera file {}", path.display()))
+    calibconv::camera::load(path)
+        .with_context(|| format!("cannot use camera file {}", path.display()))
 }
 
 fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {

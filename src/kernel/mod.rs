@@ -9,8 +9,9 @@
 //! ```
 //!
 //! (k = kernel width, W_fm = feature-map width) is rotated by the minimal rotation taking the
-//! optical axis onto the anchor's back-projected ray, and each tap is projected with the camera
-//! scaled to the feature map. Offsets are the projected taps minus the regular grid.
+//! optical axis onto the anchor's back-projected ray (or, for cameras that ask for
+//! [`KernelFrame::Upright`], by yaw and pitch without roll), and each tap is projected with the
+//! camera scaled to the feature map. Offsets are the projected taps minus the regular grid.
 //!
 //! Conventions:
 //! - Resolution scaling: the network input is the camera image padded by `(p_w, p_h)` pixels on
@@ -26,6 +27,11 @@
 //!   kernel; on a fisheye such pixels lie outside the image circle and are black anyway), and a
 //!   tap the camera cannot project keeps its regular position. Both are counted in
 //!   [`Offsets::fallback_anchors`] / [`Offsets::fallback_taps`].
+//! - Panoramas ([`CameraModel::wraps_horizontally`]): a tap's `dx` is taken modulo the
+//!   feature-map width `W` to the representative nearest the regular tap,
+//!   `dx - W round(dx / W)`, so that a kernel continuing across the seam gets small offsets (the
+//!   sampling plan wraps columns, [`crate::ops::Border::WrapX`]). Such a camera cannot be padded
+//!   horizontally (`p_w = 0`): the image must span exactly 360 degrees.
 
 mod cache;
 
@@ -33,7 +39,7 @@ pub use cache::cached_offsets;
 
 use rayon::prelude::*;
 
-use crate::camera::{Camera, CameraModel, PixelConvention};
+use crate::camera::{Camera, CameraModel, KernelFrame, PixelConvention};
 use crate::error::{Error, Result};
 
 /// Geometry of one convolution layer: all pairs are `[y, x]` (rows, columns).
@@ -161,6 +167,25 @@ pub fn align_optical_axis(r: [f64; 3]) -> [[f64; 3]; 3] {
     ]
 }
 
+/// Rotation matrix (row-major) taking `(0, 0, 1)` onto the unit ray `r` with no roll: its
+/// columns are `e = (r_z, 0, -r_x) / |(r_x, r_z)|` (the direction of increasing longitude
+/// `atan2(r_x, r_z)`), `r x e` (towards decreasing latitude, "down") and `r`. At the poles
+/// (`r_x = r_z = 0`) `e = (1, 0, 0)`.
+pub fn upright_frame(r: [f64; 3]) -> [[f64; 3]; 3] {
+    let q = r[0].hypot(r[2]);
+    let e = if q > 0.0 {
+        [r[2] / q, 0.0, -r[0] / q]
+    } else {
+        [1.0, 0.0, 0.0]
+    };
+    let d = [
+        r[1] * e[2] - r[2] * e[1],
+        r[2] * e[0] - r[0] * e[2],
+        r[0] * e[1] - r[1] * e[0],
+    ];
+    [[e[0], d[0], r[0]], [e[1], d[1], r[1]], [e[2], d[2], r[2]]]
+}
+
 fn rotate(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
     [0, 1, 2].map(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2])
 }
@@ -201,6 +226,16 @@ pub fn compute_offsets(
         ))
     })?;
     let [w_c, h_c] = camera.size();
+    let wrap = camera.wraps_horizontally();
+    if wrap && frame.padding[0] != 0 {
+        return Err(Error::InvalidArgument(format!(
+            "a panorama wraps across its left/right edge, so it cannot be padded horizontally \
+             (padding {:?}: use p_w = 0)",
+            frame.padding
+        )));
+    }
+    let period = input_size[1] as f64;
+    let frame_kind = camera.kernel_frame();
     let scale = [
         input_size[1] as f64 / (w_c + frame.padding[0]) as f64,
         input_size[0] as f64 / (h_c + frame.padding[1]) as f64,
@@ -227,15 +262,21 @@ pub fn compute_offsets(
                     bad_anchors += 1;
                     continue;
                 };
-                let rot = align_optical_axis(ray);
+                let rot = match frame_kind {
+                    KernelFrame::MinimalRotation => align_optical_axis(ray),
+                    KernelFrame::Upright => upright_frame(ray),
+                };
                 for i in 0..kh {
                     let ty = (i as f64 - ch as f64) * geometry.dilation[0] as f64;
                     for j in 0..kw {
                         let tx = (j as f64 - cw as f64) * geometry.dilation[1] as f64;
                         match cam.project(rotate(&rot, [tx, ty, d])) {
                             Some([u, v]) => {
-                                row[ox * taps + i * kw + j] =
-                                    [(v - (ay + ty)) as f32, (u - (ax + tx)) as f32];
+                                let mut dx = u - (ax + tx);
+                                if wrap {
+                                    dx -= period * (dx / period).round();
+                                }
+                                row[ox * taps + i * kw + j] = [(v - (ay + ty)) as f32, dx as f32];
                             }
                             None => bad_taps += 1,
                         }

@@ -6,10 +6,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
 
-use crate::camera::Camera;
+use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
-use crate::ops::{deform_conv2d_planned, SamplingPlan};
+use crate::ops::{deform_conv2d_planned, Border, SamplingPlan};
 
 /// Geometry and bias of a convolution (pairs are `[y, x]`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -130,7 +130,13 @@ impl CalibratedConv2d {
         let plan = match cached {
             Some(plan) => plan,
             None => {
-                let plan = SamplingPlan::new(
+                // A panorama's kernels continue across its left/right edge.
+                let border = if camera.wraps_horizontally() {
+                    Border::WrapX
+                } else {
+                    Border::Zeros
+                };
+                let plan = SamplingPlan::with_border(
                     &offsets.to_tensor(),
                     input_size,
                     [k, k],
@@ -138,6 +144,7 @@ impl CalibratedConv2d {
                     padding,
                     cfg.dilation,
                     Kind::Float,
+                    border,
                 )?
                 .to_device(device);
                 plan_cache()

@@ -17,7 +17,7 @@
 mod native;
 mod plan;
 
-pub use plan::SamplingPlan;
+pub use plan::{Border, SamplingPlan};
 
 use tch::{Kind, Tensor};
 

@@ -7,6 +7,17 @@ use tch::{Device, Kind, Tensor};
 use super::check_float;
 use crate::error::{Error, Result};
 
+/// What a bilinear sample reads outside the input.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Border {
+    /// torchvision's rule: corners outside the input read zero.
+    #[default]
+    Zeros,
+    /// Columns are periodic (a 360-degree panorama): a corner's column is taken modulo `W`, so
+    /// any finite `x` samples the input; rows outside still read zero.
+    WrapX,
+}
+
 /// Precomputed bilinear sampling of a deformable convolution with fixed offsets.
 ///
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
@@ -102,6 +113,7 @@ struct Layout {
     padding: [i64; 2],
     dilation: [i64; 2],
     per_item: bool,
+    border: Border,
 }
 
 impl Layout {
@@ -135,7 +147,7 @@ impl Layout {
                     let x = (ox * self.stride[1] - self.padding[1] + j * self.dilation[1]) as f64
                         + item_off[(2 * k + 1) * plane + p].into();
                     let mut inside = false;
-                    for (flat, wt) in bilinear(y, x, h, w) {
+                    for (flat, wt) in bilinear(y, x, h, w, self.border) {
                         inside |= flat.is_some();
                         idx[s] = (base + flat.unwrap_or(h * w)) as i32;
                         wts[s] = W::from_f64(wt);
@@ -156,7 +168,8 @@ impl Layout {
 impl SamplingPlan {
     /// Builds the plan from offsets `[2*kh*kw, H_out, W_out]` or `[B, 2*kh*kw, H_out, W_out]`
     /// for an input of `input_size = [H, W]`; weights are stored in `kind` (float32 or
-    /// float64), tensors on the CPU. Runs in parallel over output rows.
+    /// float64), tensors on the CPU. Runs in parallel over output rows. Zeros outside the input
+    /// (torchvision); see [`SamplingPlan::with_border`].
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         offsets: &Tensor,
@@ -166,6 +179,32 @@ impl SamplingPlan {
         padding: [i64; 2],
         dilation: [i64; 2],
         kind: Kind,
+    ) -> Result<Self> {
+        Self::with_border(
+            offsets,
+            input_size,
+            kernel,
+            stride,
+            padding,
+            dilation,
+            kind,
+            Border::Zeros,
+        )
+    }
+
+    /// [`SamplingPlan::new`] with a choice of what is read outside the input: with
+    /// [`Border::WrapX`] the convolution's horizontal zero padding reads the other side of the
+    /// image as well (circular padding in x).
+    #[allow(clippy::too_many_arguments)]
+    pub fn with_border(
+        offsets: &Tensor,
+        input_size: [i64; 2],
+        kernel: [i64; 2],
+        stride: [i64; 2],
+        padding: [i64; 2],
+        dilation: [i64; 2],
+        kind: Kind,
+        border: Border,
     ) -> Result<Self> {
         let [h, w] = input_size;
         let [kh, kw] = kernel;
@@ -229,6 +268,7 @@ impl SamplingPlan {
             padding,
             dilation,
             per_item: batch.is_some(),
+            border,
         };
         let off = offsets.to_device(Device::Cpu).contiguous();
         let row_len = (wo * taps * 4) as usize;
@@ -445,16 +485,21 @@ fn floor(v: f64) -> f64 {
 }
 
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
-/// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1).
-fn bilinear(y: f64, x: f64, h: i64, w: i64) -> [(Option<i64>, f64); 4] {
-    if y <= -1.0 || y >= h as f64 || x <= -1.0 || x >= w as f64 || !y.is_finite() || !x.is_finite()
-    {
+/// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
+/// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
+fn bilinear(y: f64, x: f64, h: i64, w: i64, border: Border) -> [(Option<i64>, f64); 4] {
+    let wrap = border == Border::WrapX;
+    let x_outside = !wrap && (x <= -1.0 || x >= w as f64);
+    if y <= -1.0 || y >= h as f64 || x_outside || !y.is_finite() || !x.is_finite() {
         return [(None, 0.0); 4];
     }
     let (y0, x0) = (floor(y) as i64, floor(x) as i64);
     let (ly, lx) = (y - y0 as f64, x - x0 as f64);
     let (hy, hx) = (1.0 - ly, 1.0 - lx);
-    let at = |yy: i64, xx: i64| (yy >= 0 && yy < h && xx >= 0 && xx < w).then_some(yy * w + xx);
+    let at = |yy: i64, xx: i64| {
+        let xx = if wrap { xx.rem_euclid(w) } else { xx };
+        (yy >= 0 && yy < h && xx >= 0 && xx < w).then_some(yy * w + xx)
+    };
     [
         (at(y0, x0), hy * hx),
         (at(y0, x0 + 1), hy * lx),
@@ -465,7 +510,27 @@ fn bilinear(y: f64, x: f64, h: i64, w: i64) -> [(Option<i64>, f64); 4] {
 
 #[cfg(test)]
 mod tests {
-    use super::bilinear;
+    use super::{bilinear as bilinear_border, Border};
+
+    fn bilinear(y: f64, x: f64, h: i64, w: i64) -> [(Option<i64>, f64); 4] {
+        bilinear_border(y, x, h, w, Border::Zeros)
+    }
+
+    #[test]
+    fn wrap_x_takes_columns_modulo_the_width() {
+        // x = -0.25 on a 5-wide row 1: corners at columns -1 -> 4 and 0, weights 0.25 / 0.75.
+        let c = bilinear_border(1.0, -0.25, 4, 5, Border::WrapX);
+        assert_eq!((c[0].0, c[1].0), (Some(5 + 4), Some(5)));
+        assert!((c[0].1 - 0.25).abs() < 1e-12 && (c[1].1 - 0.75).abs() < 1e-12);
+        // Far outside: one period further gives the same corners; rows still read zero.
+        let far = bilinear_border(1.0, -0.25 + 10.0, 4, 5, Border::WrapX);
+        assert_eq!((far[0].0, far[1].0), (Some(9), Some(5)));
+        assert!(bilinear_border(-1.0, 2.0, 4, 5, Border::WrapX)
+            .iter()
+            .all(|(i, w)| i.is_none() && *w == 0.0));
+        // The same sample with zeros outside loses the wrapped corner.
+        assert_eq!(bilinear(1.0, -0.25, 4, 5)[0].0, None);
+    }
 
     #[test]
     fn bilinear_weights_sum_to_one_inside() {

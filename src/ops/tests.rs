@@ -476,3 +476,36 @@ fn float32_plan_serves_a_float64_input() {
     // Weights rounded to float32: ~6e-8 relative each.
     assert!(max_rel(&a, &b) < 1e-6);
 }
+
+/// Wrap-around plans (panoramas) feed the native kernels unchanged: columns taken modulo `W`,
+/// including a 1-wide input whose two horizontal corners are the same pixel.
+#[test]
+fn native_matches_aten_with_wrap_around() {
+    tch::manual_seed(7);
+    let opts = (Kind::Double, Device::Cpu);
+    for (h, w) in [(6, 8), (5, 1)] {
+        let off = Tensor::randn([18, h, w], opts) * 4.0;
+        let plan = SamplingPlan::with_border(
+            &off,
+            [h, w],
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            Kind::Double,
+            Border::WrapX,
+        )
+        .unwrap();
+        let x = Tensor::randn([2, 3, h, w], opts);
+        let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
+        let probe = Tensor::randn([2, 4, h, w], opts);
+        let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+        assert_same(
+            &native,
+            &aten,
+            F64_IMPL_TOL,
+            &format!("wrap-around {h}x{w}"),
+        );
+    }
+}

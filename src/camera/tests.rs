@@ -1,0 +1,222 @@
+//! Cross-checks between models in their equivalence cases. No independent executable
+//! implementation of the double sphere, (extended) unified or Scaramuzza models is available in
+//! the project's Python environment, so each is checked against another model of this module,
+//! computed by a different formula:
+//!
+//! - double sphere with `xi = 0` is the unified model with the same `alpha` (Usenko et al. 2018,
+//!   Section 3.6); its unprojection (Eqs. 44-47) against Mei's closed form used by [`Unified`];
+//! - extended unified with `beta = 1` is the unified model (Khomutenko et al. 2016; Usenko et al.
+//!   Section 3.4): Eqs. 26-29 against Mei's form;
+//! - unified with `alpha = 0` (and double sphere with `xi = alpha = 0`) is the pinhole camera;
+//! - Scaramuzza with `f(rho) = -f + rho^2 / (4 f)` and an identity affine part is the unified
+//!   model with `alpha = 0.5` (the para-catadioptric camera, Geyer and Daniilidis 2000): Mei's
+//!   unprojection at `xi = 1` gives the ray `[2 m, 1 - |m|^2]` with `m = rho / (2 f)`, i.e.
+//!   `[rho, f - rho^2 / (4 f)]`; this checks the Newton-based projection against a closed form.
+
+use super::geometry::angle_to_axis;
+use super::*;
+
+/// Different closed forms of the same map agree to round-off (~1e-15 relative); near the edge of
+/// the domain the inverse loses up to ~1e-16 / (theta_max - theta); 1e-10 is margin for both.
+const EQUIV_ANGLE_TOL: f64 = 1e-10;
+/// Pixel agreement of projections computed by different formulas: round-off times ~1e3 px.
+const EQUIV_PX_TOL: f64 = 1e-9;
+
+fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let cross = [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ];
+    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
+}
+
+fn unified(alpha: f64) -> Unified {
+    Unified {
+        fx: 300.0,
+        fy: 290.0,
+        cx: 320.5,
+        cy: 240.25,
+        alpha,
+        width: 640,
+        height: 480,
+        fov_deg: 180.0,
+    }
+}
+
+/// Pixels on a grid covering the image and well beyond it.
+fn pixel_grid() -> Vec<[f64; 2]> {
+    let mut out = Vec::new();
+    for i in -10..=30 {
+        for j in -10..=30 {
+            out.push([i as f64 * 32.0 + 0.25, j as f64 * 24.0 - 0.5]);
+        }
+    }
+    out
+}
+
+/// Rays at angles up to `theta_max` (exclusive) in several azimuths.
+fn ray_grid(theta_max: f64) -> Vec<[f64; 3]> {
+    let mut out = Vec::new();
+    for i in 0..100 {
+        let t = theta_max.min(std::f64::consts::PI * 0.999) * i as f64 / 100.0;
+        for phi in [0.0f64, 0.7, 1.9, 3.3, 5.1] {
+            out.push([t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()]);
+        }
+    }
+    out
+}
+
+fn same_camera(a: &impl CameraModel, b: &impl CameraModel, theta_max: f64, what: &str) {
+    let mut unprojected = 0;
+    for px in pixel_grid() {
+        match (a.unproject(px), b.unproject(px)) {
+            (Some(ra), Some(rb)) => {
+                assert!(
+                    angle(ra, rb) < EQUIV_ANGLE_TOL,
+                    "{what} {px:?}: {ra:?} vs {rb:?}"
+                );
+                unprojected += 1;
+            }
+            (None, None) => {}
+            (ra, rb) => panic!("{what} {px:?}: {ra:?} vs {rb:?}"),
+        }
+    }
+    assert!(
+        unprojected > 500,
+        "{what}: only {unprojected} pixels unprojected"
+    );
+    for ray in ray_grid(theta_max) {
+        let (pa, pb) = (a.project(ray).unwrap(), b.project(ray).unwrap());
+        let err = (pa[0] - pb[0]).hypot(pa[1] - pb[1]);
+        assert!(err < EQUIV_PX_TOL, "{what} {ray:?}: {pa:?} vs {pb:?}");
+    }
+}
+
+#[test]
+fn double_sphere_with_xi_zero_is_the_unified_model() {
+    for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
+        let u = unified(alpha);
+        let ds = DoubleSphere {
+            fx: u.fx,
+            fy: u.fy,
+            cx: u.cx,
+            cy: u.cy,
+            xi: 0.0,
+            alpha,
+            width: u.width,
+            height: u.height,
+            fov_deg: u.fov_deg,
+        };
+        assert!((ds.theta_max() - u.theta_max()).abs() < 1e-15);
+        same_camera(&ds, &u, u.theta_max(), &format!("DS xi=0 alpha={alpha}"));
+    }
+}
+
+#[test]
+fn extended_unified_with_beta_one_is_the_unified_model() {
+    for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
+        let u = unified(alpha);
+        let e = ExtendedUnified {
+            fx: u.fx,
+            fy: u.fy,
+            cx: u.cx,
+            cy: u.cy,
+            alpha,
+            beta: 1.0,
+            width: u.width,
+            height: u.height,
+            fov_deg: u.fov_deg,
+        };
+        assert!((e.theta_max() - u.theta_max()).abs() < 1e-15);
+        same_camera(&e, &u, u.theta_max(), &format!("EUCM beta=1 alpha={alpha}"));
+    }
+}
+
+#[test]
+fn unified_with_alpha_zero_is_the_pinhole() {
+    let u = unified(0.0);
+    let p = Pinhole {
+        fx: u.fx,
+        fy: u.fy,
+        cx: u.cx,
+        cy: u.cy,
+        width: u.width,
+        height: u.height,
+    };
+    same_camera(&u, &p, std::f64::consts::FRAC_PI_2 * 0.99, "UCM alpha=0");
+    let ds = DoubleSphere {
+        fx: u.fx,
+        fy: u.fy,
+        cx: u.cx,
+        cy: u.cy,
+        xi: 0.0,
+        alpha: 0.0,
+        width: u.width,
+        height: u.height,
+        fov_deg: u.fov_deg,
+    };
+    same_camera(&ds, &p, std::f64::consts::FRAC_PI_2 * 0.99, "DS xi=alpha=0");
+    assert_eq!(u.project([0.1, 0.0, 0.0]), None);
+}
+
+#[test]
+fn para_catadioptric_scaramuzza_is_the_unified_model_at_one_half() {
+    let f = 150.0;
+    let s = Scaramuzza::new(
+        vec![-f, 0.0, 1.0 / (4.0 * f)],
+        vec![],
+        320.5,
+        240.25,
+        [1.0, 0.0, 0.0],
+        640,
+        480,
+        180.0,
+    );
+    let u = Unified {
+        fx: f,
+        fy: f,
+        cx: 320.5,
+        cy: 240.25,
+        alpha: 0.5,
+        width: 640,
+        height: 480,
+        fov_deg: 180.0,
+    };
+    // theta approaches pi only as rho -> infinity; the search stops at twice the diagonal
+    // (1600 px, ~158.8 deg).
+    let tm = s.theta_max();
+    assert!((s.rho_max() - 1600.0).abs() < 1e-9, "{}", s.rho_max());
+    assert!(tm > 150f64.to_radians(), "{}", tm.to_degrees());
+    for ray in ray_grid(tm * 0.999) {
+        let (ps, pu) = (s.project(ray).unwrap(), u.project(ray).unwrap());
+        let err = (ps[0] - pu[0]).hypot(ps[1] - pu[1]);
+        assert!(err < EQUIV_PX_TOL, "{ray:?}: {ps:?} vs {pu:?}");
+    }
+    for px in pixel_grid() {
+        let (rs, ru) = (s.unproject(px).unwrap(), u.unproject(px).unwrap());
+        assert!(angle(rs, ru) < EQUIV_ANGLE_TOL, "{px:?}");
+    }
+    // At rho = 2 f the para-catadioptric ray [rho, f - rho^2 / (4 f)] = [2 f, 0] is at 90 deg.
+    let side = s.unproject([320.5 + 2.0 * f, 240.25]).unwrap();
+    assert!((angle_to_axis(side) - std::f64::consts::FRAC_PI_2).abs() < 1e-15);
+}
+
+#[test]
+fn only_the_panorama_wraps() {
+    let cams: Vec<Camera> = vec![
+        Camera::Unified(unified(0.4)),
+        Camera::Pinhole(Pinhole {
+            fx: 1.0,
+            fy: 1.0,
+            cx: 0.0,
+            cy: 0.0,
+            width: 2,
+            height: 2,
+        }),
+        Camera::Equirectangular(Equirectangular::new(64, 32)),
+    ];
+    let wraps: Vec<bool> = cams.iter().map(|c| c.wraps_horizontally()).collect();
+    assert_eq!(wraps, [false, false, true]);
+}

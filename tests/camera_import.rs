@@ -1,0 +1,417 @@
+//! `calibconv camera import`: other tools' calibration files as camera files.
+//!
+//! Fixtures: small hand-written files in each tool's format in `tests/golden/calib/` (see
+//! `tests/golden/README.md`). Where a fixture holds the same camera as a shipped camera file
+//! (`data/cameras/`), the import must equal it exactly: every conversion (COLMAP's half-pixel
+//! shift, OCamCalib's row/column order, Kalibr's intrinsics order) is checked to the bit.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use calibconv::camera::import::{
+    import_file, import_text, Format, FovSource, ImportOptions, Imported, OpenCvModel,
+};
+use calibconv::camera::{self, Camera, CameraModel};
+
+use common::golden;
+
+/// Two closed forms of Mei's projection in float64: round-off only (~1e-13 px at these radii).
+const MEI_PX_TOL: f64 = 1e-9;
+
+fn calib(name: &str) -> PathBuf {
+    golden(&format!("calib/{name}"))
+}
+
+fn shipped(name: &str) -> Camera {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("data/cameras")
+        .join(name);
+    camera::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn import(format: Format, name: &str, camera: Option<usize>, fov_deg: Option<f64>) -> Imported {
+    let options = ImportOptions {
+        camera,
+        fov_deg,
+        opencv_model: None,
+    };
+    import_file(format, &calib(name), &options)
+        .unwrap_or_else(|e| panic!("{name} camera {camera:?}: {e}"))
+}
+
+fn import_err(format: Format, name: &str, camera: Option<usize>) -> String {
+    let options = ImportOptions {
+        camera,
+        ..Default::default()
+    };
+    match import_file(format, &calib(name), &options) {
+        Ok(i) => panic!("{name} camera {camera:?} imported: {:?}", i.camera),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn kalibr_camchain_models() {
+    // cam0: pinhole-equi, field of view from the image width.
+    let cam0 = import(Format::Kalibr, "kalibr_camchain.yaml", None, None);
+    assert_eq!(cam0.fov, FovSource::ImageWidth);
+    let Camera::KannalaBrandt(kb) = &cam0.camera else {
+        panic!("{:?}", cam0.camera)
+    };
+    assert_eq!(
+        [kb.fx, kb.fy, kb.cx, kb.cy],
+        [
+            190.97847715128717,
+            190.9733070521226,
+            254.93170605935475,
+            256.8974428996504
+        ]
+    );
+    assert_eq!(kb.k[3], 0.00020293673591811182);
+    // The edges (-0.5, cy) and (511.5, cy) are ~255.4 and ~256.6 px from the centre.
+    let edge = |u: f64| {
+        let r = cam0.camera.unproject([u, kb.cy]).unwrap();
+        r[0].hypot(r[1]).atan2(r[2]).to_degrees()
+    };
+    let want = edge(-0.5) + edge(511.5);
+    assert!(
+        kb.fov_deg <= want && want - kb.fov_deg < 1e-3,
+        "{} vs {want}",
+        kb.fov_deg
+    );
+    assert!(cam0.source.contains("cam0") && cam0.source.contains("pinhole-equi"));
+
+    // cam1: pinhole-radtan (EuRoC cam0) is the shipped example, k3 = 0.
+    let cam1 = import(Format::Kalibr, "kalibr_camchain.yaml", Some(1), None);
+    assert_eq!(cam1.camera, shipped("radtan_example.toml"));
+    assert_eq!(cam1.fov, FovSource::Derived);
+    // cam2: ds [xi, alpha, fu, fv, pu, pv]; cam3: eucm [alpha, beta, fu, fv, pu, pv].
+    let cam2 = import(Format::Kalibr, "kalibr_camchain.yaml", Some(2), Some(153.4));
+    assert_eq!(cam2.camera, shipped("ds_example.toml"));
+    let cam3 = import(Format::Kalibr, "kalibr_camchain.yaml", Some(3), Some(190.0));
+    assert_eq!(cam3.camera, shipped("eucm_example.toml"));
+}
+
+#[test]
+fn kalibr_omni_is_the_unified_model() {
+    // cam4: omni [xi, fu, fv, pu, pv] = [0.9, 350, 349, 320.5, 240.25] with zero radtan.
+    let cam4 = import(Format::Kalibr, "kalibr_camchain.yaml", Some(4), Some(180.0));
+    let Camera::Unified(u) = &cam4.camera else {
+        panic!("{:?}", cam4.camera)
+    };
+    assert_eq!(u.alpha, 0.9 / 1.9);
+    // Mei's projection as Kalibr writes it: u = fu x / (z + xi |p|) + pu.
+    let (xi, fu, fv, pu, pv) = (0.9, 350.0, 349.0, 320.5, 240.25);
+    let rays: [[f64; 3]; 4] = [
+        [0.1, -0.2, 1.0],
+        [1.0, 0.5, 0.2],
+        [-2.0, 0.3, -0.4],
+        [0.0, 0.0, 3.0],
+    ];
+    for p in rays {
+        let d = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        let mei = [
+            fu * p[0] / (p[2] + xi * d) + pu,
+            fv * p[1] / (p[2] + xi * d) + pv,
+        ];
+        let ours = u.project(p).unwrap();
+        let err = (ours[0] - mei[0]).hypot(ours[1] - mei[1]);
+        assert!(err < MEI_PX_TOL, "{p:?}: {ours:?} vs Mei {mei:?}");
+    }
+}
+
+#[test]
+fn kalibr_unsupported_models_and_missing_cameras_are_named() {
+    let fov = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(5));
+    assert!(
+        fov.contains("pinhole-fov") && fov.contains("not supported") && fov.contains("cam5"),
+        "{fov}"
+    );
+    let omni = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(6));
+    assert!(
+        omni.contains("omni-radtan") && omni.contains("non-zero"),
+        "{omni}"
+    );
+    let missing = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(9));
+    assert!(
+        missing.contains("cam9") && missing.contains("cam0"),
+        "{missing}"
+    );
+    assert!(missing.contains("kalibr_camchain.yaml"), "{missing}");
+}
+
+#[test]
+fn opencv_filestorage_yaml_fisheye_is_f195() {
+    let f195 = import(Format::OpenCv, "opencv_fisheye.yaml", None, Some(195.0));
+    assert_eq!(f195.camera, shipped("f195.toml"));
+    assert_eq!(f195.fov, FovSource::Given);
+    // Without --fov-deg the image width decides: F195's image circle (~976 px) is narrower than
+    // its 1080 px width, so that angle (~216 deg) exceeds the lens's 195 (the documented caveat).
+    let wide = import(Format::OpenCv, "opencv_fisheye.yaml", None, None);
+    let fov = wide.camera.fov().to_degrees();
+    assert!(fov > 210.0 && fov < 220.0, "{fov}");
+}
+
+#[test]
+fn opencv_filestorage_json_standard_is_euroc() {
+    let euroc = import(Format::OpenCv, "opencv_standard.json", None, None);
+    assert_eq!(euroc.camera, shipped("radtan_example.toml"));
+    assert!(euroc.source.contains("standard"));
+}
+
+const AMBIGUOUS: &str = "\
+%YAML:1.0
+---
+image_width: 640
+image_height: 480
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 300., 0., 320., 0., 300., 240., 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 1
+   cols: 4
+   dt: d
+   data: [ -0.1, 0.01, 0., 0. ]
+";
+
+#[test]
+fn opencv_four_coefficients_need_the_model() {
+    let path = Path::new("inline/ambiguous.yaml");
+    let e = import_text(Format::OpenCv, AMBIGUOUS, path, &ImportOptions::default()).unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("--opencv-model") && msg.contains("inline/ambiguous.yaml"),
+        "{msg}"
+    );
+    let with = |m| ImportOptions {
+        opencv_model: Some(m),
+        fov_deg: (m == OpenCvModel::Fisheye).then_some(150.0),
+        ..Default::default()
+    };
+    let standard = import_text(
+        Format::OpenCv,
+        AMBIGUOUS,
+        path,
+        &with(OpenCvModel::Standard),
+    );
+    let Camera::PinholeRadTan(r) = standard.unwrap().camera else {
+        panic!("not radtan")
+    };
+    assert_eq!((r.k, r.p), ([-0.1, 0.01, 0.0], [0.0, 0.0]));
+    let fisheye = import_text(Format::OpenCv, AMBIGUOUS, path, &with(OpenCvModel::Fisheye));
+    let Camera::KannalaBrandt(k) = fisheye.unwrap().camera else {
+        panic!("not Kannala-Brandt")
+    };
+    assert_eq!(k.k, [-0.1, 0.01, 0.0, 0.0]);
+    // The rational model is refused, naming it.
+    let rational = AMBIGUOUS.replace("cols: 4", "cols: 8").replace(
+        "[ -0.1, 0.01, 0., 0. ]",
+        "[ -0.1, 0.01, 0., 0., 0., 0.2, 0., 0. ]",
+    );
+    let e = import_text(Format::OpenCv, &rational, path, &ImportOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("rational"), "{e}");
+    // Skew is refused.
+    let skew = AMBIGUOUS.replace("[ 300., 0., 320.", "[ 300., 0.5, 320.");
+    let e = import_text(Format::OpenCv, &skew, path, &with(OpenCvModel::Standard)).unwrap_err();
+    assert!(e.to_string().contains("skew"), "{e}");
+}
+
+#[test]
+fn basalt_calibration_models() {
+    let file = "basalt_calibration.json";
+    let ds = import(Format::Basalt, file, None, Some(153.4));
+    assert_eq!(ds.camera, shipped("ds_example.toml"));
+    let kb4 = import(Format::Basalt, file, Some(1), Some(195.0));
+    assert_eq!(kb4.camera, shipped("f195.toml"));
+    let eucm = import(Format::Basalt, file, Some(2), Some(190.0));
+    assert_eq!(eucm.camera, shipped("eucm_example.toml"));
+    let ucm = import(Format::Basalt, file, Some(3), Some(185.0));
+    assert_eq!(ucm.camera, shipped("ucm_example.toml"));
+    let pinhole = import(Format::Basalt, file, Some(4), None);
+    assert_eq!(pinhole.camera, shipped("pers.toml"));
+    let radtan8 = import_err(Format::Basalt, file, Some(5));
+    assert!(
+        radtan8.contains("pinhole-radtan8") && radtan8.contains("not supported"),
+        "{radtan8}"
+    );
+    let missing = import_err(Format::Basalt, file, Some(6));
+    assert!(missing.contains("6 camera(s)"), "{missing}");
+}
+
+#[test]
+fn colmap_cameras_txt_models_and_half_pixel_centres() {
+    let file = "colmap_cameras.txt";
+    // The first line by default; COLMAP's 540.5, 480.5 is our 540, 480.
+    let fisheye = import(Format::Colmap, file, None, Some(195.0));
+    assert_eq!(fisheye.camera, shipped("f195.toml"));
+    assert!(fisheye.notes.iter().any(|n| n.contains("0.5")));
+    let opencv = import(Format::Colmap, file, Some(2), None);
+    assert_eq!(opencv.camera, shipped("radtan_example.toml"));
+    let full = import(Format::Colmap, file, Some(6), None);
+    assert_eq!(full.camera, shipped("radtan_example.toml"));
+    assert_eq!(
+        import(Format::Colmap, file, Some(3), None).camera,
+        shipped("pers.toml")
+    );
+    assert_eq!(
+        import(Format::Colmap, file, Some(4), None).camera,
+        shipped("pers.toml")
+    );
+    let Camera::PinholeRadTan(radial) = import(Format::Colmap, file, Some(5), None).camera else {
+        panic!("SIMPLE_RADIAL is not radtan")
+    };
+    assert_eq!(
+        (radial.fx, radial.cx, radial.cy, radial.k),
+        (500.0, 319.5, 239.5, [-0.1, 0.0, 0.0])
+    );
+    let fov = import_err(Format::Colmap, file, Some(7));
+    assert!(
+        fov.contains("`FOV`") && fov.contains("not supported"),
+        "{fov}"
+    );
+    let missing = import_err(Format::Colmap, file, Some(42));
+    assert!(missing.contains("CAMERA_ID 42"), "{missing}");
+}
+
+#[test]
+fn ocamcalib_calib_results_is_the_example_with_rows_and_columns_swapped() {
+    let ocam = import(
+        Format::OcamCalib,
+        "ocam_calib_results.txt",
+        None,
+        Some(190.0),
+    );
+    assert_eq!(ocam.camera, shipped("ocam_example.toml"));
+    // Without --fov-deg: the image width (the polynomial is valid that far).
+    let wide = import(Format::OcamCalib, "ocam_calib_results.txt", None, None);
+    assert_eq!(wide.fov, FovSource::ImageWidth);
+    // A count that does not match its coefficients names the line.
+    let text = std::fs::read_to_string(calib("ocam_calib_results.txt")).unwrap();
+    let broken = text.replacen("5 -1.810000e+02", "6 -1.810000e+02", 1);
+    let e = import_text(
+        Format::OcamCalib,
+        &broken,
+        Path::new("calib_results.txt"),
+        &ImportOptions::default(),
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("line 3") && e.to_string().contains("direct polynomial"),
+        "{e}"
+    );
+}
+
+#[test]
+fn options_that_do_not_apply_are_errors() {
+    let pinhole_fov = import_file(
+        Format::Colmap,
+        &calib("colmap_cameras.txt"),
+        &ImportOptions {
+            camera: Some(3),
+            fov_deg: Some(90.0),
+            ..Default::default()
+        },
+    )
+    .unwrap_err();
+    assert!(
+        pinhole_fov.to_string().contains("--fov-deg"),
+        "{pinhole_fov}"
+    );
+    let camera_opencv = import_err(Format::OpenCv, "opencv_standard.json", Some(1));
+    assert!(camera_opencv.contains("--camera"), "{camera_opencv}");
+}
+
+#[test]
+fn an_image_edge_outside_the_model_asks_for_the_field_of_view() {
+    // alpha > 0.5 with a short focal length: the image edges lie beyond the projection's fold.
+    let text = "cam0:\n  camera_model: eucm\n  distortion_model: none\n  \
+                intrinsics: [0.7, 1.0, 100.0, 100.0, 320.0, 240.0]\n  resolution: [640, 480]\n";
+    let path = Path::new("camchain.yaml");
+    let e = import_text(Format::Kalibr, text, path, &ImportOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("--fov-deg"), "{e}");
+    let options = ImportOptions {
+        fov_deg: Some(180.0),
+        ..Default::default()
+    };
+    assert!(import_text(Format::Kalibr, text, path, &options).is_ok());
+}
+
+fn calibconv(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_calibconv"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run calibconv")
+}
+
+#[test]
+fn cli_writes_a_camera_file_that_reads_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("euroc.toml");
+    let source = calib("kalibr_camchain.yaml");
+    let o = calibconv(&[
+        "camera",
+        "import",
+        "--from",
+        "kalibr",
+        source.to_str().unwrap(),
+        "--camera",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(camera::load(&out).unwrap(), shipped("radtan_example.toml"));
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        text.starts_with("# Written by `calibconv camera import --from kalibr`"),
+        "{text}"
+    );
+    assert!(text.contains("name = \"euroc\""), "{text}");
+    // The written file works with the other commands.
+    let png = dir.path().join("k.png");
+    let o = calibconv(&[
+        "kernels",
+        "--camera",
+        out.to_str().unwrap(),
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn cli_unsupported_model_fails_naming_it_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("fov.toml");
+    let source = calib("colmap_cameras.txt");
+    let o = calibconv(&[
+        "camera",
+        "import",
+        "--from",
+        "colmap",
+        source.to_str().unwrap(),
+        "--camera",
+        "7",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("`FOV`") && err.contains("colmap_cameras.txt"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    // An unknown source format is a usage error listing the formats.
+    let o = calibconv(&[
+        "camera", "import", "--from", "matlab", "x", "--out", "y.toml",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("ocamcalib"));
+}
