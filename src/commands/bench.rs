@@ -26,7 +26,7 @@ use calibconv::camera::{Camera, CameraModel};
 use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry};
 use calibconv::nn::{conv2d, CalibratedConv2d, Conv, Conv2dConfig, ConvKind};
-use calibconv::ops::{deform_conv2d_planned_with, Backend, SamplingPlan};
+use calibconv::ops::{deform_conv2d_planned_with, Backend, Border, SamplingPlan};
 
 use super::load_camera;
 use crate::cli::BenchArgs;
@@ -419,15 +419,13 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
         let start = Instant::now();
         let mut plan_bytes = 0;
         for off in &offsets {
-            let [h, w] = off.input_size.map(|v| v as i64);
-            let plan = SamplingPlan::new(
-                &off.to_tensor(),
-                [h, w],
-                [3, 3],
+            let plan = SamplingPlan::from_offsets(
+                off,
                 [1, 1],
                 [1, 1],
                 [1, 1],
                 Kind::Float,
+                Border::Zeros,
             )?;
             plan_bytes += plan.memory_bytes();
         }

@@ -6,6 +6,7 @@ use tch::{Device, Kind, Tensor};
 
 use super::check_float;
 use crate::error::{Error, Result};
+use crate::kernel::Offsets;
 
 /// What a bilinear sample reads outside the input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -23,8 +24,12 @@ pub enum Border {
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
 /// times `B` for per-item offsets), `index` `[N * 4]` (int32) holds the flat indices of the four
 /// bilinear corners (top-left, top-right, bottom-left, bottom-right) into the input's `H*W`
-/// pixels, with one extra zero row at index `H*W` for corners outside the input, and `weight`
-/// their bilinear weights (`[N * 4]`). Per-item plans index a table that stacks the items, each
+/// pixels, with one extra zero row at index `H*W` for corners outside the input (or wrapped
+/// around, [`Border`]), and `frac` `[N * 2]` the fractional parts `(ly, lx)` of the sample
+/// position, from which the corner weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx`
+/// ([`SamplingPlan::weights`]). Every border rule only remaps corner indices, so the weights are
+/// the same for all of them, and storing two fractions instead of four weights makes the plan a
+/// quarter smaller (24 bytes a sample). Per-item plans index a table that stacks the items, each
 /// followed by its zero row: item `b`'s indices are offset by `b * (H*W + 1)`.
 ///
 /// A column is then one weighted "bag" of four rows of a pixel-major table, which libtorch's
@@ -36,8 +41,8 @@ pub enum Border {
 pub struct SamplingPlan {
     /// `[N * 4]` int32: four corners per sample.
     index: Tensor,
-    /// `[N * 4]`, same order.
-    weight: Tensor,
+    /// `[N * 2]`: `(ly, lx)` per sample, in the plan's kind.
+    frac: Tensor,
     /// `[items, H_out, 2]` int32: input rows read by each output row.
     rows: Tensor,
     input_size: [i64; 2],
@@ -117,7 +122,7 @@ struct Layout {
 }
 
 impl Layout {
-    /// Fills the corners and weights of the `wo * K` samples of output row `row` (item-major:
+    /// Fills the corners and fractions of the `wo * K` samples of output row `row` (item-major:
     /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
     /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none).
     fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
@@ -125,7 +130,7 @@ impl Layout {
         off: &[O],
         row: usize,
         idx: &mut [i32],
-        wts: &mut [W],
+        frac: &mut [W],
     ) -> [i32; 2] {
         let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
         let [kh, kw] = self.kernel;
@@ -147,22 +152,119 @@ impl Layout {
                     let x = (ox * self.stride[1] - self.padding[1] + j * self.dilation[1]) as f64
                         + item_off[(2 * k + 1) * plane + p].into();
                     let mut inside = false;
-                    for (flat, wt) in bilinear(y, x, h, w, self.border) {
+                    for (c, (flat, _)) in bilinear(y, x, h, w, self.border).into_iter().enumerate()
+                    {
                         inside |= flat.is_some();
-                        idx[s] = (base + flat.unwrap_or(h * w)) as i32;
-                        wts[s] = W::from_f64(wt);
-                        s += 1;
+                        idx[4 * s + c] = (base + flat.unwrap_or(h * w)) as i32;
                     }
                     if inside {
                         // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
-                        let y0 = floor(y) as i32;
-                        reach = [reach[0].min(y0), reach[1].max(y0 + 1)];
+                        let y0 = floor(y);
+                        reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
+                        frac[2 * s] = W::from_f64(y - y0);
+                        frac[2 * s + 1] = W::from_f64(x - floor(x));
+                    } else {
+                        frac[2 * s] = W::from_f64(0.0);
+                        frac[2 * s + 1] = W::from_f64(0.0);
                     }
+                    s += 1;
                 }
             }
         }
         reach
     }
+}
+
+impl Layout {
+    /// The plan for offsets `off` (`[items, 2K, H_out, W_out]`, `items = batch.unwrap_or(1)`).
+    fn build<O: Copy + Into<f64> + Sync>(
+        &self,
+        off: &[O],
+        batch: Option<i64>,
+        kind: Kind,
+    ) -> Result<SamplingPlan> {
+        if !matches!(kind, Kind::Float | Kind::Double) {
+            return Err(Error::InvalidArgument(format!(
+                "plan weights must be float32 or float64, got {kind:?}"
+            )));
+        }
+        let (h, w, ho, wo) = (self.h, self.w, self.ho, self.wo);
+        let taps = self.kernel[0] * self.kernel[1];
+        let items = batch.unwrap_or(1);
+        let samples = (items * ho * wo * taps) as usize;
+        // Indices are int32 (half the memory of int64); refuse what overflows.
+        if items * (h * w + 1) > i32::MAX as i64 || 4 * samples > i32::MAX as usize {
+            return Err(Error::InvalidArgument(format!(
+                "a sampling plan of {items} x {ho}x{wo} x {taps} samples on a {h}x{w} input is \
+                 too large for int32 indices"
+            )));
+        }
+        let row = (wo * taps) as usize;
+        let index = Tensor::empty([4 * samples as i64], (Kind::Int, Device::Cpu));
+        // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `4 * samples` elements, only
+        // written through this slice (by disjoint row chunks) before it is moved into the plan.
+        let idx = unsafe { elements_mut::<i32>(index.data_ptr(), 4 * samples) };
+        let mut reach: Vec<[i32; 2]> = Vec::new();
+        fn rows_of<O: Copy + Into<f64> + Sync, W: PlanFloat>(
+            layout: &Layout,
+            off: &[O],
+            idx: &mut [i32],
+            frac: &mut [W],
+            row: usize,
+        ) -> Vec<[i32; 2]> {
+            idx.par_chunks_mut(4 * row)
+                .zip(frac.par_chunks_mut(2 * row))
+                .enumerate()
+                .map(|(r, (i, f))| layout.fill_row(off, r, i, f))
+                .collect()
+        }
+        let frac = match kind {
+            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
+            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
+        };
+        let rows: Vec<i32> = reach.into_iter().flatten().collect();
+        Ok(SamplingPlan {
+            index,
+            frac,
+            rows: Tensor::from_slice(&rows),
+            input_size: [h, w],
+            output_size: [ho, wo],
+            kernel: self.kernel,
+            batch,
+        })
+    }
+}
+
+/// Output size `[H_out, W_out]` of a convolution (PyTorch's formula), or an error naming the
+/// geometry if it is invalid or does not fit.
+fn output_size(
+    input_size: [i64; 2],
+    kernel: [i64; 2],
+    stride: [i64; 2],
+    padding: [i64; 2],
+    dilation: [i64; 2],
+) -> Result<[i64; 2]> {
+    let [h, w] = input_size;
+    if kernel.iter().chain(&input_size).any(|&v| v < 1)
+        || stride.iter().chain(&dilation).any(|&v| v < 1)
+        || padding.iter().any(|&p| p < 0)
+    {
+        return Err(Error::InvalidArgument(format!(
+            "input {input_size:?}, kernel {kernel:?}, stride {stride:?}, padding {padding:?}, \
+             dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
+        )));
+    }
+    let dim = |a: usize| {
+        (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
+    };
+    let (ho, wo) = (dim(0), dim(1));
+    if ho < 1 || wo < 1 {
+        return Err(Error::InvalidArgument(format!(
+            "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
+             {h}x{w} input"
+        )));
+    }
+    Ok([ho, wo])
 }
 
 impl SamplingPlan {
@@ -206,61 +308,28 @@ impl SamplingPlan {
         kind: Kind,
         border: Border,
     ) -> Result<Self> {
-        let [h, w] = input_size;
-        let [kh, kw] = kernel;
-        if kh < 1
-            || kw < 1
-            || h < 1
-            || w < 1
-            || stride.iter().chain(&dilation).any(|&v| v < 1)
-            || padding.iter().any(|&p| p < 0)
-        {
-            return Err(Error::InvalidArgument(format!(
-                "input {input_size:?}, kernel {kernel:?}, stride {stride:?}, padding {padding:?}, \
-                 dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
-            )));
-        }
-        if !matches!(kind, Kind::Float | Kind::Double) {
-            return Err(Error::InvalidArgument(format!(
-                "plan weights must be float32 or float64, got {kind:?}"
-            )));
-        }
-        let out_dim = |a: usize| {
-            (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
-        };
-        let (ho, wo) = (out_dim(0), out_dim(1));
-        if ho < 1 || wo < 1 {
-            return Err(Error::InvalidArgument(format!(
-                "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
-                 {h}x{w} input"
-            )));
-        }
         check_float(offsets, "offsets")?;
-        let taps = kh * kw;
+        let [ho, wo] = output_size(input_size, kernel, stride, padding, dilation)?;
+        let taps = kernel[0] * kernel[1];
         let batch = match offsets.size().as_slice() {
             [c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] => None,
             [b, c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] && *b >= 1 => Some(*b),
             other => {
                 return Err(Error::InvalidArgument(format!(
-                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {kh}x{kw} \
-                     kernel on a {h}x{w} input, got {other:?}",
+                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {}x{} \
+                     kernel on a {}x{} input, got {other:?}",
                     2 * taps,
-                    2 * taps
+                    2 * taps,
+                    kernel[0],
+                    kernel[1],
+                    input_size[0],
+                    input_size[1]
                 )))
             }
         };
-        let items = batch.unwrap_or(1);
-        let n = (items * ho * wo * taps * 4) as usize;
-        // Indices and entry counts are int32 (half the memory of int64); refuse what overflows.
-        if items * (h * w + 1) > i32::MAX as i64 || n > i32::MAX as usize {
-            return Err(Error::InvalidArgument(format!(
-                "a sampling plan of {items} x {ho}x{wo} x {taps} samples on a {h}x{w} input is \
-                 too large for int32 indices"
-            )));
-        }
         let layout = Layout {
-            h,
-            w,
+            h: input_size[0],
+            w: input_size[1],
             ho,
             wo,
             kernel,
@@ -271,47 +340,49 @@ impl SamplingPlan {
             border,
         };
         let off = offsets.to_device(Device::Cpu).contiguous();
-        let row_len = (wo * taps * 4) as usize;
-        let index = Tensor::empty([n as i64], (Kind::Int, Device::Cpu));
-        // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `n` elements, only written
-        // through this slice (by disjoint row chunks) until it is moved into the plan.
-        let idx = unsafe { elements_mut::<i32>(index.data_ptr(), n) };
-        /// Fills `idx` and a new weight tensor; returns it and the rows read per output row.
-        fn fill<O: Copy + Into<f64> + Element + Sync, W: PlanFloat>(
-            layout: &Layout,
-            off: &Tensor,
-            idx: &mut [i32],
-            row_len: usize,
-            n: usize,
-        ) -> Result<(Tensor, Tensor)> {
-            let off = elements::<O>(off)?;
-            let mut reach = Vec::new();
-            let weight = filled::<W>(n, |wts| {
-                reach = idx
-                    .par_chunks_mut(row_len)
-                    .zip(wts.par_chunks_mut(row_len))
-                    .enumerate()
-                    .map(|(row, (i, w))| layout.fill_row(off, row, i, w))
-                    .collect();
-            });
-            let rows: Vec<i32> = reach.into_iter().flatten().collect();
-            Ok((weight, Tensor::from_slice(&rows)))
+        match off.kind() {
+            Kind::Float => layout.build(elements::<f32>(&off)?, batch, kind),
+            _ => layout.build(elements::<f64>(&off)?, batch, kind),
         }
-        let (weight, rows) = match (off.kind(), kind) {
-            (Kind::Float, Kind::Float) => fill::<f32, f32>(&layout, &off, idx, row_len, n)?,
-            (Kind::Float, _) => fill::<f32, f64>(&layout, &off, idx, row_len, n)?,
-            (_, Kind::Float) => fill::<f64, f32>(&layout, &off, idx, row_len, n)?,
-            _ => fill::<f64, f64>(&layout, &off, idx, row_len, n)?,
-        };
-        Ok(SamplingPlan {
-            index,
-            weight,
-            rows,
-            input_size,
-            output_size: [ho, wo],
+    }
+
+    /// [`SamplingPlan::with_border`] straight from a layer's [`Offsets`] (shared by the batch),
+    /// without copying them into a tensor first.
+    pub fn from_offsets(
+        offsets: &Offsets,
+        stride: [i64; 2],
+        padding: [i64; 2],
+        dilation: [i64; 2],
+        kind: Kind,
+        border: Border,
+    ) -> Result<Self> {
+        let input_size = offsets.input_size.map(|v| v as i64);
+        let kernel = offsets.kernel.map(|v| v as i64);
+        let out = output_size(input_size, kernel, stride, padding, dilation)?;
+        let taps = (kernel[0] * kernel[1]) as usize;
+        if out != offsets.output_size.map(|v| v as i64)
+            || offsets.data.len() != 2 * taps * offsets.output_size[0] * offsets.output_size[1]
+        {
+            return Err(Error::InvalidArgument(format!(
+                "offsets of {} values for a {:?} output do not fit stride {stride:?}, padding \
+                 {padding:?}, dilation {dilation:?} on a {input_size:?} input (output {out:?})",
+                offsets.data.len(),
+                offsets.output_size
+            )));
+        }
+        let layout = Layout {
+            h: input_size[0],
+            w: input_size[1],
+            ho: out[0],
+            wo: out[1],
             kernel,
-            batch,
-        })
+            stride,
+            padding,
+            dilation,
+            per_item: false,
+            border,
+        };
+        layout.build(&offsets.data, None, kind)
     }
 
     /// The same plan with its tensors on `device` (shared, not copied, if already there).
@@ -321,7 +392,7 @@ impl SamplingPlan {
         }
         SamplingPlan {
             index: self.index.to_device(device),
-            weight: self.weight.to_device(device),
+            frac: self.frac.to_device(device),
             rows: self.rows.shallow_clone(),
             ..*self
         }
@@ -331,7 +402,7 @@ impl SamplingPlan {
     pub fn shallow_clone(&self) -> Self {
         SamplingPlan {
             index: self.index.shallow_clone(),
-            weight: self.weight.shallow_clone(),
+            frac: self.frac.shallow_clone(),
             rows: self.rows.shallow_clone(),
             ..*self
         }
@@ -367,14 +438,35 @@ impl SamplingPlan {
         self.index.device()
     }
 
-    /// Kind of the plan's weights.
+    /// Kind of the plan's fractions (and weights).
     pub fn kind(&self) -> Kind {
-        self.weight.kind()
+        self.frac.kind()
     }
 
-    /// The corner indices `[N * 4]` (int32) and weights `[N * 4]`.
+    /// The corner indices `[N * 4]` (int32) and fractions `(ly, lx)` `[N * 2]`.
     pub fn samples(&self) -> (&Tensor, &Tensor) {
-        (&self.index, &self.weight)
+        (&self.index, &self.frac)
+    }
+
+    /// The bilinear corner weights `[N * 4]` in `kind`, in the order of the corner indices:
+    /// `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` (on the plan's device).
+    pub fn f_weights(&self, kind: Kind) -> Result<Tensor> {
+        let frac = self.frac.f_to_kind(kind)?.f_view([-1, 2])?;
+        let (ly, lx) = (frac.f_select(1, 0)?, frac.f_select(1, 1)?);
+        let (hy, hx) = (
+            ly.f_neg()?.f_add_scalar(1.0)?,
+            lx.f_neg()?.f_add_scalar(1.0)?,
+        );
+        Ok(Tensor::f_stack(
+            &[
+                hy.f_mul(&hx)?,
+                hy.f_mul(&lx)?,
+                ly.f_mul(&hx)?,
+                ly.f_mul(&lx)?,
+            ],
+            1,
+        )?
+        .f_view([-1])?)
     }
 
     /// `[items, H_out, 2]` (int32, CPU): the lowest and highest input row read by each output
@@ -385,7 +477,7 @@ impl SamplingPlan {
 
     /// Bytes held by the plan's tensors.
     pub fn memory_bytes(&self) -> usize {
-        [&self.index, &self.weight, &self.rows]
+        [&self.index, &self.frac, &self.rows]
             .iter()
             .map(|t| t.numel() * t.kind().elt_size_in_bytes())
             .sum()
@@ -399,7 +491,7 @@ impl SamplingPlan {
     /// - output: `[B, H_out * W_out, K, C]` (pixel-major, then tap, then channel)
     pub fn f_columns(&self, input: &Tensor) -> Result<Tensor> {
         let (b, c, h, w) = self.check_input(input)?;
-        let weight = self.weight.to_kind(input.kind());
+        let weight = self.f_weights(input.kind())?;
         let (p, k) = (
             self.output_size[0] * self.output_size[1],
             self.kernel[0] * self.kernel[1],
@@ -487,6 +579,7 @@ fn floor(v: f64) -> f64 {
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
 /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
 /// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
+#[inline(always)]
 fn bilinear(y: f64, x: f64, h: i64, w: i64, border: Border) -> [(Option<i64>, f64); 4] {
     let wrap = border == Border::WrapX;
     let x_outside = !wrap && (x <= -1.0 || x >= w as f64);

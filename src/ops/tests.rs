@@ -509,3 +509,50 @@ fn native_matches_aten_with_wrap_around() {
         );
     }
 }
+
+#[test]
+fn plan_from_offsets_matches_plan_from_their_tensor() {
+    use crate::kernel::{compute_offsets, InputFrame, LayerGeometry};
+    let camera = crate::camera::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/cameras/f195.toml"
+    ))
+    .unwrap();
+    let geometry = LayerGeometry {
+        kernel: [3, 3],
+        stride: [2, 1],
+        padding: [1, 1],
+        dilation: [1, 2],
+    };
+    let off = compute_offsets(&camera, [24, 27], &geometry, &InputFrame::default()).unwrap();
+    let (s, p, d) = ([2, 1], [1, 1], [1, 2]);
+    let direct = SamplingPlan::from_offsets(&off, s, p, d, Kind::Float, Border::Zeros).unwrap();
+    let via = SamplingPlan::new(&off.to_tensor(), [24, 27], [3, 3], s, p, d, Kind::Float).unwrap();
+    let ((i1, f1), (i2, f2)) = (direct.samples(), via.samples());
+    assert!(i1.equal(i2) && f1.equal(f2) && direct.rows().equal(via.rows()));
+    // A geometry the offsets were not computed for is an error, not a wrong plan.
+    assert!(SamplingPlan::from_offsets(&off, [1, 1], p, d, Kind::Float, Border::Zeros).is_err());
+}
+
+#[test]
+fn plan_weights_are_the_bilinear_weights() {
+    // A 1x1 kernel on a 4x5 input; output pixel (0, 0) samples (y, x) = (1.25, 2.5): corners
+    // (1,2) (1,3) (2,2) (2,3).
+    let off = Tensor::zeros([2, 4, 5], (Kind::Double, Device::Cpu));
+    let _ = off.get(0).get(0).get(0).fill_(1.25);
+    let _ = off.get(1).get(0).get(0).fill_(2.5);
+    let plan =
+        SamplingPlan::new(&off, [4, 5], [1, 1], [1, 1], [0, 0], [1, 1], Kind::Double).unwrap();
+    let (index, _) = plan.samples();
+    assert_eq!(
+        Vec::<i32>::try_from(index.narrow(0, 0, 4)).unwrap(),
+        [7, 8, 12, 13]
+    );
+    let w = plan.f_weights(Kind::Double).unwrap().narrow(0, 0, 4);
+    let w = Vec::<f64>::try_from(w).unwrap();
+    let expected = [0.75 * 0.5, 0.75 * 0.5, 0.25 * 0.5, 0.25 * 0.5];
+    assert!(
+        w.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-15),
+        "{w:?}"
+    );
+}

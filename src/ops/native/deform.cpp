@@ -200,10 +200,26 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
 }
 
+// The bilinear weights of the four corners of a sample with fractional position (ly, lx):
+// (1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx, as torchvision (corners outside the input read the
+// plan's zero row, so their weight does not matter).
+template <typename T>
+struct Weights {
+  T w[4];
+  explicit Weights(const T* frac) {
+    const T ly = frac[0], lx = frac[1], hy = 1 - ly, hx = 1 - lx;
+    w[0] = hy * hx;
+    w[1] = hy * lx;
+    w[2] = ly * hx;
+    w[3] = ly * lx;
+  }
+  T operator[](int c) const { return w[c]; }
+};
+
 // Gathers the column tile of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
 // (layout: group, tap, channel within the group) from the channels-last input x.
 template <typename T>
-void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* pw, const T* zero,
+void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* frac, const T* zero,
                     int64_t b, int64_t p0, int64_t n, T* cols) {
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1);  // per-item plans index a stacked table
@@ -213,7 +229,7 @@ void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* pw,
     const int64_t s0 = (item * g.P + p0 + t) * g.K;
     for (int64_t k = 0; k < g.K; ++k) {
       const int32_t* ix = index + (s0 + k) * 4;
-      const T* w = pw + (s0 + k) * 4;
+      const Weights<T> w(frac + (s0 + k) * 2);
       const T* a[4];
       for (int c = 0; c < 4; ++c) {
         const int64_t rel = ix[c] - shift;
@@ -232,7 +248,7 @@ void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* pw,
 // Adds the column-gradient tile gcols [n, K*C] (layout as the columns) of output pixels
 // [p0, p0 + n) of batch item b to the corners they sampled, in the channels-last buffer gx.
 template <typename T>
-void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* pw, int64_t b,
+void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* frac, int64_t b,
                      int64_t p0, int64_t n, const T* gcols) {
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1);
@@ -242,7 +258,7 @@ void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* pw, int
     const int64_t s0 = (item * g.P + p0 + t) * g.K;
     for (int64_t k = 0; k < g.K; ++k) {
       const int32_t* ix = index + (s0 + k) * 4;
-      const T* w = pw + (s0 + k) * 4;
+      const Weights<T> w(frac + (s0 + k) * 2);
       const T* src = gcols + t * row + k * g.Cg;
       for (int c = 0; c < 4; ++c) {
         const int64_t rel = ix[c] - shift;
@@ -326,7 +342,7 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
 
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
-                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& pw) {
+                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac) {
   const auto fmt = memory_format(input);
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   const at::Tensor x = channels_last<T>(input);
@@ -336,7 +352,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const T* xp = x.const_data_ptr<T>();
   const T* wpp = wp.const_data_ptr<T>();
   const int32_t* ip = index.const_data_ptr<int32_t>();
-  const T* pwp = pw.const_data_ptr<T>();
+  const T* fp = frac.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t tile = tile_rows(g.B, g.P, kc, g.Cout * kcg, sizeof(T));
@@ -345,7 +361,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   parallel_tasks(g.B * tiles, init, [&](int64_t task, Scratch<T>& s) {
     const int64_t b = task / tiles, p0 = (task % tiles) * tile;
     const int64_t n = std::min(tile, g.P - p0);
-    gather_columns<T>(g, xp, ip, pwp, s.zero.data(), b, p0, n, s.tile.data());
+    gather_columns<T>(g, xp, ip, fp, s.zero.data(), b, p0, n, s.tile.data());
     for (int64_t gi = 0; gi < g.G; ++gi) {
       const Mat<const T> cols{s.tile.data() + gi * kcg, n, kcg, kc, 1};
       const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
@@ -367,7 +383,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
 // Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
-                            const at::Tensor& index, const at::Tensor& pw) {
+                            const at::Tensor& index, const at::Tensor& frac) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
   const at::Tensor x = channels_last<T>(input);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
@@ -381,7 +397,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const T* xp = x.const_data_ptr<T>();
   const T* gp = gy.const_data_ptr<T>();
   const int32_t* ip = index.const_data_ptr<int32_t>();
-  const T* pwp = pw.const_data_ptr<T>();
+  const T* fp = frac.const_data_ptr<T>();
   T* ap = acc.mutable_data_ptr<T>();
   const int64_t wsize = g.G * g.Coutg * kcg;
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
@@ -391,7 +407,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t b = task / tiles, p0 = (task % tiles) * tile;
         const int64_t n = std::min(tile, g.P - p0);
-        gather_columns<T>(g, xp, ip, pwp, zero.data(), b, p0, n, cols.data());
+        gather_columns<T>(g, xp, ip, fp, zero.data(), b, p0, n, cols.data());
         for (int64_t gi = 0; gi < g.G; ++gi) {
           const Mat<const T> c{cols.data() + gi * kcg, n, kcg, kc, 1};
           const Mat<const T> y = out_block(g, const_cast<T*>(gp), cl, b, gi, p0, n).as_const();
@@ -454,7 +470,7 @@ int64_t band_rows(const Geo& g, const int32_t* rows) {
 // Input gradient, in the input's memory format.
 template <typename T>
 at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
-                           const at::Tensor& gy, const at::Tensor& index, const at::Tensor& pw,
+                           const at::Tensor& gy, const at::Tensor& index, const at::Tensor& frac,
                            const at::Tensor& rows) {
   const bool cl_y = !gy.is_contiguous();  // else channels-last (see backward)
   // Channels-last accumulation buffer.
@@ -464,7 +480,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const T* gp = gy.const_data_ptr<T>();
   const T* wpp = wp.const_data_ptr<T>();
   const int32_t* ip = index.const_data_ptr<int32_t>();
-  const T* pwp = pw.const_data_ptr<T>();
+  const T* fp = frac.const_data_ptr<T>();
   T* xp = gx.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t r = band_rows(g, rows.const_data_ptr<int32_t>());
@@ -485,7 +501,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
           const Mat<T> c{s.tile.data() + gi * kcg, n, kcg, kc, 1};
           gemm<T>(y, w, c, false);
         }
-        scatter_columns<T>(g, xp, ip, pwp, b, p0, n, s.tile.data());
+        scatter_columns<T>(g, xp, ip, fp, b, p0, n, s.tile.data());
       }
     });
   }
@@ -496,7 +512,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
 struct DeformConv : public torch::autograd::Function<DeformConv> {
   static at::Tensor forward(AutogradContext* ctx, const at::Tensor& input,
                             const at::Tensor& weight, const at::Tensor& bias,
-                            const at::Tensor& index, const at::Tensor& pw,
+                            const at::Tensor& index, const at::Tensor& frac,
                             const at::Tensor& rows, int64_t ho, int64_t wo, int64_t groups,
                             bool per_item, bool has_bias) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
@@ -506,7 +522,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     // repacks it, so no weight-sized buffer lives from forward to backward.
     ctx->save_for_backward({input, weight});
     ctx->saved_data["index"] = index;
-    ctx->saved_data["pw"] = pw;
+    ctx->saved_data["frac"] = frac;
     ctx->saved_data["rows"] = rows;
     ctx->saved_data["ho"] = ho;
     ctx->saved_data["wo"] = wo;
@@ -515,7 +531,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["has_bias"] = has_bias;
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
-      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, pw);
+      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac);
     });
     return out;
   }
@@ -538,12 +554,12 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     at::Tensor gx, gw, gb;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       if (ctx->needs_input_grad(1)) {
-        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["pw"].toTensor())
+        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor())
                  .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
         gx = grad_input_impl<scalar_t>(g, input, pack_weight(weight, g), gy, d["index"].toTensor(),
-                                       d["pw"].toTensor(), d["rows"].toTensor());
+                                       d["frac"].toTensor(), d["rows"].toTensor());
       }
     });
     if (d["has_bias"].toBool() && ctx->needs_input_grad(2)) {
@@ -570,13 +586,13 @@ extern "C" {
 // (release it with calibconv_free_error).
 char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* weight,
                                   const at::Tensor* bias, const at::Tensor* index,
-                                  const at::Tensor* pw, const at::Tensor* rows, int64_t ho,
+                                  const at::Tensor* frac, const at::Tensor* rows, int64_t ho,
                                   int64_t wo, int64_t groups, int32_t per_item,
                                   at::Tensor** out) {
   try {
     // autograd Functions take defined tensors: no bias is an empty tensor and a flag.
     const at::Tensor none = bias ? at::Tensor() : at::empty({0}, input->options());
-    at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *index, *pw, *rows, ho,
+    at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *index, *frac, *rows, ho,
                                      wo, groups, per_item != 0, bias != nullptr);
     *out = new at::Tensor(std::move(y));
     return nullptr;

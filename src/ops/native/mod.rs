@@ -19,7 +19,7 @@ extern "C" {
         weight: *const C_tensor,
         bias: *const C_tensor,
         index: *const C_tensor,
-        plan_weight: *const C_tensor,
+        frac: *const C_tensor,
         rows: *const C_tensor,
         ho: i64,
         wo: i64,
@@ -40,8 +40,8 @@ pub(super) fn deform_conv2d_cpu(
     groups: i64,
 ) -> Result<Tensor> {
     let kind = input.kind();
-    let (index, plan_weight) = plan.samples();
-    let plan_weight = plan_weight.to_kind(kind);
+    let (index, frac) = plan.samples();
+    let frac = frac.to_kind(kind);
     let [ho, wo] = plan.output_size();
     let mut out: *mut C_tensor = std::ptr::null_mut();
     // SAFETY: every pointer is a live tensor handle borrowed for the duration of the call (the
@@ -53,7 +53,7 @@ pub(super) fn deform_conv2d_cpu(
             weight.as_ptr(),
             bias.map_or(std::ptr::null(), |b| b.as_ptr()),
             index.as_ptr(),
-            plan_weight.as_ptr(),
+            frac.as_ptr(),
             plan.rows().as_ptr(),
             ho,
             wo,
