@@ -260,6 +260,8 @@ pub fn compute_offsets(
         .enumerate()
         .map(|(oy, mut out)| {
             let (mut bad_anchors, mut bad_taps) = (0, 0);
+            // `ox` is the anchor's column, not just an index into the 2 * taps row slices.
+            #[allow(clippy::needless_range_loop)]
             for ox in 0..wo {
                 let ay = (oy * geometry.stride[0] + ch * geometry.dilation[0]) as f64
                     - geometry.padding[0] as f64;
