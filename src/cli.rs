@@ -159,12 +159,26 @@ pub struct BenchArgs {
     /// Also time the ATen composition (the CUDA path and the former CPU path).
     #[arg(long)]
     pub aten: bool,
+    /// Run only these parts (comma-separated; default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub only: Vec<BenchPart>,
     /// Camera whose calibrated offsets the layers use.
     #[arg(long, default_value = "data/cameras/f195.toml")]
     pub camera: PathBuf,
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// A part of `calibconv bench`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchPart {
+    /// The table of layer shapes.
+    Layers,
+    /// Offsets and sampling plans of the camera's U-Net pyramid.
+    Pyramid,
+    /// The U-Net-shaped training step.
+    Unet,
 }
 
 fn parse_size(s: &str) -> Result<[usize; 2], String> {

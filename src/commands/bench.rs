@@ -29,7 +29,7 @@ use calibconv::nn::{conv2d, CalibratedConv2d, Conv, Conv2dConfig, ConvKind};
 use calibconv::ops::{deform_conv2d_planned_with, Backend, Border, SamplingPlan};
 
 use super::load_camera;
-use crate::cli::BenchArgs;
+use crate::cli::{BenchArgs, BenchPart};
 
 /// One layer shape: `[batch, c_in, c_out, height, width]` (3x3, stride 1, "same" padding).
 type Shape = [i64; 5];
@@ -108,6 +108,9 @@ struct PyramidResult {
     offsets_s: f64,
     plans_s: f64,
     total_s: f64,
+    /// CPU time of all threads (user + system) for offsets and plans: on a loaded machine,
+    /// `cpu_s / threads` estimates the wall time of an idle one.
+    cpu_s: Option<f64>,
     plan_mib: f64,
 }
 
@@ -147,53 +150,43 @@ pub fn run(args: BenchArgs) -> Result<()> {
          (medians of paired, interleaved runs)",
         args.camera.display()
     );
-    let shapes: Vec<Shape> = if args.quick {
+    let run_part = |p: BenchPart| args.only.is_empty() || args.only.contains(&p);
+    let shapes: Vec<Shape> = if !run_part(BenchPart::Layers) {
+        Vec::new()
+    } else if args.quick {
         QUICK.to_vec()
     } else if args.full {
         full_shapes()
     } else {
         DEFAULT.to_vec()
     };
-    println!(
-        "\n{:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} | {:>8} {:>8} {:>5} | {:>7} {:>7} {:>5}{}",
-        "B",
-        "Cin",
-        "Cout",
-        "HxW",
-        "conv fwd",
-        "cal fwd",
-        "x",
-        "conv f+b",
-        "cal f+b",
-        "x",
-        "conv MB",
-        "cal MB",
-        "x",
-        if args.aten {
-            " | aten fwd x  f+b x  mem x"
-        } else {
-            ""
-        }
-    );
+    if !shapes.is_empty() {
+        print_header(args.aten);
+    }
     let mut results = Vec::new();
     for &shape in &shapes {
         let r = bench_shape(&camera, shape, &args)?;
         print_row(&r);
         results.push(r);
     }
-    let pyramid = if args.quick {
-        None
-    } else {
+    // The full-resolution pyramid takes seconds: not part of --quick unless asked for.
+    let pyramid = if run_part(BenchPart::Pyramid) && !(args.quick && args.only.is_empty()) {
         Some(bench_pyramid(&camera)?)
+    } else {
+        None
     };
-    let unet = bench_unet(&camera, &args)?;
+    let unet = if run_part(BenchPart::Unet) {
+        Some(bench_unet(&camera, &args)?)
+    } else {
+        None
+    };
     let report = Report {
         threads,
         note: "ratios = medians of per-repetition (calibrated / conv2d) times, interleaved; \
                peak = VmHWM - VmRSS around one training step",
         shapes: results,
         pyramid,
-        unet: Some(unet),
+        unet,
     };
     if let Some(path) = &args.json {
         write_json(path, &report)?;
@@ -210,6 +203,30 @@ fn write_json(path: &Path, report: &Report) -> Result<()> {
 
 fn fmt_opt(v: Option<f64>, prec: usize) -> String {
     v.map_or("-".to_string(), |v| format!("{v:.prec$}"))
+}
+
+fn print_header(aten: bool) {
+    println!(
+        "\n{:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} | {:>8} {:>8} {:>5} | {:>7} {:>7} {:>5}{}",
+        "B",
+        "Cin",
+        "Cout",
+        "HxW",
+        "conv fwd",
+        "cal fwd",
+        "x",
+        "conv f+b",
+        "cal f+b",
+        "x",
+        "conv MB",
+        "cal MB",
+        "x",
+        if aten {
+            " | aten fwd x  f+b x  mem x"
+        } else {
+            ""
+        }
+    );
 }
 
 fn print_row(r: &ShapeResult) {
@@ -410,6 +427,7 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     let anchors: usize = sizes.iter().map(|s| s[0] * s[1]).sum();
     let mut best: Option<PyramidResult> = None;
     for _ in 0..3 {
+        let cpu0 = cpu_seconds();
         let start = Instant::now();
         let offsets = sizes
             .iter()
@@ -430,6 +448,7 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
             plan_bytes += plan.memory_bytes();
         }
         let plans_s = start.elapsed().as_secs_f64();
+        let cpu_s = cpu_seconds().zip(cpu0).map(|(b, a)| b - a);
         let r = PyramidResult {
             input_hw: input,
             levels: sizes.len(),
@@ -437,6 +456,7 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
             offsets_s,
             plans_s,
             total_s: offsets_s + plans_s,
+            cpu_s,
             plan_mib: plan_bytes as f64 / (1 << 20) as f64,
         };
         if best.as_ref().is_none_or(|b| r.total_s < b.total_s) {
@@ -446,8 +466,16 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     let r = best.expect("three runs");
     println!(
         "\npyramid {}x{} ({} levels, {} anchors x 9 taps): offsets {:.3} s + plans {:.3} s = {:.3} s \
-         (best of 3), plans hold {:.0} MiB",
-        r.input_hw[0], r.input_hw[1], r.levels, r.anchors, r.offsets_s, r.plans_s, r.total_s, r.plan_mib
+         (best of 3; CPU time {} s), plans hold {:.0} MiB",
+        r.input_hw[0],
+        r.input_hw[1],
+        r.levels,
+        r.anchors,
+        r.offsets_s,
+        r.plans_s,
+        r.total_s,
+        fmt_opt(r.cpu_s, 3),
+        r.plan_mib
     );
     Ok(r)
 }
@@ -599,6 +627,28 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
         fmt_opt(r.peak_ratio, 2)
     );
     Ok(r)
+}
+
+/// CPU time of the process (all threads, user + system) in seconds, where the platform has it.
+fn cpu_seconds() -> Option<f64> {
+    #[cfg(target_os = "linux")]
+    {
+        #[repr(C)]
+        struct Timespec {
+            sec: i64,
+            nsec: i64,
+        }
+        extern "C" {
+            fn clock_gettime(clock: std::ffi::c_int, ts: *mut Timespec) -> std::ffi::c_int;
+        }
+        const CLOCK_PROCESS_CPUTIME_ID: std::ffi::c_int = 2;
+        let mut ts = Timespec { sec: 0, nsec: 0 };
+        // SAFETY: clock_gettime writes one timespec (two 64-bit fields on 64-bit Linux) to `ts`.
+        let rc = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+        (rc == 0).then(|| ts.sec as f64 + ts.nsec as f64 * 1e-9)
+    }
+    #[cfg(not(target_os = "linux"))]
+    None
 }
 
 /// Reads a `kB` field of `/proc/self/status`.
