@@ -645,7 +645,7 @@ fn cpu_seconds() -> Option<f64> {
         let mut ts = Timespec { sec: 0, nsec: 0 };
         // SAFETY: clock_gettime writes one timespec (two 64-bit fields on 64-bit Linux) to `ts`.
         let rc = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
-        (rc == 0).then(|| ts.sec as f64 + ts.nsec as f64 * 1e-9)
+        (rc == 0).then_some(ts.sec as f64 + ts.nsec as f64 * 1e-9)
     }
     #[cfg(not(target_os = "linux"))]
     None
