@@ -159,6 +159,9 @@ pub struct BenchArgs {
     /// Also time the ATen composition (the CUDA path and the former CPU path).
     #[arg(long)]
     pub aten: bool,
+    /// Layer shapes to run instead of the table, each `B,CIN,COUT,H,W` (repeatable).
+    #[arg(long = "shape", value_parser = parse_shape)]
+    pub shapes: Vec<[i64; 5]>,
     /// Run only these parts (comma-separated; default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
     pub only: Vec<BenchPart>,
@@ -179,6 +182,15 @@ pub enum BenchPart {
     Pyramid,
     /// The U-Net-shaped training step.
     Unet,
+}
+
+fn parse_shape(s: &str) -> Result<[i64; 5], String> {
+    let v: Vec<i64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<i64>().ok().filter(|&n| n > 0))
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("`{s}`: expected five positive integers B,CIN,COUT,H,W"))?;
+    <[i64; 5]>::try_from(v).map_err(|_| format!("`{s}`: expected B,CIN,COUT,H,W"))
 }
 
 fn parse_size(s: &str) -> Result<[usize; 2], String> {

@@ -153,6 +153,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let run_part = |p: BenchPart| args.only.is_empty() || args.only.contains(&p);
     let shapes: Vec<Shape> = if !run_part(BenchPart::Layers) {
         Vec::new()
+    } else if !args.shapes.is_empty() {
+        args.shapes.clone()
     } else if args.quick {
         QUICK.to_vec()
     } else if args.full {
