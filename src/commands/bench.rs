@@ -234,7 +234,8 @@ fn print_header(aten: bool) {
 fn print_row(r: &ShapeResult) {
     let c = &r.calibrated;
     let mut line = format!(
-        "{:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} | {:>8.2} {:>8.2} {:>5.2} | {:>7} {:>7} {:>5}",
+        "{:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} | {:>8.2} {:>8.2} {:>5.2} | \
+         {:>7} {:>7} {:>5}",
         r.batch,
         r.c_in,
         r.c_out,
@@ -467,8 +468,8 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     }
     let r = best.expect("three runs");
     println!(
-        "\npyramid {}x{} ({} levels, {} anchors x 9 taps): offsets {:.3} s + plans {:.3} s = {:.3} s \
-         (best of 3; CPU time {} s), plans hold {:.0} MiB",
+        "\npyramid {}x{} ({} levels, {} anchors x 9 taps): offsets {:.3} s + plans {:.3} s = \
+         {:.3} s (best of 3; CPU time {} s), plans hold {:.0} MiB",
         r.input_hw[0],
         r.input_hw[1],
         r.levels,

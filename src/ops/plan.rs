@@ -27,7 +27,7 @@ pub enum Border {
 /// pixels, with one extra zero row at index `H*W` for corners outside the input (or wrapped
 /// around, [`Border`]), and `frac` `[N * 2]` the fractional parts `(ly, lx)` of the sample
 /// position, from which the corner weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx`
-/// ([`SamplingPlan::weights`]). Every border rule only remaps corner indices, so the weights are
+/// ([`SamplingPlan::f_weights`]). Every border rule only remaps corner indices, so the weights are
 /// the same for all of them, and storing two fractions instead of four weights makes the plan a
 /// quarter smaller (24 bytes a sample). Per-item plans index a table that stacks the items, each
 /// followed by its zero row: item `b`'s indices are offset by `b * (H*W + 1)`.
