@@ -275,19 +275,23 @@ void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* frac, i
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
-// One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n). Blocks of BLOCK
-// pixels keep the C source rows and the BLOCK destination rows in L1.
+// One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n), in tiles of CB
+// channels x PB pixels. CB = 8 strided rows at a time: rows H*W apart alias in the L1 cache when
+// H*W is a power of two, and 8 fit its associativity.
 template <typename T>
 void convert_pixels(const T* __restrict src, T* __restrict dst, int64_t C, int64_t HW,
                     int64_t p0, int64_t n, bool to_cl) {
-  constexpr int64_t BLOCK = 16;
-  for (int64_t q0 = p0; q0 < p0 + n; q0 += BLOCK) {
-    const int64_t q1 = std::min(p0 + n, q0 + BLOCK);
-    for (int64_t c = 0; c < C; ++c) {
+  constexpr int64_t CB = 8, PB = 64;
+  for (int64_t q0 = p0; q0 < p0 + n; q0 += PB) {
+    const int64_t q1 = std::min(p0 + n, q0 + PB);
+    for (int64_t c0 = 0; c0 < C; c0 += CB) {
+      const int64_t c1 = std::min(C, c0 + CB);
       if (to_cl) {
-        for (int64_t q = q0; q < q1; ++q) dst[q * C + c] = src[c * HW + q];
+        for (int64_t q = q0; q < q1; ++q)
+          for (int64_t c = c0; c < c1; ++c) dst[q * C + c] = src[c * HW + q];
       } else {
-        for (int64_t q = q0; q < q1; ++q) dst[c * HW + q] = src[q * C + c];
+        for (int64_t c = c0; c < c1; ++c)
+          for (int64_t q = q0; q < q1; ++q) dst[c * HW + q] = src[q * C + c];
       }
     }
   }
