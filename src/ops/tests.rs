@@ -260,6 +260,9 @@ fn native_matches_aten_on_random_plans() {
             6.0,
         ),
         (2, 3, 5, 6, 9, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 12.0),
+        // 1 and 2 channels: the unrolled gathers of the first layers.
+        (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
+        (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
     ];
     for (i, &(b, ci, co, h, w, k, s, p, d, g, per_item, scale)) in cases.iter().enumerate() {
         for kind in [Kind::Double, Kind::Float] {

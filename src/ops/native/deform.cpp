@@ -32,6 +32,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -97,16 +98,40 @@ CALIBCONV_BLEND4(double, blend4_f64)
 CALIBCONV_AXPY(float, axpy_f32)
 CALIBCONV_AXPY(double, axpy_f64)
 
+// Below this many channels the loops run inline: the multiversioned functions are reached
+// through an indirect call, which costs more than a few multiply-adds (the first layer has 3).
+constexpr int64_t INLINE_BELOW = 16;
+
 inline void blend4(float* d, const float* a0, const float* a1, const float* a2, const float* a3,
                    float w0, float w1, float w2, float w3, int64_t n) {
-  blend4_f32(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
+  if (n < INLINE_BELOW) {
+    for (int64_t i = 0; i < n; ++i) d[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
+  } else {
+    blend4_f32(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
+  }
 }
 inline void blend4(double* d, const double* a0, const double* a1, const double* a2,
                    const double* a3, double w0, double w1, double w2, double w3, int64_t n) {
-  blend4_f64(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
+  if (n < INLINE_BELOW) {
+    for (int64_t i = 0; i < n; ++i) d[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
+  } else {
+    blend4_f64(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
+  }
 }
-inline void axpy(float* d, const float* s, float w, int64_t n) { axpy_f32(d, s, w, n); }
-inline void axpy(double* d, const double* s, double w, int64_t n) { axpy_f64(d, s, w, n); }
+inline void axpy(float* d, const float* s, float w, int64_t n) {
+  if (n < INLINE_BELOW) {
+    for (int64_t i = 0; i < n; ++i) d[i] += w * s[i];
+  } else {
+    axpy_f32(d, s, w, n);
+  }
+}
+inline void axpy(double* d, const double* s, double w, int64_t n) {
+  if (n < INLINE_BELOW) {
+    for (int64_t i = 0; i < n; ++i) d[i] += w * s[i];
+  } else {
+    axpy_f64(d, s, w, n);
+  }
+}
 
 // ---------------------------------------------------------------------------------------------
 // GEMM on raw strided matrices through ATen (which calls the BLAS libtorch was built with; it
@@ -217,14 +242,17 @@ struct Weights {
 };
 
 // Gathers the column tile of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
-// (layout: group, tap, channel within the group) from the channels-last input x.
-template <typename T>
-void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* frac, const T* zero,
-                    int64_t b, int64_t p0, int64_t n, T* cols) {
+// (layout: group, tap, channel within the group) from the channels-last input x. NC > 0 fixes
+// the channel count at compile time (one group): the first layer has 3 channels, where the
+// per-sample work is all overhead unless the channel loop is unrolled.
+template <typename T, int NC>
+void gather_columns_impl(const Geo& g, const T* x, const int32_t* index, const T* frac,
+                         const T* zero, int64_t b, int64_t p0, int64_t n, T* cols) {
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1);  // per-item plans index a stacked table
-  const T* xb = x + b * g.HW * g.C;
-  const int64_t row = g.K * g.C;
+  const int64_t C = NC > 0 ? NC : g.C, Cg = NC > 0 ? NC : g.Cg, G = NC > 0 ? 1 : g.G;
+  const T* xb = x + b * g.HW * C;
+  const int64_t row = g.K * C;
   for (int64_t t = 0; t < n; ++t) {
     const int64_t s0 = (item * g.P + p0 + t) * g.K;
     for (int64_t k = 0; k < g.K; ++k) {
@@ -233,15 +261,36 @@ void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* fra
       const T* a[4];
       for (int c = 0; c < 4; ++c) {
         const int64_t rel = ix[c] - shift;
-        a[c] = rel == g.HW ? zero : xb + rel * g.C;
+        a[c] = rel == g.HW ? zero : xb + rel * C;
       }
-      T* dst = cols + t * row + k * g.Cg;
-      for (int64_t gi = 0; gi < g.G; ++gi) {
-        const int64_t o = gi * g.Cg;
-        blend4(dst + gi * g.K * g.Cg, a[0] + o, a[1] + o, a[2] + o, a[3] + o, w[0], w[1], w[2],
-               w[3], g.Cg);
+      T* dst = cols + t * row + k * Cg;
+      if constexpr (NC > 0) {
+        for (int i = 0; i < NC; ++i) {
+          dst[i] = w[0] * a[0][i] + w[1] * a[1][i] + w[2] * a[2][i] + w[3] * a[3][i];
+        }
+      } else {
+        for (int64_t gi = 0; gi < G; ++gi) {
+          const int64_t o = gi * Cg;
+          blend4(dst + gi * g.K * Cg, a[0] + o, a[1] + o, a[2] + o, a[3] + o, w[0], w[1], w[2],
+                 w[3], Cg);
+        }
       }
     }
+  }
+}
+
+template <typename T>
+void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* frac, const T* zero,
+                    int64_t b, int64_t p0, int64_t n, T* cols) {
+  const auto run = [&](auto nc) {
+    gather_columns_impl<T, decltype(nc)::value>(g, x, index, frac, zero, b, p0, n, cols);
+  };
+  switch (g.G == 1 ? g.C : 0) {
+    case 1: return run(std::integral_constant<int, 1>());
+    case 2: return run(std::integral_constant<int, 2>());
+    case 3: return run(std::integral_constant<int, 3>());
+    case 4: return run(std::integral_constant<int, 4>());
+    default: return run(std::integral_constant<int, 0>());
   }
 }
 
