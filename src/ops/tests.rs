@@ -559,3 +559,21 @@ fn plan_weights_are_the_bilinear_weights() {
         "{w:?}"
     );
 }
+
+#[test]
+fn native_handles_an_empty_batch() {
+    if !native_available() {
+        return;
+    }
+    let opts = (Kind::Float, Device::Cpu);
+    let off = Tensor::randn([18, 5, 5], opts);
+    let plan =
+        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let x = Tensor::randn([0, 2, 5, 5], opts).set_requires_grad(true);
+    let w = Tensor::randn([3, 2, 3, 3], opts).set_requires_grad(true);
+    let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
+    assert_eq!(y.size(), [0, 3, 5, 5]);
+    let g = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x, &w], false, false);
+    assert_eq!(g[0].size(), [0, 2, 5, 5]);
+    assert_eq!(g[1].abs().sum(Kind::Float).double_value(&[]), 0.0);
+}

@@ -3,12 +3,14 @@
 // numerics are documented in src/ops/mod.rs; in short, with K taps, C input and C_out output
 // channels, G groups, and P output pixels:
 //
-// - The weight is packed once per forward as WP [G, C_out/G, K, C/G] (the tap and channel axes
-//   of every output channel swapped, a cheap local transpose) and kept for the backward pass.
+// - The weight is packed per pass as WP [G, C_out/G, K, C/G] (the tap and channel axes of every
+//   output channel swapped, a cheap local transpose); the backward pass repacks it rather than
+//   keeping a weight-sized buffer alive between the passes.
 // - forward: per tile of T output pixels, gather the column tile [T, K*C] (layout: group, tap,
-//   channel) from a channels-last view of the input with the plan's four bilinear corners and
-//   weights, then one GEMM per group, out[T, C_out/G] = cols_g @ WP_g^T, written in place into
-//   the output (NCHW or channels-last, as the input), bias preloaded.
+//   channel) from a channels-last view of the input with the plan's four corner indices and the
+//   bilinear weights of its fractions (ly, lx), then one GEMM per group,
+//   out[T, C_out/G] = cols_g @ WP_g^T, written in place into the output (NCHW or channels-last,
+//   as the input), bias preloaded.
 // - backward, weight: the column tiles are recomputed (never stored) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
@@ -69,7 +71,7 @@ int64_t tile_rows(int64_t batch, int64_t rows, int64_t row_elems, int64_t weight
 // Inner loops, written once per element type (not as templates) so that they can be compiled for
 // several instruction sets and picked at load time (GCC/Clang function multiversioning).
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define CALIBCONV_CLONES \
   __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
 #else
