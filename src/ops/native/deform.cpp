@@ -448,17 +448,22 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // One accumulator per chunk of tasks; chunks are fixed (not handed out dynamically) so that the
   // summation order, hence the result, is the same on every run with the same thread count.
   const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tasks));
-  at::Tensor acc = at::zeros({chunks, g.G, g.Coutg, g.K, g.Cg}, gy.options());
+  // Chunk 0 accumulates into the tensor that becomes the result, the others into a buffer freed
+  // on return: the peak is `chunks` weights, not `chunks + 1`.
+  at::Tensor gw = at::zeros({g.G, g.Coutg, g.K, g.Cg}, gy.options());
+  at::Tensor rest = at::zeros({chunks - 1, g.G, g.Coutg, g.K, g.Cg}, gy.options());
+  T* const gwp = gw.mutable_data_ptr<T>();
+  T* const rp = rest.mutable_data_ptr<T>();
+  const int64_t wsize = g.G * g.Coutg * kcg;
+  const auto acc = [&](int64_t chunk) { return chunk == 0 ? gwp : rp + (chunk - 1) * wsize; };
   const T* xp = x.const_data_ptr<T>();
   const T* gp = gy.const_data_ptr<T>();
   const int32_t* ip = index.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
-  T* ap = acc.mutable_data_ptr<T>();
-  const int64_t wsize = g.G * g.Coutg * kcg;
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(tile * kc), zero(g.C, T(0));
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
-      T* accp = ap + chunk * wsize;
+      T* accp = acc(chunk);
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t b = task / tiles, p0 = (task % tiles) * tile;
         const int64_t n = std::min(tile, g.P - p0);
@@ -472,23 +477,23 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       }
     }
   });
-  // Sum the chunks and swap back (tap, channel) -> (channel, tap): [C_out, C/G, K].
-  at::Tensor gw = at::empty({g.Cout, g.Cg, g.K}, gy.options());
-  T* gwp = gw.mutable_data_ptr<T>();
+  // Sum the chunks into chunk 0 and swap (tap, channel) -> (channel, tap) in place, one output
+  // channel (a row of K * C/G) at a time: [C_out, C/G, K].
   at::parallel_for(0, g.Cout, 1, [&](int64_t o0, int64_t o1) {
+    std::vector<T> row(kcg);
     for (int64_t o = o0; o < o1; ++o) {
+      T* r0 = gwp + o * kcg;
+      for (int64_t i = 0; i < kcg; ++i) {
+        T sum = r0[i];
+        for (int64_t chunk = 1; chunk < chunks; ++chunk) sum += acc(chunk)[o * kcg + i];
+        row[i] = sum;
+      }
       for (int64_t k = 0; k < g.K; ++k) {
-        for (int64_t c = 0; c < g.Cg; ++c) {
-          T sum = 0;
-          for (int64_t chunk = 0; chunk < chunks; ++chunk) {
-            sum += ap[chunk * wsize + (o * g.K + k) * g.Cg + c];
-          }
-          gwp[(o * g.Cg + c) * g.K + k] = sum;
-        }
+        for (int64_t c = 0; c < g.Cg; ++c) r0[c * g.K + k] = row[k * g.Cg + c];
       }
     }
   });
-  return gw;
+  return gw.view({g.Cout, g.Cg, g.K});
 }
 
 // Bands of output rows for the scatter: the smallest band height R such that, within each of
