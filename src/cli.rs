@@ -32,6 +32,10 @@ pub enum Command {
     Bench(BenchArgs),
     /// Camera files: import a calibration from another tool.
     Camera(CameraArgs),
+    /// Write data sets of fisheye / perspective / rectified views (RGB, depth, labels, mask)
+    /// rendered from panoramas, procedural or Stanford 2D-3D-S, as a config describes
+    /// (default: the embedded data/synth.toml); deterministic and resumable.
+    Synth(crate::commands::synth::SynthArgs),
 }
 
 #[derive(Debug, Args)]

@@ -36,6 +36,16 @@ pub enum Error {
     /// An image could not be encoded or decoded.
     #[error("{path}: {message}")]
     Image { path: PathBuf, message: String },
+    /// A data set file is missing, malformed or inconsistent (wrong size, unknown class index,
+    /// manifest from another generator version...); `message` names the field where there is
+    /// one.
+    #[error("{path}: {message}")]
+    Data {
+        /// The offending file (or folder).
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
 }
 
 /// Result with the library's [`Error`].
@@ -47,6 +57,14 @@ impl Error {
         Error::Io {
             path: path.into(),
             source,
+        }
+    }
+
+    /// An [`Error::Data`] for `path`.
+    pub fn data(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Data {
+            path: path.into(),
+            message: message.into(),
         }
     }
 }

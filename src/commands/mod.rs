@@ -6,6 +6,7 @@ mod camera;
 mod demo;
 mod kernels;
 mod offsets;
+pub(crate) mod synth;
 
 use std::path::Path;
 
@@ -24,6 +25,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Synth(args) => synth::run(args),
         Command::Camera(args) => camera::run(args),
     }
 }

@@ -1,5 +1,19 @@
 //! Data: synthetic indoor panoramas, fisheye / perspective / rectified view synthesis, the
-//! Stanford 2D-3D-S loader, and batches for training.
+//! Stanford 2D-3D-S loader, and batches for training (paper Section 4: *Pers*, *F165*, *F195*
+//! and rectified images synthesised from panoramas).
+//!
+//! The data path, one module per step:
+//!
+//! - [`panorama`]: equirectangular panoramas (RGB, metric distance, labels) and the seeded
+//!   procedural indoor scenes that render them by analytic ray casting;
+//! - [`stanford`]: the same panoramas decoded from a Stanford 2D-3D-S copy;
+//! - [`views`]: fisheye, perspective and rectified views of a panorama for any camera, at
+//!   random orientations, with a validity mask;
+//! - [`synth`]: `calibconv synth`: data set folders (below), deterministic and resumable;
+//! - [`format`](mod@format): the PNG encodings and the manifest of those folders;
+//! - [`loader`]: a folder served as [`Batch`]es ([`loader::Dataset`] implements
+//!   [`BatchSource`]);
+//! - [`rng`]: the seeded generator everything random goes through.
 //!
 //! # The contract with training (do not change without updating both sides)
 //!
@@ -8,7 +22,9 @@
 //!   public PyTorch U-Net);
 //! - `depth`: `[B, 1, H, W]` float32 metres, `0` where missing;
 //! - `labels`: `[B, H, W]` int64 class ids `0..NUM_CLASSES` in [`CLASSES`] order, or
-//!   [`IGNORE_LABEL`] for unknown / invalid pixels (PyTorch's default `ignore_index`);
+//!   [`IGNORE_LABEL`] for unknown / invalid pixels (PyTorch's default `ignore_index`): unknown
+//!   class, outside the fisheye image circle, padding. A pixel whose depth alone is missing
+//!   keeps its class (its `mask` is false);
 //! - `mask`: `[B, 1, H, W]` bool, true on valid pixels (inside the fisheye image circle, depth
 //!   present, not padding).
 //!
@@ -19,7 +35,9 @@
 //!
 //! ```text
 //! DATASET/manifest.json     generator, generator_version, seed, camera, counts, splits {train,
-//!                           val, test: [ids]}, depth_scale (metres per unit), classes
+//!                           val, test: [ids]}, depth_scale (metres per unit), classes; also
+//!                           complete, name, kind, width, height, unknown_label, config
+//!                           (see format::Manifest)
 //! DATASET/camera.toml       the camera the views were rendered with (at the stored resolution)
 //! DATASET/rgb/ID.png        8-bit RGB
 //! DATASET/depth/ID.png      16-bit grey; metres = value * depth_scale; 0 = missing
@@ -27,6 +45,14 @@
 //! DATASET/mask/ID.png       8-bit grey; 255 = valid
 //! DATASET/previews/ID.png   colourised RGB | depth | labels, for people
 //! ```
+
+pub mod format;
+pub mod loader;
+pub mod panorama;
+pub mod rng;
+pub mod stanford;
+pub mod synth;
+pub mod views;
 
 use tch::Tensor;
 
@@ -50,9 +76,13 @@ pub const UNKNOWN_PNG_LABEL: u8 = 255;
 /// One batch, see the module docs for shapes and units.
 #[derive(Debug)]
 pub struct Batch {
+    /// `[B, 3, H, W]` float32 RGB in `[0, 1]`.
     pub image: Tensor,
+    /// `[B, 1, H, W]` float32 metres, 0 where missing.
     pub depth: Tensor,
+    /// `[B, H, W]` int64 class ids or [`IGNORE_LABEL`].
     pub labels: Tensor,
+    /// `[B, 1, H, W]` bool, true on valid pixels.
     pub mask: Tensor,
     /// Sample ids, in batch order.
     pub ids: Vec<String>,
