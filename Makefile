@@ -37,6 +37,7 @@ bench: setup
 
 fixtures: setup
 	.venv/bin/python tools/make_fixtures.py tests/golden
+	.venv/bin/python tools/make_unet_fixture.py tests/golden
 
 lint: setup
 	cargo fmt --check

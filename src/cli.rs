@@ -36,6 +36,17 @@ pub enum Command {
     /// rendered from panoramas, procedural or Stanford 2D-3D-S, as a config describes
     /// (default: the embedded data/synth.toml); deterministic and resumable.
     Synth(crate::commands::synth::SynthArgs),
+    /// Train the U-Net an experiment file describes, then run its evaluations (run directory:
+    /// OUTPUT/NAME with checkpoints, CSV logs, TensorBoard events and evaluation results).
+    Train(TrainArgs),
+    /// Evaluate an experiment's checkpoint (default: its best) with its [[eval]] entries.
+    Eval(EvalArgs),
+    /// Convert a PyTorch checkpoint (.pth / .pt, e.g. milesial/Pytorch-UNet) to safetensors +
+    /// JSON sidecar, usable as an experiment's initial weights (needs the .venv of make setup).
+    Convert(crate::commands::convert::ConvertArgs),
+    /// Write a calibconv checkpoint as a PyTorch state_dict (safetensors, milesial/Pytorch-UNet
+    /// names) that UNet.load_state_dict(..., strict=True) accepts.
+    Export(crate::commands::export::ExportArgs),
 }
 
 #[derive(Debug, Args)]
@@ -74,6 +85,33 @@ pub struct ImportArgs {
     /// Output camera file (.toml), written atomically.
     #[arg(long)]
     pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Experiment file (TOML, see experiments/).
+    pub experiment: PathBuf,
+    /// Continue the interrupted run at its last checkpoint (same step, same data order).
+    #[arg(long)]
+    pub resume: bool,
+    /// No progress bars or status lines.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// Experiment file (TOML, see experiments/).
+    pub experiment: PathBuf,
+    /// Checkpoint to evaluate (default: the run's best, else its last).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Run only these evaluations (by name; repeatable).
+    #[arg(long = "only", value_name = "NAME")]
+    pub only: Vec<String>,
+    /// No progress bars or status lines.
+    #[arg(long, short)]
+    pub quiet: bool,
 }
 
 /// How the network input relates to the camera image.

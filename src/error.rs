@@ -46,6 +46,33 @@ pub enum Error {
         /// What is wrong with it.
         message: String,
     },
+    /// A checkpoint could not be read or written, or does not fit the network.
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint { path: PathBuf, message: String },
+    /// An experiment file parsed but a field is invalid (`field` is the dotted key path).
+    #[error("{path}: `{field}`: {message}")]
+    Config {
+        path: PathBuf,
+        field: String,
+        message: String,
+    },
+    /// A data source could not be opened or does not fit the experiment.
+    #[error("data source {path}: {message}")]
+    Dataset { path: PathBuf, message: String },
+    /// Training produced a NaN or infinite value; nothing after `step` was saved.
+    #[error(
+        "training stopped: non-finite {what} ({value}) at step {step}; {}",
+        match last_good {
+            Some(p) => format!("the last good checkpoint is {}", p.display()),
+            None => "no checkpoint was saved before it".to_string(),
+        }
+    )]
+    NonFinite {
+        step: u64,
+        what: String,
+        value: f64,
+        last_good: Option<PathBuf>,
+    },
 }
 
 /// Result with the library's [`Error`].

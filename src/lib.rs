@@ -16,18 +16,37 @@
 //!   semantics, from a precomputed sampling plan: native C++ kernels on the CPU (a custom
 //!   autograd function, within ~1.5x of `conv2d`), differentiable ATen ops elsewhere (CUDA).
 //! - [`nn`]: layers: [`nn::CalibratedConv2d`] (same parameter names and shapes as a standard
-//!   convolution) and the conv-kind factory the networks use.
-//! - [`data`]: the data sets and the `Batch` / `BatchSource` contract training consumes.
-//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a).
+//!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
+//!   network with milesial/Pytorch-UNet's parameter names (so PyTorch weights load by name and
+//!   standard-kernel checkpoints load into calibrated networks unchanged).
+//! - [`data`]: the [`data::Batch`] / [`data::BatchSource`] contract between data and training;
+//!   procedural indoor panoramas, fisheye / perspective / rectified view synthesis, the
+//!   Stanford 2D-3D-S loader, on-disk data sets and their prefetching loader; in-memory
+//!   sources ([`data::memory`]) and a toy task ([`data::toy`]) for tests and smoke runs.
+//! - [`eval`]: losses on valid pixels, the paper's metrics (depth MRE..delta3, segmentation
+//!   mIoU / mAcc from one confusion matrix over the set), radial bins around the principal
+//!   point, prediction pictures, and the evaluator that writes metrics JSON / CSV.
+//! - [`train`]: Adam with a savable state, learning-rate schedules, safetensors checkpoints
+//!   with metadata (atomic, mismatches listed by name), and the trainer: periodic validation,
+//!   best checkpoint, exact resume, stop on NaN / Inf. Output goes through the
+//!   [`train::Reporter`] trait.
+//! - [`experiment`]: experiment TOML files (raw -> resolved, did-you-mean errors), the hook that
+//!   opens data sources, and the run directory: training then evaluations, as
+//!   `calibconv train` / `calibconv eval` run them.
+//! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots) and
+//!   the training reporters (TensorBoard event files, CSV logs).
 //! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;
 pub mod data;
 pub mod error;
+pub mod eval;
+pub mod experiment;
 pub mod io;
 pub mod kernel;
 pub mod nn;
 pub mod ops;
 pub mod report;
+pub mod train;
 
 pub use error::{Error, Result};

@@ -9,8 +9,9 @@ order, recursively one level), strips DataParallel's `module.` prefix, drops non
 the standard (NCHW) layout (training may leave 4-D tensors channels-last; safetensors stores
 dense row-major data) and converts floating tensors to float32. The sidecar `OUT.json` records the
 source file and its SHA-256, the key mapping (source key -> written key), every tensor's source
-dtype and shape, the dropped entries, and the detected architecture (milesial U-Net transposed /
-bilinear with its channels, classes and base width), which `calibconv` checks before loading.
+dtype and shape, the dropped entries (and those beside a nested state_dict), and the detected
+architecture (milesial U-Net transposed / bilinear with its input channels, classes, base width
+and depth), which `calibconv` checks before loading.
 """
 
 import argparse
@@ -50,11 +51,19 @@ def strip_prefix(key):
 
 
 def detect_architecture(tensors):
-    """Recognise milesial/Pytorch-UNet by its keys; `None` for anything else."""
+    """Recognise milesial/Pytorch-UNet by its keys; `None` for anything else.
+
+    The depth is the number of `downK` blocks (4 in the public network), the base width the
+    output channels of `inc`, the variant `transposed` if `up1.up.weight` exists (bilinear
+    up-sampling has no parameters).
+    """
     inc = tensors.get("inc.double_conv.0.weight")
     outc = tensors.get("outc.conv.weight")
-    if inc is None or outc is None or "down4.maxpool_conv.1.double_conv.0.weight" not in tensors:
+    if inc is None or outc is None or "down1.maxpool_conv.1.double_conv.0.weight" not in tensors:
         return None
+    depth = 0
+    while f"down{depth + 1}.maxpool_conv.1.double_conv.0.weight" in tensors:
+        depth += 1
     bilinear = "up1.up.weight" not in tensors
     return {
         "name": "milesial-unet",
@@ -62,7 +71,7 @@ def detect_architecture(tensors):
         "in_channels": int(inc.shape[1]),
         "classes": int(outc.shape[0]),
         "base": int(inc.shape[0]),
-        "depth": 4,
+        "depth": depth,
     }
 
 
@@ -91,6 +100,10 @@ def convert(src, dst):
         tensors[out_key] = t.contiguous(memory_format=torch.contiguous_format).clone()
         mapping[key] = out_key
     arch = detect_architecture(tensors)
+    # Entries beside a nested state_dict (epoch, optimizer, mask_values, ...): named, not kept.
+    outside = ([{"key": str(k), "type": type(v).__name__} for k, v in obj.items()
+                if v is not state and not (isinstance(v, dict) and k in NESTING_KEYS)]
+               if isinstance(obj, dict) and obj is not state else [])
     sidecar = {
         "source": os.path.abspath(src),
         "source_sha256": digest,
@@ -99,6 +112,7 @@ def convert(src, dst):
         "key_mapping": mapping,
         "tensors": dtypes,
         "dropped": dropped,
+        "outside_state_dict": outside,
         "converter": "calibconv tools/convert_checkpoint.py 1",
     }
     # Atomic writes: temporary files in the destination folder, then rename.

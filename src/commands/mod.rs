@@ -3,10 +3,14 @@
 
 mod bench;
 mod camera;
+pub(crate) mod convert;
 mod demo;
+mod eval;
+pub(crate) mod export;
 mod kernels;
 mod offsets;
 pub(crate) mod synth;
+mod train;
 
 use std::path::Path;
 
@@ -27,6 +31,10 @@ pub fn run(command: Command) -> Result<()> {
         Command::Bench(args) => bench::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Camera(args) => camera::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Eval(args) => eval::run(args),
+        Command::Convert(args) => convert::run(args),
+        Command::Export(args) => export::run(args),
     }
 }
 

@@ -48,10 +48,12 @@
 
 pub mod format;
 pub mod loader;
+pub mod memory;
 pub mod panorama;
 pub mod rng;
 pub mod stanford;
 pub mod synth;
+pub mod toy;
 pub mod views;
 
 use tch::Tensor;

@@ -5,10 +5,15 @@
 //! parameters (`weight` `[C_out, C_in/groups, kh, kw]`, `bias` `[C_out]`) with the same
 //! initialisation, so a checkpoint trained with standard kernels loads into a calibrated network
 //! unchanged.
+//!
+//! [`unet`] is the paper's network (the classic U-Net with milesial/Pytorch-UNet's parameter
+//! names), built from that factory.
 
 mod calibrated;
+pub mod unet;
 
 pub use calibrated::{CalibratedConv2d, Conv2dConfig};
+pub use unet::{Head, UNet, UNetConfig, UpMode};
 
 use std::sync::Arc;
 

@@ -1,0 +1,39 @@
+//! `calibconv eval EXPERIMENT.toml [--checkpoint P] [--only NAME]`: run the experiment's
+//! evaluations on a checkpoint.
+
+use std::io::IsTerminal;
+
+use anyhow::{bail, Context, Result};
+
+use calibconv::experiment::{self, DefaultOpener, RunOptions};
+
+use crate::cli::EvalArgs;
+
+pub fn run(args: EvalArgs) -> Result<()> {
+    let exp = experiment::load(&args.experiment)
+        .with_context(|| format!("cannot use experiment {}", args.experiment.display()))?;
+    if exp.evals.is_empty() {
+        bail!(
+            "{} has no evaluations: add [[eval]] entries or a data.test source",
+            args.experiment.display()
+        );
+    }
+    let opts = RunOptions {
+        resume: false,
+        progress: !args.quiet && std::io::stderr().is_terminal(),
+        verbose: !args.quiet,
+        opener: &DefaultOpener,
+    };
+    let outcomes = experiment::evaluate(&exp, args.checkpoint.as_deref(), &args.only, &opts)
+        .with_context(|| format!("evaluating {} failed", exp.name))?;
+    for o in &outcomes {
+        let metrics: Vec<String> = o
+            .evaluation
+            .metrics
+            .iter()
+            .map(|(m, v)| format!("{m} {v:.4}"))
+            .collect();
+        println!("{}: {} -> {}", o.name, metrics.join(", "), o.dir.display());
+    }
+    Ok(())
+}

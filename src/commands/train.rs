@@ -1,0 +1,36 @@
+//! `calibconv train EXPERIMENT.toml [--resume]`: train, then evaluate, in the run directory.
+
+use std::io::IsTerminal;
+
+use anyhow::{Context, Result};
+
+use calibconv::experiment::{self, DefaultOpener, RunOptions};
+
+use crate::cli::TrainArgs;
+
+pub fn run(args: TrainArgs) -> Result<()> {
+    let exp = experiment::load(&args.experiment)
+        .with_context(|| format!("cannot use experiment {}", args.experiment.display()))?;
+    let opts = RunOptions {
+        resume: args.resume,
+        progress: !args.quiet && std::io::stderr().is_terminal(),
+        verbose: !args.quiet,
+        opener: &DefaultOpener,
+    };
+    let outcome =
+        experiment::train(&exp, &opts).with_context(|| format!("training {} failed", exp.name))?;
+    let s = &outcome.summary;
+    println!(
+        "{}: {} steps, loss {:.4} -> {:.4}, {:.1} images/s{}; run directory {}",
+        exp.name,
+        s.steps,
+        s.first_loss,
+        s.last_loss,
+        s.images_per_s,
+        s.best
+            .map(|(m, v, step)| format!(", best {m} {v:.4} at step {step}"))
+            .unwrap_or_default(),
+        exp.run_dir.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,672 @@
+//! Evaluation: run a network over a [`BatchSource`] and accumulate the paper's metrics over the
+//! whole set, overall and per radial bin (see [`metrics`] for the definitions), plus a few
+//! prediction pictures. [`Evaluation::write`] writes `metrics.json`, `metrics.csv`,
+//! `radial.csv` and `predictions/*.png`.
+//!
+//! The network runs in eval mode (BatchNorm running statistics) without gradients; batches are
+//! moved to the requested device. Radial distances are measured in network-input pixels from
+//! the principal point of the camera scaled to the input ([`principal_point`]).
+
+pub mod loss;
+pub mod metrics;
+pub mod visual;
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Instant;
+
+use image::RgbImage;
+use serde_json::json;
+use tch::{Device, Kind, Tensor};
+
+use crate::camera::{Camera, CameraModel};
+use crate::data::BatchSource;
+use crate::error::{Error, Result};
+use crate::io::write_bytes_atomic;
+use crate::kernel::InputFrame;
+use crate::nn::{Head, UNet};
+use loss::{depth_loss, segmentation_loss, DepthLoss};
+use metrics::{
+    confusions, depth_sums, DepthSums, MeanStd, Metric, RadialBins, SegScores, DEPTH_METRICS,
+    SEGMENTATION_METRICS,
+};
+
+/// How to evaluate.
+#[derive(Clone, Debug)]
+pub struct EvalOptions {
+    /// Radial bins (built for the input size, around the principal point).
+    pub bins: RadialBins,
+    /// Prediction pictures to keep: the first `panels` samples in the source's order.
+    pub panels: usize,
+    /// The loss reported as [`Metric::Loss`] (depth; segmentation uses cross-entropy).
+    pub depth_loss: DepthLoss,
+    pub device: Device,
+    /// Show a progress bar on stderr.
+    pub progress: bool,
+}
+
+/// One radial bin's results.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RadialRow {
+    /// Bin index and its distance range `[r_lo, r_hi)` in input pixels.
+    pub bin: usize,
+    pub r_lo: f64,
+    pub r_hi: f64,
+    /// Valid pixels of the set in the bin.
+    pub pixels: u64,
+    /// Images with at least one valid pixel in the bin.
+    pub images: u64,
+    /// Per metric: pooled over the bin's pixels, and mean and std over images.
+    pub values: Vec<(Metric, f64, f64, f64)>,
+}
+
+/// The result of [`evaluate`].
+#[derive(Clone, Debug)]
+pub struct Evaluation {
+    /// What the network predicts.
+    pub head: Head,
+    /// Samples evaluated and valid pixels among them.
+    pub images: u64,
+    pub pixels: u64,
+    /// [`Metric::Loss`] then the task's metrics, pooled over the set.
+    pub metrics: Vec<(Metric, f64)>,
+    /// The task's metrics averaged over images (each image's own metric).
+    pub per_image_mean: Vec<(Metric, f64)>,
+    /// Segmentation: per-class scores of the whole-set confusion matrix.
+    pub classes: Option<SegScores>,
+    pub radial: Vec<RadialRow>,
+    /// `(sample id, picture)` for the first samples.
+    pub panels: Vec<(String, RgbImage)>,
+    /// Wall time of the evaluation.
+    pub seconds: f64,
+}
+
+impl Evaluation {
+    /// The value of `m`, if this task has it.
+    pub fn metric(&self, m: Metric) -> Option<f64> {
+        self.metrics.iter().find(|(k, _)| *k == m).map(|(_, v)| *v)
+    }
+
+    /// `metrics.json` (with `about` merged in at the top level), `metrics.csv` (a header of
+    /// metric names and one row), `radial.csv`, and `predictions/<id>.png`, all written
+    /// atomically into `dir`.
+    pub fn write(&self, dir: &Path, about: &serde_json::Value) -> Result<()> {
+        let mut doc = json!({
+            "task": self.head.task_name(),
+            "images": self.images,
+            "pixels": self.pixels,
+            "seconds": self.seconds,
+            "metrics": pairs_to_json(&self.metrics),
+            "per_image_mean": pairs_to_json(&self.per_image_mean),
+            "radial_bins": self.radial.len(),
+        });
+        if let Some(c) = &self.classes {
+            let names = class_names(c.iou.len());
+            let per_class: serde_json::Map<String, serde_json::Value> = names
+                .iter()
+                .enumerate()
+                .map(|(i, n)| {
+                    (
+                        n.clone(),
+                        json!({"iou": c.iou[i], "acc": c.acc[i], "pixels": c.support[i]}),
+                    )
+                })
+                .collect();
+            doc["classes"] = serde_json::Value::Object(per_class);
+        }
+        if let (Some(obj), Some(about)) = (doc.as_object_mut(), about.as_object()) {
+            for (k, v) in about {
+                obj.insert(k.clone(), v.clone());
+            }
+        }
+        let text = serde_json::to_string_pretty(&doc).expect("json");
+        write_bytes_atomic(&dir.join("metrics.json"), text.as_bytes())?;
+
+        let header: Vec<&str> = self.metrics.iter().map(|(m, _)| m.name()).collect();
+        let row: Vec<String> = self.metrics.iter().map(|(_, v)| fmt_f64(*v)).collect();
+        let csv = format!(
+            "images,pixels,{}\n{},{},{}\n",
+            header.join(","),
+            self.images,
+            self.pixels,
+            row.join(",")
+        );
+        write_bytes_atomic(&dir.join("metrics.csv"), csv.as_bytes())?;
+
+        let mut radial = String::from("bin,r_lo,r_hi,pixels,images");
+        if let Some(first) = self.radial.first() {
+            for (m, ..) in &first.values {
+                radial += &format!(",{m},{m}_mean,{m}_std");
+            }
+        }
+        radial.push('\n');
+        for r in &self.radial {
+            radial += &format!(
+                "{},{},{},{},{}",
+                r.bin,
+                fmt_f64(r.r_lo),
+                fmt_f64(r.r_hi),
+                r.pixels,
+                r.images
+            );
+            for (_, pooled, mean, std) in &r.values {
+                radial += &format!(",{},{},{}", fmt_f64(*pooled), fmt_f64(*mean), fmt_f64(*std));
+            }
+            radial.push('\n');
+        }
+        write_bytes_atomic(&dir.join("radial.csv"), radial.as_bytes())?;
+
+        for (id, img) in &self.panels {
+            let path = dir
+                .join("predictions")
+                .join(format!("{}.png", sanitize(id)));
+            let mut bytes = Vec::new();
+            img.write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .map_err(|e| Error::Image {
+                path: path.clone(),
+                message: e.to_string(),
+            })?;
+            write_bytes_atomic(&path, &bytes)?;
+        }
+        Ok(())
+    }
+}
+
+/// The class names for `n` classes: the Stanford names if `n` matches, else `class0..`.
+pub fn class_names(n: usize) -> Vec<String> {
+    if n == crate::data::NUM_CLASSES {
+        crate::data::CLASSES.iter().map(|s| s.to_string()).collect()
+    } else {
+        (0..n).map(|i| format!("class{i}")).collect()
+    }
+}
+
+/// A float for CSV: empty for NaN (spreadsheets and pandas read it as missing).
+pub fn fmt_f64(v: f64) -> String {
+    if v.is_nan() {
+        String::new()
+    } else {
+        format!("{v}")
+    }
+}
+
+fn pairs_to_json(pairs: &[(Metric, f64)]) -> serde_json::Value {
+    let map: serde_json::Map<String, serde_json::Value> = pairs
+        .iter()
+        .map(|(m, v)| (m.name().to_string(), json!(v.is_finite().then_some(*v))))
+        .collect();
+    serde_json::Value::Object(map)
+}
+
+fn sanitize(id: &str) -> String {
+    id.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "-_.".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// The principal point `[u, v]` of `camera` in a network input of `input_size` `[H, W]` that is
+/// the camera image padded by `frame.padding` and rescaled (the same scaling as the calibrated
+/// offsets), or `None` if the camera cannot project its optical axis.
+pub fn principal_point(
+    camera: &Camera,
+    frame: &InputFrame,
+    input_size: [i64; 2],
+) -> Option<[f64; 2]> {
+    let [w, h] = camera.size();
+    let s = [
+        input_size[1] as f64 / (w + frame.padding[0]) as f64,
+        input_size[0] as f64 / (h + frame.padding[1]) as f64,
+    ];
+    camera
+        .rescaled(s, frame.convention)
+        .project([0.0, 0.0, 1.0])
+}
+
+/// Accumulates one task's statistics.
+enum Acc {
+    Depth {
+        total: DepthSums,
+        bins: Vec<DepthSums>,
+        bin_stats: Vec<[MeanStd; 7]>,
+        image_stats: [MeanStd; 7],
+    },
+    Seg {
+        classes: usize,
+        total: Vec<u64>,
+        bins: Vec<Vec<u64>>,
+        bin_stats: Vec<[MeanStd; 3]>,
+        image_stats: [MeanStd; 3],
+    },
+}
+
+fn add_vec(a: &mut [u64], b: &[u64]) {
+    for (x, y) in a.iter_mut().zip(b) {
+        *x += *y;
+    }
+}
+
+/// A progress bar on stderr with position, rate and ETA (hidden when `enabled` is false or
+/// stderr is not a terminal).
+pub fn progress_bar(len: u64, label: &str, enabled: bool) -> indicatif::ProgressBar {
+    if !enabled {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix:>6} [{bar:30}] {pos}/{len} {msg} ({elapsed} < {eta})",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_prefix(label.to_string());
+    bar
+}
+
+/// Evaluates `model` on every sample of `source` (epoch 0, in the source's order).
+pub fn evaluate(model: &UNet, source: &dyn BatchSource, opts: &EvalOptions) -> Result<Evaluation> {
+    let size = model.input_size();
+    if source.input_size() != size {
+        return Err(Error::InvalidArgument(format!(
+            "the source serves {:?} inputs, the network is built for {size:?}",
+            source.input_size()
+        )));
+    }
+    evaluate_with(model.config().head, source, opts, |x| {
+        model.f_forward_t(x, false)
+    })
+}
+
+/// [`evaluate`] with any predictor: `predict` maps an image batch `[B, 3, H, W]` (on
+/// `opts.device`) to depth `[B, 1, H, W]` or logits `[B, classes, H, W]` as `head` says.
+pub fn evaluate_with(
+    head: Head,
+    source: &dyn BatchSource,
+    opts: &EvalOptions,
+    predict: impl Fn(&Tensor) -> Result<Tensor>,
+) -> Result<Evaluation> {
+    let start = Instant::now();
+    let size = source.input_size();
+    let n_bins = opts.bins.len();
+    let groups = n_bins + 1; // + overflow
+    let bin_map = opts.bins.index_map(size).to_device(opts.device);
+    let mut acc = match head {
+        Head::Depth => Acc::Depth {
+            total: DepthSums::default(),
+            bins: vec![DepthSums::default(); n_bins],
+            bin_stats: vec![Default::default(); n_bins],
+            image_stats: Default::default(),
+        },
+        Head::Segmentation { classes } => {
+            let c = classes as usize;
+            Acc::Seg {
+                classes: c,
+                total: vec![0; c * c],
+                bins: vec![vec![0; c * c]; n_bins],
+                bin_stats: vec![Default::default(); n_bins],
+                image_stats: Default::default(),
+            }
+        }
+    };
+    let (mut images, mut pixels, mut loss_sum, mut loss_weight) = (0u64, 0u64, 0.0f64, 0.0f64);
+    let mut bin_pixels = vec![0u64; n_bins];
+    let mut bin_images = vec![0u64; n_bins];
+    let mut panels = Vec::new();
+    let bar = progress_bar(source.len() as u64, "eval", opts.progress);
+    let _guard = tch::no_grad_guard();
+    for batch in source.batches(0, 0) {
+        let batch = batch?;
+        let b = batch.image.size()[0];
+        let image = batch.image.to_device(opts.device);
+        let mask = batch.mask.to_device(opts.device);
+        let out = predict(&image)?;
+        let group = (Tensor::arange(b, (Kind::Int64, opts.device)).view([-1, 1, 1])
+            * groups as i64)
+            + bin_map.unsqueeze(0);
+        match &mut acc {
+            Acc::Depth {
+                total,
+                bins,
+                bin_stats,
+                image_stats,
+            } => {
+                let gt = batch.depth.to_device(opts.device);
+                let valid = mask.logical_and(&gt.gt(0.0));
+                let n_valid = valid.sum(Kind::Int64).int64_value(&[]) as f64;
+                let l = depth_loss(&out, &gt, &mask, opts.depth_loss)?.double_value(&[]);
+                if n_valid > 0.0 {
+                    loss_sum += l * n_valid;
+                    loss_weight += n_valid;
+                }
+                let sums = depth_sums(&out, &gt, &valid, &group.unsqueeze(1), b as usize * groups)?;
+                for img in sums.chunks(groups) {
+                    let mut whole = DepthSums::default();
+                    img.iter().for_each(|s| whole.add(s));
+                    total.add(&whole);
+                    pixels += whole.count as u64;
+                    if whole.count > 0.0 {
+                        for (st, v) in image_stats.iter_mut().zip(whole.metrics()) {
+                            st.push(v);
+                        }
+                    }
+                    for k in 0..n_bins {
+                        if img[k].count > 0.0 {
+                            bins[k].add(&img[k]);
+                            bin_pixels[k] += img[k].count as u64;
+                            bin_images[k] += 1;
+                            for (st, v) in bin_stats[k].iter_mut().zip(img[k].metrics()) {
+                                st.push(v);
+                            }
+                        }
+                    }
+                }
+                for i in 0..b {
+                    if panels.len() < opts.panels {
+                        panels.push((
+                            batch.ids[i as usize].clone(),
+                            visual::depth_panel(
+                                &batch.image.get(i),
+                                &batch.depth.get(i),
+                                &out.get(i).to_device(Device::Cpu),
+                                &batch.mask.get(i),
+                            )?,
+                        ));
+                    }
+                }
+            }
+            Acc::Seg {
+                classes,
+                total,
+                bins,
+                bin_stats,
+                image_stats,
+            } => {
+                let labels = batch.labels.to_device(opts.device);
+                let c = *classes;
+                let valid = labels.ge(0).logical_and(&labels.lt(c as i64));
+                let n_valid = valid.sum(Kind::Int64).int64_value(&[]) as f64;
+                let l = segmentation_loss(&out, &labels)?.double_value(&[]);
+                if n_valid > 0.0 {
+                    loss_sum += l * n_valid;
+                    loss_weight += n_valid;
+                }
+                let pred = out.argmax(1, false);
+                let cms = confusions(&pred, &labels, &group, c, b as usize * groups)?;
+                for img in cms.chunks(groups) {
+                    let mut whole = vec![0u64; c * c];
+                    img.iter().for_each(|cm| add_vec(&mut whole, cm));
+                    add_vec(total, &whole);
+                    let n: u64 = whole.iter().sum();
+                    pixels += n;
+                    if n > 0 {
+                        let s = SegScores::from_confusion(&whole, c).metrics();
+                        for (st, v) in image_stats.iter_mut().zip(s) {
+                            st.push(v);
+                        }
+                    }
+                    for k in 0..n_bins {
+                        let n: u64 = img[k].iter().sum();
+                        if n > 0 {
+                            add_vec(&mut bins[k], &img[k]);
+                            bin_pixels[k] += n;
+                            bin_images[k] += 1;
+                            let s = SegScores::from_confusion(&img[k], c).metrics();
+                            for (st, v) in bin_stats[k].iter_mut().zip(s) {
+                                st.push(v);
+                            }
+                        }
+                    }
+                }
+                let pred_cpu = pred.to_device(Device::Cpu);
+                for i in 0..b {
+                    if panels.len() < opts.panels {
+                        panels.push((
+                            batch.ids[i as usize].clone(),
+                            visual::segmentation_panel(
+                                &batch.image.get(i),
+                                &batch.labels.get(i),
+                                &pred_cpu.get(i),
+                                &batch.mask.get(i),
+                            )?,
+                        ));
+                    }
+                }
+            }
+        }
+        images += b as u64;
+        bar.inc(b as u64);
+    }
+    bar.finish_and_clear();
+    if images == 0 {
+        return Err(Error::InvalidArgument(
+            "the evaluation source has no samples".into(),
+        ));
+    }
+    let loss = if loss_weight > 0.0 {
+        loss_sum / loss_weight
+    } else {
+        f64::NAN
+    };
+    let row = |k: usize, values: Vec<(Metric, f64, f64, f64)>| RadialRow {
+        bin: k,
+        r_lo: opts.bins.edges[k],
+        r_hi: opts.bins.edges[k + 1],
+        pixels: bin_pixels[k],
+        images: bin_images[k],
+        values,
+    };
+    let (metrics, per_image_mean, classes, radial) = match acc {
+        Acc::Depth {
+            total,
+            bins,
+            bin_stats,
+            image_stats,
+        } => {
+            let m: Vec<(Metric, f64)> =
+                DEPTH_METRICS.iter().copied().zip(total.metrics()).collect();
+            let pim = DEPTH_METRICS
+                .iter()
+                .zip(&image_stats)
+                .map(|(m, s)| (*m, s.mean()))
+                .collect();
+            let radial = (0..n_bins)
+                .map(|k| {
+                    let pooled = bins[k].metrics();
+                    row(
+                        k,
+                        DEPTH_METRICS
+                            .iter()
+                            .enumerate()
+                            .map(|(i, m)| {
+                                (*m, pooled[i], bin_stats[k][i].mean(), bin_stats[k][i].std())
+                            })
+                            .collect(),
+                    )
+                })
+                .collect();
+            (m, pim, None, radial)
+        }
+        Acc::Seg {
+            classes,
+            total,
+            bins,
+            bin_stats,
+            image_stats,
+        } => {
+            let scores = SegScores::from_confusion(&total, classes);
+            let m: Vec<(Metric, f64)> = SEGMENTATION_METRICS
+                .iter()
+                .copied()
+                .zip(scores.metrics())
+                .collect();
+            let pim = SEGMENTATION_METRICS
+                .iter()
+                .zip(&image_stats)
+                .map(|(m, s)| (*m, s.mean()))
+                .collect();
+            let radial = (0..n_bins)
+                .map(|k| {
+                    let pooled = SegScores::from_confusion(&bins[k], classes).metrics();
+                    row(
+                        k,
+                        SEGMENTATION_METRICS
+                            .iter()
+                            .enumerate()
+                            .map(|(i, m)| {
+                                (*m, pooled[i], bin_stats[k][i].mean(), bin_stats[k][i].std())
+                            })
+                            .collect(),
+                    )
+                })
+                .collect();
+            (m, pim, Some(scores), radial)
+        }
+    };
+    let mut all = vec![(Metric::Loss, loss)];
+    all.extend(metrics);
+    Ok(Evaluation {
+        head,
+        images,
+        pixels,
+        metrics: all,
+        per_image_mean,
+        classes,
+        radial,
+        panels,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The metrics of an evaluation as a name -> value map (for checkpoint metadata and logs).
+pub fn metric_map(e: &Evaluation) -> BTreeMap<String, f64> {
+    e.metrics
+        .iter()
+        .map(|(m, v)| (m.name().to_string(), *v))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::memory::MemorySource;
+
+    /// float64 sums of a few values: rounding only.
+    const TOL: f64 = 1e-12;
+
+    #[test]
+    fn pooled_per_image_and_radial_values_by_hand() {
+        // Two 1x4 images, ground truth 1 m everywhere; the predictor returns the image's first
+        // channel: image 0 predicts [1, 2, 1, 1], image 1 predicts [1, 1, 1, 3] with its first
+        // pixel masked out. Bins around (u, v) = (0, 0) of width 2: u = 0, 1 | u = 2, 3.
+        let pred = Tensor::from_slice(&[1f32, 2., 1., 1., 1., 1., 1., 3.]).view([2, 1, 1, 4]);
+        let image = pred.repeat([1, 3, 1, 1]);
+        let mask = Tensor::from_slice(&[true, true, true, true, false, true, true, true])
+            .view([2, 1, 1, 4]);
+        let source = MemorySource::new(
+            image,
+            pred.ones_like(),
+            Tensor::zeros([2, 1, 4], (Kind::Int64, Device::Cpu)),
+            mask,
+            vec!["a".into(), "b/c".into()],
+            2,
+            None,
+        )
+        .unwrap();
+        let opts = EvalOptions {
+            bins: RadialBins::new([0.0, 0.0], [1, 4], 2, Some(4.0)).unwrap(),
+            panels: 1,
+            depth_loss: DepthLoss::L1,
+            device: Device::Cpu,
+            progress: false,
+        };
+        let e = evaluate_with(Head::Depth, &source, &opts, |x| Ok(x.narrow(1, 0, 1))).unwrap();
+        assert_eq!((e.images, e.pixels), (2, 7));
+        // Errors: image 0 [0, 1, 0, 0], image 1 [-, 0, 0, 2]. Pooled MAE 3/7; L1 loss the same.
+        assert!((e.metric(Metric::Mae).unwrap() - 3.0 / 7.0).abs() < TOL);
+        assert!((e.metric(Metric::Loss).unwrap() - 3.0 / 7.0).abs() < 1e-7);
+        // Per-image MAE 1/4 and 2/3.
+        let pim = e
+            .per_image_mean
+            .iter()
+            .find(|(m, _)| *m == Metric::Mae)
+            .unwrap()
+            .1;
+        assert!((pim - (0.25 + 2.0 / 3.0) / 2.0).abs() < TOL);
+        // Bin 0: pixels 2 + 1, pooled 1/3, per image 1/2 and 0 -> mean 1/4, std 1/4.
+        // Bin 1: pixels 2 + 2, pooled 2/4, per image 0 and 1 -> mean 1/2, std 1/2.
+        let mae = |r: &RadialRow| *r.values.iter().find(|v| v.0 == Metric::Mae).unwrap();
+        let (r0, r1) = (&e.radial[0], &e.radial[1]);
+        assert_eq!((r0.pixels, r0.images, r1.pixels, r1.images), (3, 2, 4, 2));
+        let (_, p, m, s) = mae(r0);
+        assert!((p - 1.0 / 3.0).abs() < TOL && (m - 0.25).abs() < TOL && (s - 0.25).abs() < TOL);
+        let (_, p, m, s) = mae(r1);
+        assert!((p - 0.5).abs() < TOL && (m - 0.5).abs() < TOL && (s - 0.5).abs() < TOL);
+        assert_eq!(e.panels.len(), 1);
+
+        let dir = tempfile::tempdir().unwrap();
+        e.write(dir.path(), &json!({"evaluation": "unit"})).unwrap();
+        let csv = std::fs::read_to_string(dir.path().join("metrics.csv")).unwrap();
+        assert!(
+            csv.starts_with("images,pixels,loss,mre,mae,rmse,rmse_log,delta1,delta2,delta3\n2,7,")
+        );
+        let radial = std::fs::read_to_string(dir.path().join("radial.csv")).unwrap();
+        assert!(
+            radial.starts_with("bin,r_lo,r_hi,pixels,images,mre,mre_mean,mre_std,"),
+            "{radial}"
+        );
+        assert_eq!(radial.lines().count(), 3);
+        let doc: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("metrics.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(doc["evaluation"], "unit");
+        assert!(dir.path().join("predictions/a.png").exists());
+    }
+
+    #[test]
+    fn segmentation_uses_one_confusion_matrix_over_the_set() {
+        // Two 1x2 images, 2 classes. Image 0: gt [0, 1] pred [0, 0]; image 1: gt [1, 1] pred
+        // [1, 1]. Whole set: TP0 = 1, FP0 = 1, TP1 = 2, FN1 = 1 -> IoU0 = 1/2, IoU1 = 2/3.
+        // (The mean of per-image mIoUs would be (1/2 * (1/2 + 0) + 1) / 2 = 5/8 instead.)
+        let logits = Tensor::from_slice(&[1f32, 1., 0., 0., 0., 0., 1., 1.]).view([2, 2, 1, 2]);
+        let image = Tensor::zeros([2, 3, 1, 2], (Kind::Float, Device::Cpu));
+        let source = MemorySource::new(
+            image,
+            Tensor::ones([2, 1, 1, 2], (Kind::Float, Device::Cpu)),
+            Tensor::from_slice(&[0i64, 1, 1, 1]).view([2, 1, 2]),
+            Tensor::ones([2, 1, 1, 2], (Kind::Bool, Device::Cpu)),
+            vec!["a".into(), "b".into()],
+            1,
+            None,
+        )
+        .unwrap();
+        let opts = EvalOptions {
+            bins: RadialBins::new([0.0, 0.0], [1, 2], 1, None).unwrap(),
+            panels: 0,
+            depth_loss: DepthLoss::L1,
+            device: Device::Cpu,
+            progress: false,
+        };
+        let calls = std::cell::Cell::new(0);
+        let e = evaluate_with(Head::Segmentation { classes: 2 }, &source, &opts, |_| {
+            let i = calls.get();
+            calls.set(i + 1);
+            Ok(logits.narrow(0, i, 1))
+        })
+        .unwrap();
+        assert!((e.metric(Metric::MIoU).unwrap() - (0.5 + 2.0 / 3.0) / 2.0).abs() < TOL);
+        // mAcc: class 0 1/1, class 1 2/3.
+        assert!((e.metric(Metric::MAcc).unwrap() - (1.0 + 2.0 / 3.0) / 2.0).abs() < TOL);
+        assert!((e.metric(Metric::PixelAcc).unwrap() - 0.75).abs() < TOL);
+        assert_eq!(e.classes.unwrap().support, [1, 3]);
+    }
+}

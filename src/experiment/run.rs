@@ -1,0 +1,535 @@
+//! Running an [`Experiment`]: its run directory, training, and the evaluations after it.
+//!
+//! ```text
+//! OUTPUT/NAME/
+//!   experiment.toml        the experiment file as given (the last invocation's)
+//!   config.json            the resolved experiment: every default, absolute paths
+//!   run.json               one record per invocation: command, time, git revision, device
+//!   checkpoints/           last.safetensors, last.optim.safetensors, best.safetensors
+//!   train.csv  val.csv     training and validation scalars by step
+//!   tb/                    TensorBoard event files (`tensorboard --logdir OUTPUT`)
+//!   summary.json           what the last training call did (steps, losses, best, throughput)
+//!   eval/EVAL/             metrics.json, metrics.csv, radial.csv, predictions/*.png
+//!   evaluations.csv        one row per evaluation in eval/ (rebuilt after every evaluation)
+//! ```
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use serde_json::json;
+use tch::nn::VarStore;
+
+use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
+use crate::error::{Error, Result};
+use crate::eval::metrics::{RadialBins, ALL_METRICS};
+use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
+use crate::io::write_bytes_atomic;
+use crate::nn::UNet;
+use crate::report::csv::CsvLog;
+use crate::report::tensorboard::TensorBoard;
+use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
+use crate::train::{self, best_path, last_path, Reporter, TrainConfig, TrainRun, TrainSummary};
+
+/// How to run.
+#[derive(Clone, Copy)]
+pub struct RunOptions<'a> {
+    /// Continue the run in the run directory (training only).
+    pub resume: bool,
+    /// Progress bars on stderr.
+    pub progress: bool,
+    /// Status lines on stderr.
+    pub verbose: bool,
+    /// Opens the data sources ([`super::DefaultOpener`] on the command line).
+    pub opener: &'a dyn SourceOpener,
+}
+
+/// One finished evaluation.
+#[derive(Debug)]
+pub struct EvalOutcome {
+    pub name: String,
+    /// Where its files are.
+    pub dir: PathBuf,
+    /// The checkpoint evaluated.
+    pub checkpoint: PathBuf,
+    pub evaluation: Evaluation,
+}
+
+/// A finished training call and the evaluations after it.
+#[derive(Debug)]
+pub struct TrainOutcome {
+    pub summary: TrainSummary,
+    pub evaluations: Vec<EvalOutcome>,
+}
+
+/// The checkpoint folder of a run.
+pub fn checkpoint_dir(exp: &Experiment) -> PathBuf {
+    exp.run_dir.join("checkpoints")
+}
+
+/// `git describe --always --dirty` of the current directory, if git answers.
+pub fn git_revision() -> Option<String> {
+    let out = std::process::Command::new("git")
+        .args(["describe", "--always", "--dirty", "--abbrev=12"])
+        .output()
+        .ok()?;
+    out.status
+        .success()
+        .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+        .filter(|s| !s.is_empty())
+}
+
+/// Builds the experiment's U-Net under `vs` for `kernel` on `input`, initialised from the
+/// experiment's seed (see [`train::seeded`]).
+pub fn build_model(
+    exp: &Experiment,
+    vs: &VarStore,
+    kernel: KernelName,
+    input: &InputSpec,
+) -> Result<UNet> {
+    train::seeded(exp.seed, || {
+        UNet::new(&vs.root(), &exp.model, &input.conv_kind(kernel), input.size)
+    })
+}
+
+/// The best checkpoint of a run directory's `checkpoints/`, else its last, if any.
+pub fn best_or_last(dir: &Path) -> Option<PathBuf> {
+    [best_path(dir), last_path(dir)]
+        .into_iter()
+        .find(|p| p.is_file())
+}
+
+fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(value).expect("json");
+    write_bytes_atomic(path, text.as_bytes())
+}
+
+/// Appends an invocation record to `run.json`.
+fn record_invocation(exp: &Experiment, command: &str, extra: serde_json::Value) -> Result<()> {
+    let path = exp.run_dir.join("run.json");
+    let mut doc: serde_json::Value = std::fs::read_to_string(&path)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_else(|| json!({"experiment": exp.name, "invocations": []}));
+    let record = json!({
+        "command": command,
+        "unix_time": std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0),
+        "git": git_revision(),
+        "calibconv_version": env!("CARGO_PKG_VERSION"),
+        "device": exp.device,
+        "resolved_device": exp.device().ok().map(|d| format!("{d:?}")),
+        "torch_threads": tch::get_num_threads(),
+        "args": std::env::args().collect::<Vec<_>>(),
+        "details": extra,
+    });
+    if let Some(list) = doc["invocations"].as_array_mut() {
+        list.push(record);
+    }
+    write_json(&path, &doc)
+}
+
+fn source_for<'a>(
+    spec: &'a super::SourceSpec,
+    input: &'a InputSpec,
+    batch_size: usize,
+    shuffle: Option<u64>,
+) -> SourceRequest<'a> {
+    SourceRequest {
+        spec,
+        batch_size,
+        shuffle,
+        input_size: input.size,
+        camera: &input.camera,
+        frame: input.frame(),
+    }
+}
+
+fn radial_bins(input: &InputSpec, n: usize, r_max: Option<f64>) -> Result<RadialBins> {
+    let centre = principal_point(&input.camera, &input.frame(), input.size).unwrap_or([
+        (input.size[1] - 1) as f64 / 2.0,
+        (input.size[0] - 1) as f64 / 2.0,
+    ]);
+    RadialBins::new(centre, input.size, n, r_max)
+}
+
+/// Resolves the initial checkpoint of `exp` (an error if it names a missing file).
+pub fn init_checkpoint(exp: &Experiment) -> Result<Option<PathBuf>> {
+    match &exp.init {
+        None => Ok(None),
+        Some(InitSpec::Checkpoint(p)) => {
+            if p.is_file() {
+                Ok(Some(p.clone()))
+            } else {
+                Err(Error::Config {
+                    path: exp.file.clone(),
+                    field: "model.init.checkpoint".into(),
+                    message: format!("{}: no such file", p.display()),
+                })
+            }
+        }
+        Some(InitSpec::Experiment { name, checkpoints }) => best_or_last(checkpoints)
+            .map(Some)
+            .ok_or_else(|| Error::Config {
+                path: exp.file.clone(),
+                field: "model.init.experiment".into(),
+                message: format!(
+                    "experiment `{name}` has no checkpoint in {} yet: train it first",
+                    checkpoints.display()
+                ),
+            }),
+    }
+}
+
+/// Trains `exp` (from scratch, from its initial checkpoint, or resumed), then runs its
+/// evaluations on the best checkpoint.
+pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
+    let device = exp.device()?;
+    let ckdir = checkpoint_dir(exp);
+    let last = last_path(&ckdir);
+    if opts.resume && !last.is_file() {
+        return Err(Error::Checkpoint {
+            path: last,
+            message: "nothing to resume: no checkpoint yet".into(),
+        });
+    }
+    if !opts.resume && last.exists() {
+        return Err(Error::Checkpoint {
+            path: last,
+            message: format!(
+                "run `{}` already has checkpoints: resume it (--resume), or rename the \
+                 experiment / remove {}",
+                exp.name,
+                exp.run_dir.display()
+            ),
+        });
+    }
+    std::fs::create_dir_all(&ckdir).map_err(|e| Error::io(&ckdir, e))?;
+    let stored = exp.run_dir.join("experiment.toml");
+    if opts.resume && opts.verbose {
+        if let Ok(old) = std::fs::read_to_string(&stored) {
+            if old != exp.text {
+                eprintln!(
+                    "warning: {} changed since the run started; resuming with the new file",
+                    exp.file.display()
+                );
+            }
+        }
+    }
+    // The files that describe the run: written now for a new run; for a resumed one only once
+    // it has resumed (a refused resume leaves the run's description alone).
+    let describe_run = || -> Result<()> {
+        write_bytes_atomic(&stored, exp.text.as_bytes())?;
+        write_json(
+            &exp.run_dir.join("config.json"),
+            &serde_json::to_value(exp).expect("experiment serialises"),
+        )
+    };
+    if !opts.resume {
+        describe_run()?;
+    }
+
+    let vs = VarStore::new(device);
+    let model = build_model(exp, &vs, exp.kernel, &exp.input)?;
+    let mut init_from = None;
+    let mut resume_step = None;
+    if opts.resume {
+        let info = TensorFile::open(&last)?.info()?;
+        resume_step = info.map(|i| i.step);
+    } else if let Some(path) = init_checkpoint(exp)? {
+        checkpoint::load(&path, &vs, &exp.model)?;
+        init_from = Some(path);
+    }
+    record_invocation(
+        exp,
+        "train",
+        json!({"resume": opts.resume, "resume_step": resume_step, "init": init_from}),
+    )?;
+
+    let t = &exp.train;
+    let train_src = opts.opener.open(&source_for(
+        &exp.train_data,
+        &exp.input,
+        t.batch_size,
+        Some(exp.seed),
+    ))?;
+    let val_src = match &exp.val_data {
+        Some(spec) => {
+            Some(
+                opts.opener
+                    .open(&source_for(spec, &exp.input, t.eval_batch_size, None))?,
+            )
+        }
+        None => None,
+    };
+    let val_opts = EvalOptions {
+        bins: radial_bins(&exp.input, t.radial_bins, None)?,
+        panels: t.images,
+        depth_loss: t.depth_loss,
+        device,
+        progress: false,
+    };
+    let per_epoch = train_src.len().div_ceil(t.batch_size) as u64;
+    let cfg = TrainConfig {
+        length: t.length,
+        batch_size: t.batch_size,
+        adam: t.adam,
+        schedule: t.schedule,
+        depth_loss: t.depth_loss,
+        val_every: Some(t.val_every.unwrap_or(per_epoch)),
+        val_metric: t.val_metric,
+        log_every: t.log_every,
+        checkpoint_every: t.checkpoint_every,
+        device,
+        progress: opts.progress,
+        verbose: opts.verbose,
+    };
+    let info = CheckpointInfo {
+        format: FORMAT.into(),
+        version: FORMAT_VERSION,
+        model: exp.model,
+        input_size: exp.input.size,
+        kernel: exp.kernel.as_str().into(),
+        camera_file: Some(exp.input.camera_file.clone()),
+        camera_toml: Some(exp.input.camera_toml.clone()),
+        padding: exp.input.padding,
+        experiment: Some(exp.name.clone()),
+        step: 0,
+        epoch: 0,
+        batch_in_epoch: 0,
+        metrics: Default::default(),
+        git: git_revision(),
+    };
+    let mut reporters: Vec<Box<dyn Reporter>> = vec![
+        Box::new(TensorBoard::create(&exp.run_dir.join("tb"))?),
+        Box::new(CsvLog::create(&exp.run_dir, resume_step)?),
+    ];
+    if opts.verbose {
+        eprintln!(
+            "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
+            exp.name,
+            checkpoint::describe(&exp.model),
+            exp.kernel.as_str(),
+            exp.input.size[0],
+            exp.input.size[1],
+            train_src.len(),
+            val_src
+                .as_ref()
+                .map(|v| format!(", {} val", v.len()))
+                .unwrap_or_default(),
+            device,
+            exp.run_dir.display()
+        );
+    }
+    let summary = train::train(
+        TrainRun {
+            model: &model,
+            vs: &vs,
+            train: train_src.as_ref(),
+            val: val_src.as_deref().map(|s| (s, val_opts)),
+            checkpoint_dir: &ckdir,
+            info,
+            reporter: &mut reporters,
+            resume: opts.resume,
+        },
+        &cfg,
+    )?;
+    drop(reporters); // closes the event file
+    if opts.resume {
+        describe_run()?;
+    }
+    write_json(
+        &exp.run_dir.join("summary.json"),
+        &json!({
+            "experiment": exp.name,
+            "steps": summary.steps,
+            "steps_this_run": summary.steps_this_run,
+            "first_loss": summary.first_loss,
+            "last_loss": summary.last_loss,
+            "best": summary.best.map(|(m, v, s)| json!({"metric": m.name(), "value": v, "step": s})),
+            "images_per_s": summary.images_per_s,
+            "seconds": summary.seconds,
+            "last_checkpoint": summary.last_checkpoint,
+            "best_checkpoint": summary.best_checkpoint,
+        }),
+    )?;
+    if opts.verbose {
+        eprintln!(
+            "trained {} steps in {:.1} s ({:.1} images/s); loss {:.4} -> {:.4}",
+            summary.steps_this_run,
+            summary.seconds,
+            summary.images_per_s,
+            summary.first_loss,
+            summary.last_loss
+        );
+    }
+    let evaluations = evaluate(exp, None, &[], opts)?;
+    Ok(TrainOutcome {
+        summary,
+        evaluations,
+    })
+}
+
+/// Runs the evaluations of `exp` named in `only` (all if empty) on `checkpoint` (default: the
+/// run's best, else its last), writing `eval/NAME/` and `evaluations.csv`.
+pub fn evaluate(
+    exp: &Experiment,
+    checkpoint: Option<&Path>,
+    only: &[String],
+    opts: &RunOptions<'_>,
+) -> Result<Vec<EvalOutcome>> {
+    let names: Vec<&str> = exp.evals.iter().map(|e| e.name.as_str()).collect();
+    for o in only {
+        if !names.contains(&o.as_str()) {
+            let hint = super::suggest::nearest(o, &names)
+                .map(|b| format!("; did you mean `{b}`?"))
+                .unwrap_or_default();
+            return Err(Error::Config {
+                path: exp.file.clone(),
+                field: "eval".into(),
+                message: format!(
+                    "no evaluation named `{o}` (it has: {}){hint}",
+                    if names.is_empty() {
+                        "none".to_string()
+                    } else {
+                        names.join(", ")
+                    }
+                ),
+            });
+        }
+    }
+    let selected: Vec<&EvalSpec> = exp
+        .evals
+        .iter()
+        .filter(|e| only.is_empty() || only.contains(&e.name))
+        .collect();
+    if selected.is_empty() {
+        return Ok(Vec::new());
+    }
+    let ckpt = match checkpoint {
+        Some(p) => p.to_path_buf(),
+        None => best_or_last(&checkpoint_dir(exp)).ok_or_else(|| Error::Checkpoint {
+            path: checkpoint_dir(exp),
+            message: "no checkpoint to evaluate: train the experiment first or pass one".into(),
+        })?,
+    };
+    let device = exp.device()?;
+    std::fs::create_dir_all(&exp.run_dir).map_err(|e| Error::io(&exp.run_dir, e))?;
+    record_invocation(
+        exp,
+        "eval",
+        json!({"checkpoint": ckpt, "evaluations": selected.iter().map(|e| &e.name).collect::<Vec<_>>()}),
+    )?;
+    let info = TensorFile::open(&ckpt)?.info()?;
+    let mut out = Vec::new();
+    for spec in selected {
+        let vs = VarStore::new(device);
+        let model = build_model(exp, &vs, spec.kernel, &spec.input)?;
+        checkpoint::load(&ckpt, &vs, &exp.model)?;
+        let source =
+            opts.opener
+                .open(&source_for(&spec.data, &spec.input, spec.batch_size, None))?;
+        let eopts = EvalOptions {
+            bins: radial_bins(&spec.input, spec.radial_bins, spec.radial_max)?,
+            panels: spec.images,
+            depth_loss: exp.train.depth_loss,
+            device,
+            progress: opts.progress,
+        };
+        let e = eval::evaluate(&model, source.as_ref(), &eopts)?;
+        let dir = exp.run_dir.join("eval").join(&spec.name);
+        let about = json!({
+            "experiment": exp.name,
+            "evaluation": spec.name,
+            "data": spec.data.describe(),
+            "kernel": spec.kernel.as_str(),
+            "camera_file": spec.input.camera_file,
+            "input_size": spec.input.size,
+            "padding": spec.input.padding,
+            "principal_point": eopts.bins.centre,
+            "radial_edges": eopts.bins.edges,
+            "checkpoint": ckpt,
+            "checkpoint_step": info.as_ref().map(|i| i.step),
+            "git": git_revision(),
+        });
+        e.write(&dir, &about)?;
+        if opts.verbose {
+            let line: Vec<String> = e
+                .metrics
+                .iter()
+                .map(|(m, v)| format!("{m} {v:.4}"))
+                .collect();
+            eprintln!(
+                "eval {} ({}, {} kernels, {} images): {}",
+                spec.name,
+                spec.data.describe(),
+                spec.kernel.as_str(),
+                e.images,
+                line.join(", ")
+            );
+        }
+        out.push(EvalOutcome {
+            name: spec.name.clone(),
+            dir,
+            checkpoint: ckpt.clone(),
+            evaluation: e,
+        });
+    }
+    write_evaluations_csv(&exp.run_dir)?;
+    Ok(out)
+}
+
+/// Rebuilds `RUN/evaluations.csv` from every `RUN/eval/*/metrics.json`: one row per
+/// evaluation (sorted by name), columns `evaluation, data, kernel, checkpoint_step, images`
+/// then every metric any of them has.
+pub fn write_evaluations_csv(run_dir: &Path) -> Result<()> {
+    let eval_dir = run_dir.join("eval");
+    let mut docs = Vec::new();
+    if let Ok(entries) = std::fs::read_dir(&eval_dir) {
+        for entry in entries.flatten() {
+            let p = entry.path().join("metrics.json");
+            if let Ok(text) = std::fs::read_to_string(&p) {
+                let doc: serde_json::Value = serde_json::from_str(&text)
+                    .map_err(|e| Error::InvalidArgument(format!("{}: {e}", p.display())))?;
+                docs.push(doc);
+            }
+        }
+    }
+    docs.sort_by(|a, b| a["evaluation"].as_str().cmp(&b["evaluation"].as_str()));
+    let present: BTreeSet<&str> = docs
+        .iter()
+        .filter_map(|d| d["metrics"].as_object())
+        .flat_map(|m| m.keys().map(|k| k.as_str()))
+        .collect();
+    let metrics: Vec<&str> = ALL_METRICS
+        .iter()
+        .map(|m| m.name())
+        .filter(|m| present.contains(m))
+        .collect();
+    let mut csv = format!(
+        "evaluation,data,kernel,checkpoint_step,images,{}\n",
+        metrics.join(",")
+    );
+    for d in &docs {
+        let s = |k: &str| match &d[k] {
+            serde_json::Value::String(s) => s.replace(',', ";"),
+            serde_json::Value::Null => String::new(),
+            v => v.to_string(),
+        };
+        let values: Vec<String> = metrics
+            .iter()
+            .map(|m| fmt_f64(d["metrics"][*m].as_f64().unwrap_or(f64::NAN)))
+            .collect();
+        csv += &format!(
+            "{},{},{},{},{},{}\n",
+            s("evaluation"),
+            s("data"),
+            s("kernel"),
+            s("checkpoint_step"),
+            s("images"),
+            values.join(",")
+        );
+    }
+    write_bytes_atomic(&run_dir.join("evaluations.csv"), csv.as_bytes())
+}

@@ -1,0 +1,149 @@
+//! Training logs as CSV, one file per split (`train.csv`, `val.csv`): a `step` column, then one
+//! column per scalar in the order of the first row. Rows are appended and flushed as they come.
+//!
+//! When a run resumes at step `s`, rows after `s` (written after the checkpoint it resumes
+//! from) are dropped first, so the file never holds a step twice.
+
+use std::collections::HashMap;
+use std::fs::{File, OpenOptions};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use image::RgbImage;
+
+use crate::error::{Error, Result};
+use crate::eval::fmt_f64;
+use crate::io::write_bytes_atomic;
+use crate::train::Reporter;
+
+/// CSV files in a folder, one per split.
+#[derive(Debug)]
+pub struct CsvLog {
+    dir: PathBuf,
+    files: HashMap<String, (Vec<String>, File)>,
+}
+
+impl CsvLog {
+    /// Logs in `dir` (created if needed). With `resume_at = Some(s)`, existing files keep their
+    /// header and the rows with `step <= s`; otherwise existing files are replaced.
+    pub fn create(dir: &Path, resume_at: Option<u64>) -> Result<Self> {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+        for entry in entries {
+            let path = entry.map_err(|e| Error::io(dir, e))?.path();
+            if path.extension().is_some_and(|e| e == "csv") {
+                match resume_at {
+                    Some(s) => truncate_after(&path, s)?,
+                    None => std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?,
+                }
+            }
+        }
+        Ok(CsvLog {
+            dir: dir.to_path_buf(),
+            files: HashMap::new(),
+        })
+    }
+
+    /// The file of `split`.
+    pub fn path(&self, split: &str) -> PathBuf {
+        self.dir.join(format!("{split}.csv"))
+    }
+}
+
+fn truncate_after(path: &Path, step: u64) -> Result<()> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut out = String::new();
+    for (i, line) in text.lines().enumerate() {
+        let keep = i == 0
+            || line
+                .split(',')
+                .next()
+                .and_then(|s| s.parse::<u64>().ok())
+                .is_some_and(|s| s <= step);
+        if keep {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    write_bytes_atomic(path, out.as_bytes())
+}
+
+impl Reporter for CsvLog {
+    fn scalars(&mut self, split: &str, step: u64, values: &[(String, f64)]) -> Result<()> {
+        let path = self.path(split);
+        let names: Vec<String> = values.iter().map(|(n, _)| n.clone()).collect();
+        if !self.files.contains_key(split) {
+            let existing = std::fs::read_to_string(&path).ok();
+            let mut file = OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&path)
+                .map_err(|e| Error::io(&path, e))?;
+            let header = format!("step,{}", names.join(","));
+            match existing.as_deref().and_then(|t| t.lines().next()) {
+                Some(h) if h != header => {
+                    return Err(Error::InvalidArgument(format!(
+                        "{}: existing columns `{h}` differ from `{header}`",
+                        path.display()
+                    )))
+                }
+                Some(_) => {}
+                None => writeln!(file, "{header}").map_err(|e| Error::io(&path, e))?,
+            }
+            self.files.insert(split.to_string(), (names.clone(), file));
+        }
+        let (cols, file) = self.files.get_mut(split).expect("inserted above");
+        if *cols != names {
+            return Err(Error::InvalidArgument(format!(
+                "{}: columns changed from {cols:?} to {names:?}",
+                path.display()
+            )));
+        }
+        let row: Vec<String> = values.iter().map(|(_, v)| fmt_f64(*v)).collect();
+        writeln!(file, "{step},{}", row.join(",")).map_err(|e| Error::io(&path, e))?;
+        file.flush().map_err(|e| Error::io(&path, e))
+    }
+
+    fn image(&mut self, _: &str, _: u64, _: &RgbImage) -> Result<()> {
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        for (split, (_, f)) in &mut self.files {
+            f.sync_data()
+                .map_err(|e| Error::io(self.dir.join(format!("{split}.csv")), e))?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rows_append_and_resume_drops_later_steps() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut log = CsvLog::create(dir.path(), None).unwrap();
+        for step in [10, 20, 30] {
+            log.scalars(
+                "train",
+                step,
+                &[("loss".into(), step as f64 / 10.0), ("lr".into(), f64::NAN)],
+            )
+            .unwrap();
+        }
+        drop(log);
+        let text = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
+        assert_eq!(text, "step,loss,lr\n10,1,\n20,2,\n30,3,\n");
+        let mut log = CsvLog::create(dir.path(), Some(20)).unwrap();
+        log.scalars("train", 30, &[("loss".into(), 3.5), ("lr".into(), 0.1)])
+            .unwrap();
+        let text = std::fs::read_to_string(dir.path().join("train.csv")).unwrap();
+        assert_eq!(text, "step,loss,lr\n10,1,\n20,2,\n30,3.5,0.1\n");
+        let err = log
+            .scalars("train", 40, &[("loss".into(), 1.0)])
+            .unwrap_err();
+        assert!(err.to_string().contains("columns changed"), "{err}");
+    }
+}
