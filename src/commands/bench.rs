@@ -25,7 +25,7 @@ use tch::{Device, Kind, Tensor};
 use calibconv::camera::{Camera, CameraModel};
 use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry};
-use calibconv::nn::{conv2d, CalibratedConv2d, Conv, Conv2dConfig, ConvKind};
+use calibconv::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::ops::{deform_conv2d_planned_with, Backend, Border, SamplingPlan};
 
 use super::load_camera;
@@ -483,85 +483,25 @@ fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     Ok(r)
 }
 
-/// A U-Net-shaped stack built through the conv factory (the same network for both kinds):
-/// per level two 3x3 convs + ReLU, 2x2 max-pooling down, nearest upsampling + skip
-/// concatenation up, a 1x1 head.
-struct UnetStack {
-    down: Vec<(Conv, Conv)>,
-    up: Vec<(Conv, Conv)>,
-    head: Conv,
-}
-
-impl UnetStack {
-    fn new(
-        vs: &nn::Path,
-        kind: &ConvKind,
-        input: [i64; 2],
-        base: i64,
-        depth: usize,
-    ) -> Result<Self> {
-        let cfg = Conv2dConfig::default();
-        let size = |l: usize| [input[0] >> l, input[1] >> l];
-        let ch = |l: usize| base << l;
-        let mut down = Vec::new();
-        for l in 0..=depth {
-            let c_in = if l == 0 { 3 } else { ch(l - 1) };
-            let p = vs / format!("down{l}");
-            down.push((
-                conv2d(&(&p / "conv1"), c_in, ch(l), 3, kind, size(l), cfg)?,
-                conv2d(&(&p / "conv2"), ch(l), ch(l), 3, kind, size(l), cfg)?,
-            ));
-        }
-        let mut up = Vec::new();
-        for l in (0..depth).rev() {
-            let p = vs / format!("up{l}");
-            up.push((
-                conv2d(
-                    &(&p / "conv1"),
-                    ch(l) + ch(l + 1),
-                    ch(l),
-                    3,
-                    kind,
-                    size(l),
-                    cfg,
-                )?,
-                conv2d(&(&p / "conv2"), ch(l), ch(l), 3, kind, size(l), cfg)?,
-            ));
-        }
-        let head = conv2d(&(vs / "outc"), base, 8, 1, kind, input, cfg)?;
-        Ok(UnetStack { down, up, head })
-    }
-
-    fn forward(&self, x: &Tensor) -> Tensor {
-        let mut skips = Vec::new();
-        let mut h = x.shallow_clone();
-        for (l, (c1, c2)) in self.down.iter().enumerate() {
-            if l > 0 {
-                h = h.max_pool2d_default(2);
-            }
-            h = c2.forward(&c1.forward(&h).relu()).relu();
-            skips.push(h.shallow_clone());
-        }
-        skips.pop();
-        for (c1, c2) in &self.up {
-            let skip = skips.pop().expect("one skip per level");
-            let (_, _, sh, sw) = skip.size4().expect("4-d");
-            let up = h.upsample_nearest2d([sh, sw], None, None);
-            h = c2
-                .forward(&c1.forward(&Tensor::cat(&[skip, up], 1)).relu())
-                .relu();
-        }
-        self.head.forward(&h)
-    }
-}
-
-/// A training step (forward, backward, SGD update) of the U-Net-shaped stack with standard and
-/// with calibrated kernels, interleaved.
+/// A training step (forward in training mode, backward, SGD update) of the project's U-Net
+/// ([`UNet`], batch norm, transposed up-sampling, 8-class segmentation head) with standard and
+/// with calibrated 3x3 kernels, interleaved: base 32, depth 4, B2 at 256x256 (levels 256..16,
+/// 32..512 channels); `--full`: the paper's classic U-Net (base 64, 64..1024 channels);
+/// `--quick`: base 8, depth 3, B1 at 64x64.
 fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
     let (batch, input, base, depth) = if args.quick {
-        (1, [64, 64], 16, 2)
+        (1, [64, 64], 8, 3)
+    } else if args.full {
+        (2, [256, 256], 64, 4)
     } else {
         (2, [256, 256], 32, 4)
+    };
+    let config = UNetConfig {
+        in_channels: 3,
+        base,
+        depth,
+        up: UpMode::Transposed,
+        head: Head::Segmentation { classes: 8 },
     };
     let kinds = [
         ConvKind::Standard,
@@ -574,15 +514,15 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
     for kind in &kinds {
         tch::manual_seed(0);
         let vs = nn::VarStore::new(Device::Cpu);
-        let net = UnetStack::new(&vs.root(), kind, input, base, depth)?;
+        let net = UNet::new(&vs.root(), &config, kind, input)?;
         let opt = nn::Sgd::default().build(&vs, 1e-3)?;
         nets.push((vs, net, opt));
     }
     let x = Tensor::randn([batch, 3, input[0], input[1]], (Kind::Float, Device::Cpu));
-    let step = |i: usize, nets: &mut Vec<(nn::VarStore, UnetStack, nn::Optimizer)>| {
+    let step = |i: usize, nets: &mut Vec<(nn::VarStore, UNet, nn::Optimizer)>| {
         let (_, net, opt) = &mut nets[i];
-        let loss = net.forward(&x).square().mean(Kind::Float);
-        opt.backward_step(&loss);
+        let out = net.f_forward_t(&x, true).expect("U-Net forward");
+        opt.backward_step(&out.square().mean(Kind::Float));
     };
     step(0, &mut nets);
     let t_ref = time_ms(&mut || step(0, &mut nets));
@@ -601,9 +541,10 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
     let cal_peak = peak_mib(&mut || step(1, &mut nets.borrow_mut()));
     let step = pairs.into_iter().next().expect("one candidate");
     let r = UnetResult {
-        what: "U-Net-shaped stack in bench.rs (2x[conv3x3+ReLU] per level, max-pool, nearest \
-               upsampling + concat, 1x1 head, SGD step)"
-            .into(),
+        what: format!(
+            "nn::UNet (base {base}, depth {depth}, batch norm, transposed up-sampling, 8-class \
+             head), training step with SGD"
+        ),
         batch,
         input_hw: input,
         base_channels: base,
@@ -615,8 +556,8 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
         peak_ratio: ratio(cal_peak, ref_peak),
     };
     println!(
-        "\nU-Net-shaped stack B{} 3x{}x{}, base {}, depth {}: training step conv2d {:.1} ms, \
-         calibrated {:.1} ms ({:.2}x); peak {} vs {} MiB ({}x)",
+        "\nU-Net B{} 3x{}x{}, base {}, depth {}: training step conv2d {:.1} ms, calibrated {:.1} \
+         ms ({:.2}x); peak {} vs {} MiB ({}x)",
         r.batch,
         r.input_hw[0],
         r.input_hw[1],

@@ -496,13 +496,21 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   return gw.view({g.Cout, g.Cg, g.K});
 }
 
-// Bands of output rows for the scatter: the smallest band height R such that, within each of
-// the two phases (even bands, odd bands), the input rows touched by different bands are
-// disjoint, for every plan item. rows holds [items, H_out, 2] (lowest, highest input row read by
-// an output row; lowest > highest when it reads none). Returns R (H_out: one band).
+// Output pixels a scatter band should hold at least (its GEMMs repack the weight), unless that
+// leaves fewer than MIN_BANDS bands per item (two per phase) to run in parallel.
+constexpr int64_t BAND_PIXELS = 256;
+constexpr int64_t MIN_BANDS = 4;
+
+// Bands of output rows for the scatter: a band height R such that, within each of the two
+// phases (even bands, odd bands), the input rows touched by different bands are disjoint, for
+// every plan item. rows holds [items, H_out, 2] (lowest, highest input row read by an output
+// row; lowest > highest when it reads none). R starts at the size preferred for the GEMMs and
+// doubles until the bands are disjoint; it depends on the shapes and the plan only, never on the
+// thread count, so neither does the summation order. Returns R (H_out: one band).
 int64_t band_rows(const Geo& g, const int32_t* rows) {
   const int64_t items = g.per_item ? g.B : 1;
-  for (int64_t r = 1; r < g.Ho; r *= 2) {
+  const int64_t preferred = std::min((BAND_PIXELS + g.Wo - 1) / g.Wo, g.Ho / MIN_BANDS);
+  for (int64_t r = std::max<int64_t>(1, preferred); r < g.Ho; r *= 2) {
     const int64_t bands = (g.Ho + r - 1) / r;
     bool ok = true;
     for (int64_t it = 0; it < items && ok; ++it) {
