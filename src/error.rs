@@ -56,9 +56,6 @@ pub enum Error {
         field: String,
         message: String,
     },
-    /// A data source could not be opened or does not fit the experiment.
-    #[error("data source {path}: {message}")]
-    Dataset { path: PathBuf, message: String },
     /// Training produced a NaN or infinite value; nothing after `step` was saved.
     #[error(
         "training stopped: non-finite {what} ({value}) at step {step}; {}",

@@ -1,5 +1,6 @@
-//! The U-Net against PyTorch: a milesial/Pytorch-UNet-layout `state_dict` (written by
-//! `tools/make_unet_fixture.py`, `num_batches_tracked` included) loads by name into
+//! The U-Net against PyTorch: a milesial/Pytorch-UNet-layout `state_dict` (the reference network
+//! of `tools/reference_unet.py`, written by `tools/make_unet_fixture.py`, `num_batches_tracked`
+//! included) loads by name into
 //! `calibconv::nn::UNet`, and the outputs match in eval and train mode, as do the BatchNorm
 //! running statistics after one training-mode forward (momentum 0.1).
 
@@ -22,8 +23,8 @@ const TOL: f64 = 1e-5;
 fn config(up: UpMode) -> UNetConfig {
     UNetConfig {
         in_channels: 3,
-        base: 8,
-        depth: 3,
+        base: 4,
+        depth: 4,
         up,
         head: Head::Segmentation { classes: 4 },
     }
@@ -39,11 +40,11 @@ fn pytorch_state_dicts_load_by_name_and_give_pytorchs_outputs() {
         let io = read_safetensors(&golden(&format!("unet_tiny_{mode}_io.safetensors")));
         let cfg = config(up);
         let vs = VarStore::new(Device::Cpu);
-        let net = UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [37, 45]).unwrap();
+        let net = UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [37, 69]).unwrap();
         let loaded = checkpoint::load(&weights, &vs, &cfg).unwrap();
         assert!(loaded.info.is_none());
-        // 2 BatchNorms per DoubleConv, 1 + 2 * depth DoubleConvs.
-        assert_eq!(loaded.ignored.len(), 14, "{mode}: {:?}", loaded.ignored);
+        // 2 BatchNorms per DoubleConv, 1 + 2 * depth DoubleConvs: milesial's 18.
+        assert_eq!(loaded.ignored.len(), 18, "{mode}: {:?}", loaded.ignored);
 
         let x = &io["input"];
         let eval = tch::no_grad(|| net.f_forward_raw_t(x, false)).unwrap();
@@ -76,7 +77,7 @@ fn the_same_pytorch_weights_load_into_a_calibrated_network() {
     };
     let cfg = config(UpMode::Transposed);
     let vs = VarStore::new(Device::Cpu);
-    let net = UNet::new(&vs.root(), &cfg, &kind, [37, 45]).unwrap();
+    let net = UNet::new(&vs.root(), &cfg, &kind, [37, 69]).unwrap();
     checkpoint::load(&golden("unet_tiny_transposed.safetensors"), &vs, &cfg).unwrap();
     let io = read_safetensors(&golden("unet_tiny_transposed_io.safetensors"));
     let y = tch::no_grad(|| net.f_forward_raw_t(&io["input"], false)).unwrap();
@@ -88,16 +89,16 @@ fn the_same_pytorch_weights_load_into_a_calibrated_network() {
 #[test]
 fn a_pytorch_checkpoint_for_another_architecture_names_the_mismatching_tensors() {
     let cfg = UNetConfig {
-        base: 16,
+        base: 8,
         ..config(UpMode::Transposed)
     };
     let vs = VarStore::new(Device::Cpu);
-    UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [37, 45]).unwrap();
+    UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [37, 69]).unwrap();
     let path = golden("unet_tiny_transposed.safetensors");
     let err = checkpoint::load(&path, &vs, &cfg).unwrap_err().to_string();
     assert!(err.contains("unet_tiny_transposed.safetensors"), "{err}");
     assert!(
-        err.contains("`down1.maxpool_conv.1.double_conv.0.weight`: [16, 8, 3, 3] in the file, [32, 16, 3, 3] in the network"),
+        err.contains("`down1.maxpool_conv.1.double_conv.0.weight`: [8, 4, 3, 3] in the file, [16, 8, 3, 3] in the network"),
         "{err}"
     );
     // The bilinear file lacks the transposed convolutions.
@@ -106,6 +107,55 @@ fn a_pytorch_checkpoint_for_another_architecture_names_the_mismatching_tensors()
         .to_string();
     assert!(
         err.contains("missing from the file: `up1.up.bias`"),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_pth_converted_by_the_tool_loads_and_its_architecture_is_checked() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let python = format!("{root}/.venv/bin/python");
+    assert!(
+        std::path::Path::new(&python).exists(),
+        "{python} missing: run `make setup`"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let pth = dir.path().join("m.pth");
+    let out = dir.path().join("m.safetensors");
+    // A milesial-style checkpoint: the state dict plus the non-tensor `mask_values` entry.
+    let script = format!(
+        "import sys, torch; sys.path.insert(0, '{root}/tools'); from reference_unet import UNet; \
+         torch.manual_seed(0); sd = UNet(3, 4, bilinear=False, base=4).state_dict(); \
+         sd['mask_values'] = [0, 1]; torch.save(sd, '{}')",
+        pth.display()
+    );
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(&python)
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    run(&["-c", &script]);
+    run(&[
+        &format!("{root}/tools/convert_checkpoint.py"),
+        pth.to_str().unwrap(),
+        out.to_str().unwrap(),
+    ]);
+    let cfg = config(UpMode::Transposed);
+    let vs = VarStore::new(Device::Cpu);
+    UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [37, 69]).unwrap();
+    checkpoint::load(&out, &vs, &cfg).unwrap();
+    // The same tensors under another head: the converter's architecture record says no.
+    let depth = UNetConfig {
+        head: Head::Depth,
+        ..cfg
+    };
+    let vs = VarStore::new(Device::Cpu);
+    UNet::new(&vs.root(), &depth, &ConvKind::Standard, [37, 69]).unwrap();
+    let err = checkpoint::load(&out, &vs, &depth).unwrap_err().to_string();
+    assert!(
+        err.contains("converted PyTorch checkpoint that does not fit"),
         "{err}"
     );
 }

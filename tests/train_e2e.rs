@@ -96,7 +96,6 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
         );
         let out = experiment::train(&exp, &quiet()).unwrap();
         let s = &out.summary;
-        eprintln!("{kernel}: loss {} -> {}", s.first_loss, s.last_loss);
         assert_eq!(s.steps, 24, "{kernel}");
         // Observed 4.69 -> 2.86 (standard) and 4.69 -> 2.87 (calibrated).
         assert!(
@@ -126,6 +125,8 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
             "eval/test/metrics.json",
             "eval/test/metrics.csv",
             "eval/test/radial.csv",
+            "eval/test/radial_rmse.png",
+            "eval/test/radial_delta1.png",
         ] {
             assert!(run.join(f).is_file(), "{kernel}: no {f}");
         }
@@ -416,4 +417,41 @@ fn the_binary_trains_and_evaluates_and_names_a_wrong_checkpoint() {
         stderr.contains("train.batch_sise") && stderr.contains("did you mean `batch_size`"),
         "{stderr}"
     );
+}
+
+#[test]
+fn segmentation_trains_and_reports_per_class_scores() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = experiment_text(
+        dir.path(),
+        "seg",
+        "standard",
+        16,
+        "loss = \"cross-entropy\"",
+    )
+    .replace("task = \"depth\"", "task = \"segmentation\"");
+    let exp = load(dir.path(), &text);
+    assert_eq!(exp.train.val_metric, Metric::MIoU);
+    let out = experiment::train(&exp, &quiet()).unwrap();
+    let s = &out.summary;
+    // Cross-entropy over 13 classes starts near ln 13 = 2.56. Observed 2.76 -> 1.92.
+    assert!(s.first_loss > 1.5, "{}", s.first_loss);
+    assert!(
+        s.last_loss < 0.8 * s.first_loss,
+        "loss {} -> {}",
+        s.first_loss,
+        s.last_loss
+    );
+    let e = &out.evaluations[0].evaluation;
+    for m in [Metric::MIoU, Metric::MAcc, Metric::PixelAcc] {
+        let v = e.metric(m).unwrap();
+        assert!((0.0..=1.0).contains(&v), "{m} {v}");
+    }
+    let doc: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(exp.run_dir.join("eval/test/metrics.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(doc["classes"]["wall"]["pixels"].is_u64(), "{doc}");
+    let radial = std::fs::read_to_string(exp.run_dir.join("eval/test/radial.csv")).unwrap();
+    assert!(radial.starts_with("bin,r_lo,r_hi,pixels,images,miou,miou_mean,miou_std,macc"));
 }

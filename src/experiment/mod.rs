@@ -8,6 +8,12 @@
 //! Relative paths (camera files, data sets, checkpoints, `output`) are relative to the current
 //! directory, which is the repository root for the files in `experiments/`.
 //!
+//! The `[input]` camera, padding and size define the network input and the calibrated offsets.
+//! A data set folder is served padded to that size and must have been rendered with the same
+//! geometry (checked when it is opened): e.g. `calibconv synth`'s default 128-px-wide F195 set
+//! is `camera = "data/cameras/f195.toml"`, `padding = [0, 120]` (1080x960 -> 1080x1080),
+//! `size = [128, 128]`.
+//!
 //! ```toml
 //! name = "f195-depth-ft-calibrated"   # the run directory is OUTPUT/NAME
 //! task = "depth"                      # depth | segmentation
@@ -29,8 +35,8 @@
 //! convention = "half-pixel"           # or "paper"
 //!
 //! [data]
-//! train = { dataset = "data/generated/f195", split = "train" }
-//! val = { dataset = "data/generated/f195", split = "val" }
+//! train = { dataset = "data/synth/f195", split = "train" }
+//! val = { dataset = "data/synth/f195", split = "val" }
 //! test = { toy = 32, split = "test" }
 //!
 //! [train]
@@ -44,6 +50,7 @@
 //! checkpoint_every = 1000             # also save `last` this often (default: at validations)
 //! images = 4                          # validation pictures in TensorBoard
 //! radial_bins = 16
+//! augment = { hflip = false, jitter = 0.2 }   # data sets only; see calibconv::data::loader
 //!
 //! [optimizer]
 //! kind = "adam"                       # adam | adamw
@@ -60,7 +67,7 @@
 //!
 //! [[eval]]                            # evaluations after training (default: data.test)
 //! name = "f195-calibrated"
-//! data = { dataset = "data/generated/f195", split = "test" }
+//! data = { dataset = "data/synth/f195", split = "test" }
 //! kernel = "calibrated"               # default: the model's kernel
 //! # camera / padding / size / convention: default the [input] ones
 //! radial_bins = 16
@@ -78,6 +85,7 @@ use serde::{Deserialize, Serialize};
 use tch::Device;
 
 use crate::camera::{self, Camera, CameraModel, PixelConvention};
+use crate::data::loader::{Augment, ColorJitter};
 use crate::data::NUM_CLASSES;
 use crate::error::{Error, Result};
 use crate::eval::loss::DepthLoss;
@@ -228,6 +236,18 @@ pub struct RawTrain {
     pub checkpoint_every: Option<u64>,
     pub images: Option<usize>,
     pub radial_bins: Option<usize>,
+    pub augment: Option<RawAugment>,
+}
+
+/// `train.augment`: augmentations of the training data set (see [`crate::data::loader`]:
+/// only those that keep the calibration valid).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawAugment {
+    /// Horizontal flips (refused by the loader unless the principal point is centred).
+    pub hflip: Option<bool>,
+    /// Brightness, contrast and saturation jitter amplitude (e.g. 0.2), none if absent.
+    pub jitter: Option<f32>,
 }
 
 /// `[optimizer]`.
@@ -345,6 +365,9 @@ pub struct TrainSpec {
     pub checkpoint_every: Option<u64>,
     pub images: usize,
     pub radial_bins: usize,
+    /// Training-set augmentations.
+    #[serde(skip)]
+    pub augment: Augment,
     pub adam: AdamConfig,
     pub schedule: Schedule,
 }
@@ -773,6 +796,29 @@ impl RawExperiment {
                 return Err(bad(f, "must be positive".into()));
             }
         }
+        let augment = match &t.augment {
+            None => Augment::default(),
+            Some(a) => {
+                let jitter = match a.jitter {
+                    None => None,
+                    Some(j) if (0.0..1.0).contains(&j) => Some(ColorJitter {
+                        brightness: j,
+                        contrast: j,
+                        saturation: j,
+                    }),
+                    Some(j) => {
+                        return Err(bad(
+                            "train.augment.jitter",
+                            format!("must be in [0, 1), got {j}"),
+                        ))
+                    }
+                };
+                Augment {
+                    hflip: a.hflip.unwrap_or(false),
+                    jitter,
+                }
+            }
+        };
         let radial_bins = t.radial_bins.unwrap_or(16);
         if radial_bins == 0 {
             return Err(bad("train.radial_bins", "must be positive".into()));
@@ -971,6 +1017,7 @@ impl RawExperiment {
                 checkpoint_every: t.checkpoint_every,
                 images: t.images.unwrap_or(4),
                 radial_bins,
+                augment,
                 adam,
                 schedule,
             },

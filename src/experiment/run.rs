@@ -9,7 +9,8 @@
 //!   train.csv  val.csv     training and validation scalars by step
 //!   tb/                    TensorBoard event files (`tensorboard --logdir OUTPUT`)
 //!   summary.json           what the last training call did (steps, losses, best, throughput)
-//!   eval/EVAL/             metrics.json, metrics.csv, radial.csv, predictions/*.png
+//!   eval/EVAL/             metrics.json, metrics.csv, radial.csv, radial_METRIC.png,
+//!                          predictions/*.png
 //!   evaluations.csv        one row per evaluation in eval/ (rebuilt after every evaluation)
 //! ```
 
@@ -20,12 +21,14 @@ use serde_json::json;
 use tch::nn::VarStore;
 
 use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
+use crate::data::loader::Augment;
 use crate::error::{Error, Result};
-use crate::eval::metrics::{RadialBins, ALL_METRICS};
+use crate::eval::metrics::{Metric, RadialBins, ALL_METRICS};
 use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
 use crate::io::write_bytes_atomic;
 use crate::nn::UNet;
 use crate::report::csv::CsvLog;
+use crate::report::plots;
 use crate::report::tensorboard::TensorBoard;
 use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
 use crate::train::{self, best_path, last_path, Reporter, TrainConfig, TrainRun, TrainSummary};
@@ -135,6 +138,7 @@ fn source_for<'a>(
     input: &'a InputSpec,
     batch_size: usize,
     shuffle: Option<u64>,
+    augment: Augment,
 ) -> SourceRequest<'a> {
     SourceRequest {
         spec,
@@ -143,6 +147,7 @@ fn source_for<'a>(
         input_size: input.size,
         camera: &input.camera,
         frame: input.frame(),
+        augment,
     }
 }
 
@@ -253,14 +258,16 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         &exp.input,
         t.batch_size,
         Some(exp.seed),
+        t.augment,
     ))?;
     let val_src = match &exp.val_data {
-        Some(spec) => {
-            Some(
-                opts.opener
-                    .open(&source_for(spec, &exp.input, t.eval_batch_size, None))?,
-            )
-        }
+        Some(spec) => Some(opts.opener.open(&source_for(
+            spec,
+            &exp.input,
+            t.eval_batch_size,
+            None,
+            Augment::default(),
+        ))?),
         None => None,
     };
     let val_opts = EvalOptions {
@@ -427,9 +434,13 @@ pub fn evaluate(
         let vs = VarStore::new(device);
         let model = build_model(exp, &vs, spec.kernel, &spec.input)?;
         checkpoint::load(&ckpt, &vs, &exp.model)?;
-        let source =
-            opts.opener
-                .open(&source_for(&spec.data, &spec.input, spec.batch_size, None))?;
+        let source = opts.opener.open(&source_for(
+            &spec.data,
+            &spec.input,
+            spec.batch_size,
+            None,
+            Augment::default(),
+        ))?;
         let eopts = EvalOptions {
             bins: radial_bins(&spec.input, spec.radial_bins, spec.radial_max)?,
             panels: spec.images,
@@ -454,6 +465,7 @@ pub fn evaluate(
             "git": git_revision(),
         });
         e.write(&dir, &about)?;
+        write_radial_plots(&dir, &e, spec)?;
         if opts.verbose {
             let line: Vec<String> = e
                 .metrics
@@ -478,6 +490,51 @@ pub fn evaluate(
     }
     write_evaluations_csv(&exp.run_dir)?;
     Ok(out)
+}
+
+/// The paper's radial figures for one evaluation: `radial_<metric>.png` (mean and one standard
+/// deviation over images per bin, against the bin centre in input pixels) for RMSE and delta1
+/// (depth) or mIoU and mAcc (segmentation), in the kernel's colour (standard red, calibrated
+/// blue). Bins without pixels are left out; a metric with no finite bin is skipped.
+fn write_radial_plots(dir: &Path, e: &Evaluation, spec: &EvalSpec) -> Result<()> {
+    let metrics = match e.head {
+        crate::nn::Head::Depth => [Metric::Rmse, Metric::Delta1],
+        crate::nn::Head::Segmentation { .. } => [Metric::MIoU, Metric::MAcc],
+    };
+    let colour = match spec.kernel {
+        KernelName::Standard => plots::STANDARD_RED,
+        KernelName::Calibrated => plots::CALIBRATED_BLUE,
+    };
+    for m in metrics {
+        let (mut x, mut mean, mut std) = (Vec::new(), Vec::new(), Vec::new());
+        for r in &e.radial {
+            if let Some((_, _, mu, sd)) = r.values.iter().find(|v| v.0 == m) {
+                if r.pixels > 0 && mu.is_finite() {
+                    x.push((r.r_lo + r.r_hi) / 2.0);
+                    mean.push(*mu);
+                    std.push(*sd);
+                }
+            }
+        }
+        if x.is_empty() {
+            continue;
+        }
+        let curve = plots::Curve {
+            label: format!("{} kernels", spec.kernel.as_str()),
+            colour,
+            x,
+            mean,
+            std,
+        };
+        let plot = plots::PlotSpec {
+            title: format!("{}: {m} by distance to the principal point", spec.name),
+            x_label: "distance to the principal point (input px)".into(),
+            y_label: m.name().into(),
+            ..Default::default()
+        };
+        plots::line_band_plot(&dir.join(format!("radial_{m}.png")), &plot, &[curve])?;
+    }
+    Ok(())
 }
 
 /// Rebuilds `RUN/evaluations.csv` from every `RUN/eval/*/metrics.json`: one row per

@@ -574,7 +574,7 @@ mod tests {
     }
 
     #[test]
-    fn standard_and_calibrated_networks_have_identical_parameters() {
+    fn a_standard_checkpoint_loads_into_a_calibrated_network_unchanged() {
         let cfg = UNetConfig::preset("tiny", Head::Depth).unwrap();
         let build = |kind: &ConvKind| {
             let vs = VarStore::new(Device::Cpu);
@@ -582,9 +582,25 @@ mod tests {
             (vs, net)
         };
         let kinds = kinds();
-        let (vs_std, _) = build(&kinds[0].1);
-        let (vs_cal, _) = build(&kinds[1].1);
+        let (vs_std, net_std) = build(&kinds[0].1);
+        let (vs_cal, net_cal) = build(&kinds[1].1);
         assert_eq!(names_and_shapes(&vs_std), names_and_shapes(&vs_cal));
+        // Through a checkpoint file, as a fine-tuning run starts from a baseline.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bl.safetensors");
+        let vars = crate::train::checkpoint::named_variables(&vs_std);
+        crate::train::checkpoint::write_tensors(&path, &vars, Default::default()).unwrap();
+        crate::train::checkpoint::load(&path, &vs_cal, &cfg).unwrap();
+        for (name, t) in vs_std.variables() {
+            assert!(vs_cal.variables()[&name].equal(&t), "{name}");
+        }
+        // Same weights, calibrated sampling: another function of the input.
+        let x = Tensor::rand([1, 3, 48, 40], (Kind::Float, Device::Cpu));
+        let (a, b) = (
+            net_std.f_forward_t(&x, false).unwrap(),
+            net_cal.f_forward_t(&x, false).unwrap(),
+        );
+        assert!((a - b).abs().max().double_value(&[]) > 1e-4);
     }
 
     #[test]
