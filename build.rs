@@ -1,12 +1,20 @@
 //! Embeds an rpath to libtorch (from torch-sys's `DEP_TCH_LIBTORCH_LIB`) so binaries and tests
-//! run without `LD_LIBRARY_PATH`, and checks that the venv's torch is the version tch expects.
+//! run without `LD_LIBRARY_PATH`, checks that the venv's torch is the version tch expects, and
+//! compiles the native CPU kernels (`src/ops/native/deform.cpp`) against the same libtorch
+//! headers (C++17, the ABI torch-sys uses, OpenMP for `at::parallel_for`); on success it sets
+//! `cfg(calibconv_native)`, on failure it warns and the crate uses the ATen composition. Linking
+//! to libtorch itself comes from torch-sys.
 
 use std::path::PathBuf;
 
 const TORCH_VERSION: &str = "2.13.0";
 
+/// The native kernels' source.
+const NATIVE_SRC: &str = "src/ops/native/deform.cpp";
+
 fn main() {
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
+    println!("cargo:rustc-check-cfg=cfg(calibconv_native)");
     let Ok(lib) = std::env::var("DEP_TCH_LIBTORCH_LIB") else {
         return;
     };
@@ -28,5 +36,45 @@ fn main() {
                 version_py.display()
             );
         }
+    }
+    compile_native(&lib);
+}
+
+/// Compiles [`NATIVE_SRC`] into a static library linked into the crate and sets
+/// `cfg(calibconv_native)`; on failure warns and leaves the ATen composition as the CPU path.
+fn compile_native(lib: &std::path::Path) {
+    println!("cargo:rerun-if-changed={NATIVE_SRC}");
+    println!("cargo:rerun-if-env-changed=LIBTORCH_CXX11_ABI");
+    let include = lib.join("..").join("include");
+    let abi = std::env::var("LIBTORCH_CXX11_ABI").unwrap_or_else(|_| "1".to_string());
+    let built = cc::Build::new()
+        .cpp(true)
+        .pic(true)
+        .std("c++17")
+        .opt_level(3)
+        // libtorch's headers are system headers: their warnings are not ours.
+        .flag("-isystem")
+        .flag(include.to_str().expect("utf-8 libtorch path"))
+        .flag("-isystem")
+        .flag(
+            include
+                .join("torch/csrc/api/include")
+                .to_str()
+                .expect("utf-8 libtorch path"),
+        )
+        .flag(format!("-D_GLIBCXX_USE_CXX11_ABI={abi}"))
+        .flag("-DGLOG_USE_GLOG_EXPORT")
+        .flag("-fopenmp")
+        .flag("-Wall")
+        .flag("-Wextra")
+        .file(NATIVE_SRC)
+        .try_compile("calibconv_native");
+    match built {
+        Ok(()) => println!("cargo:rustc-cfg=calibconv_native"),
+        // Without a C++17 compiler the crate still builds, on the ATen composition alone.
+        Err(e) => println!(
+            "cargo:warning=native CPU kernels not built ({e}); the deformable convolution uses \
+             the (slower) ATen composition on the CPU"
+        ),
     }
 }

@@ -26,6 +26,10 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
+    /// Benchmark the calibrated convolution against conv2d (interleaved, in one process): time,
+    /// ratio and peak memory per layer shape, offsets + plans for the camera's U-Net pyramid,
+    /// and a U-Net-shaped training step.
+    Bench(BenchArgs),
     /// Camera files: import a calibration from another tool.
     Camera(CameraArgs),
     /// Write data sets of fisheye / perspective / rectified views (RGB, depth, labels, mask)
@@ -235,6 +239,51 @@ pub struct DemoArgs {
     /// Output folder.
     #[arg(long, default_value = "runs/demo")]
     pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// A few small shapes only (seconds).
+    #[arg(long)]
+    pub quick: bool,
+    /// Every U-Net level (32..512 channels, 256x256..16x16) at batch 1, 4 and 8 (minutes).
+    #[arg(long)]
+    pub full: bool,
+    /// Also time the ATen composition (the CUDA path and the former CPU path).
+    #[arg(long)]
+    pub aten: bool,
+    /// Layer shapes to run instead of the table, each `B,CIN,COUT,H,W` (repeatable).
+    #[arg(long = "shape", value_parser = parse_shape)]
+    pub shapes: Vec<[i64; 5]>,
+    /// Run only these parts (comma-separated; default: all).
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub only: Vec<BenchPart>,
+    /// Camera whose calibrated offsets the layers use.
+    #[arg(long, default_value = "data/cameras/f195.toml")]
+    pub camera: PathBuf,
+    /// Also write the results as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// A part of `calibconv bench`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BenchPart {
+    /// The table of layer shapes.
+    Layers,
+    /// Offsets and sampling plans of the camera's U-Net pyramid.
+    Pyramid,
+    /// The U-Net-shaped training step.
+    Unet,
+}
+
+fn parse_shape(s: &str) -> Result<[i64; 5], String> {
+    let v: Vec<i64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<i64>().ok().filter(|&n| n > 0))
+        .collect::<Option<_>>()
+        .ok_or_else(|| format!("`{s}`: expected five positive integers B,CIN,COUT,H,W"))?;
+    <[i64; 5]>::try_from(v).map_err(|_| format!("`{s}`: expected B,CIN,COUT,H,W"))
 }
 
 fn parse_size(s: &str) -> Result<[usize; 2], String> {

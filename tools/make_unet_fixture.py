@@ -33,6 +33,7 @@ import torch.nn as nn
 
 # The reference network: tools/reference_unet.py (written from the public description, checked
 # against the published sizes), imported rather than repeated here.
+sys.dont_write_bytecode = True  # no tools/__pycache__ in the working tree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference_unet import UNet  # noqa: E402
 

@@ -1,6 +1,7 @@
 //! What each subcommand does, one file per subcommand (the library does the work; these files
 //! wire files and output). Shared helpers live here.
 
+mod bench;
 mod camera;
 pub(crate) mod convert;
 mod demo;
@@ -29,6 +30,7 @@ pub fn run(command: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
+        Command::Bench(args) => bench::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),

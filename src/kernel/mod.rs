@@ -247,12 +247,21 @@ pub fn compute_offsets(
     let (ch, cw) = ((kh - 1) / 2, (kw - 1) / 2);
     let taps = kh * kw;
 
-    // Per output row: (dy, dx) for every (ox, tap), plus fallback counts.
-    let rows: Vec<(Vec<[f32; 2]>, usize, usize)> = (0..ho)
+    // The planes [2 * taps, H_out, W_out] cut into rows, grouped by output row: every row task
+    // writes its (dy, dx) straight into its 2 * taps row slices (untouched taps stay 0).
+    let plane = ho * wo;
+    let mut data = vec![0.0f32; 2 * taps * plane];
+    let mut by_row: Vec<Vec<&mut [f32]>> = (0..ho).map(|_| Vec::with_capacity(2 * taps)).collect();
+    for (i, chunk) in data.chunks_mut(wo.max(1)).enumerate() {
+        by_row[i % ho].push(chunk); // chunk i is plane i / ho, row i % ho
+    }
+    let counts: Vec<(usize, usize)> = by_row
         .into_par_iter()
-        .map(|oy| {
-            let mut row = vec![[0.0f32; 2]; wo * taps];
+        .enumerate()
+        .map(|(oy, mut out)| {
             let (mut bad_anchors, mut bad_taps) = (0, 0);
+            // `ox` is the anchor's column, not just an index into the 2 * taps row slices.
+            #[allow(clippy::needless_range_loop)]
             for ox in 0..wo {
                 let ay = (oy * geometry.stride[0] + ch * geometry.dilation[0]) as f64
                     - geometry.padding[0] as f64;
@@ -270,37 +279,26 @@ pub fn compute_offsets(
                     let ty = (i as f64 - ch as f64) * geometry.dilation[0] as f64;
                     for j in 0..kw {
                         let tx = (j as f64 - cw as f64) * geometry.dilation[1] as f64;
+                        let k = i * kw + j;
                         match cam.project(rotate(&rot, [tx, ty, d])) {
                             Some([u, v]) => {
                                 let mut dx = u - (ax + tx);
                                 if wrap {
                                     dx -= period * (dx / period).round();
                                 }
-                                row[ox * taps + i * kw + j] = [(v - (ay + ty)) as f32, dx as f32];
+                                out[2 * k][ox] = (v - (ay + ty)) as f32;
+                                out[2 * k + 1][ox] = dx as f32;
                             }
                             None => bad_taps += 1,
                         }
                     }
                 }
             }
-            (row, bad_anchors, bad_taps)
+            (bad_anchors, bad_taps)
         })
         .collect();
-
-    let plane = ho * wo;
-    let mut data = vec![0.0f32; 2 * taps * plane];
-    let (mut fallback_anchors, mut fallback_taps) = (0, 0);
-    for (oy, (row, a, t)) in rows.into_iter().enumerate() {
-        fallback_anchors += a;
-        fallback_taps += t;
-        for ox in 0..wo {
-            for k in 0..taps {
-                let [dy, dx] = row[ox * taps + k];
-                data[2 * k * plane + oy * wo + ox] = dy;
-                data[(2 * k + 1) * plane + oy * wo + ox] = dx;
-            }
-        }
-    }
+    let fallback_anchors = counts.iter().map(|c| c.0).sum();
+    let fallback_taps = counts.iter().map(|c| c.1).sum();
     Ok(Offsets {
         data,
         kernel: geometry.kernel,

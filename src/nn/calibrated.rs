@@ -136,10 +136,8 @@ impl CalibratedConv2d {
                 } else {
                     Border::Zeros
                 };
-                let plan = SamplingPlan::with_border(
-                    &offsets.to_tensor(),
-                    input_size,
-                    [k, k],
+                let plan = SamplingPlan::from_offsets(
+                    &offsets,
                     cfg.stride,
                     padding,
                     cfg.dilation,

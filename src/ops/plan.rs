@@ -1,10 +1,12 @@
-//! The sampling plan: bilinear corner indices and weights of every (tap, output pixel).
+//! The sampling plan: bilinear corner indices and weights of every (output pixel, tap).
 
 use rayon::prelude::*;
+use tch::kind::Element;
 use tch::{Device, Kind, Tensor};
 
 use super::check_float;
 use crate::error::{Error, Result};
+use crate::kernel::Offsets;
 
 /// What a bilinear sample reads outside the input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -20,19 +22,29 @@ pub enum Border {
 /// Precomputed bilinear sampling of a deformable convolution with fixed offsets.
 ///
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
-/// times `B` for per-item offsets), `index` `[N * 4]` holds the flat indices of the four bilinear
-/// corners (top-left, top-right, bottom-left, bottom-right) into the input's `H*W` pixels, with
-/// one extra zero row at index `H*W` for corners outside the input, and `weight` their
-/// bilinear weights (`[N * 4]`). A column is then one weighted "bag" of four rows of a pixel-major table,
-/// which libtorch's `embedding_bag` computes (and differentiates) in one fused op.
+/// times `B` for per-item offsets), `index` `[N * 4]` (int32) holds the flat indices of the four
+/// bilinear corners (top-left, top-right, bottom-left, bottom-right) into the input's `H*W`
+/// pixels, with one extra zero row at index `H*W` for corners outside the input (or wrapped
+/// around, [`Border`]), and `frac` `[N * 2]` the fractional parts `(ly, lx)` of the sample
+/// position, from which the corner weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx`
+/// ([`SamplingPlan::f_weights`]). Every border rule only remaps corner indices, so the weights are
+/// the same for all of them, and storing two fractions instead of four weights makes the plan a
+/// quarter smaller (24 bytes a sample). Per-item plans index a table that stacks the items, each
+/// followed by its zero row: item `b`'s indices are offset by `b * (H*W + 1)`.
+///
+/// A column is then one weighted "bag" of four rows of a pixel-major table, which libtorch's
+/// `embedding_bag` computes (and differentiates) in one fused op (the ATen path); the native CPU
+/// kernels read the same indices and weights. `rows` `[items, H_out, 2]` (int32) holds, per
+/// output row, the lowest and highest input row its in-range corners read (lowest > highest if
+/// none): the native input gradient schedules its scatter with it.
 #[derive(Debug)]
 pub struct SamplingPlan {
-    /// `[N * 4]`: four corners per sample.
+    /// `[N * 4]` int32: four corners per sample.
     index: Tensor,
-    /// `[N * 4]`, same order.
-    weight: Tensor,
-    /// `[N]`: start of each sample's bag of four in `index` (0, 4, 8, ...).
-    bags: Tensor,
+    /// `[N * 2]`: `(ly, lx)` per sample, in the plan's kind.
+    frac: Tensor,
+    /// `[items, H_out, 2]` int32: input rows read by each output row.
+    rows: Tensor,
     input_size: [i64; 2],
     output_size: [i64; 2],
     kernel: [i64; 2],
@@ -40,10 +52,226 @@ pub struct SamplingPlan {
     batch: Option<i64>,
 }
 
+/// Plan weights: float32 or float64.
+trait PlanFloat: Element + Copy + Send + Sync {
+    fn from_f64(v: f64) -> Self;
+}
+impl PlanFloat for f32 {
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+}
+impl PlanFloat for f64 {
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+}
+
+/// A new contiguous CPU tensor of `n` elements of `T`, its memory filled by `fill`.
+fn filled<T: Element>(n: usize, fill: impl FnOnce(&mut [T])) -> Tensor {
+    let t = Tensor::empty([n as i64], (T::KIND, Device::Cpu));
+    // SAFETY: `t` is a fresh contiguous CPU tensor of exactly `n` elements of `T` (same size as
+    // `T::KIND`, the contract of `Element`); nothing else refers to its memory while `fill` runs.
+    let data = unsafe { elements_mut::<T>(t.data_ptr(), n) };
+    fill(data);
+    t
+}
+
+/// The `n` elements of `T` at `data` (a tensor's `data_ptr`).
+///
+/// # Safety
+/// `data` must be the memory of a live contiguous CPU tensor of `n` elements of kind `T::KIND`
+/// that outlives the slice, and no other reference to that memory may be used while it lives.
+unsafe fn elements_mut<'a, T: Element>(data: *mut std::ffi::c_void, n: usize) -> &'a mut [T] {
+    if n == 0 {
+        return &mut [];
+    }
+    std::slice::from_raw_parts_mut(data as *mut T, n)
+}
+
+/// The elements of a contiguous CPU tensor of kind `T::KIND`, read-only.
+fn elements<T: Element>(t: &Tensor) -> Result<&[T]> {
+    if t.kind() != T::KIND || t.device() != Device::Cpu || !t.is_contiguous() {
+        return Err(Error::InvalidArgument(format!(
+            "internal: expected a contiguous CPU {:?} tensor, got {:?} on {:?}",
+            T::KIND,
+            t.kind(),
+            t.device()
+        )));
+    }
+    let n = t.numel();
+    if n == 0 {
+        return Ok(&[]);
+    }
+    // SAFETY: checked above: contiguous CPU memory of `n` elements of `T`, alive as long as `t`.
+    Ok(unsafe { std::slice::from_raw_parts(t.data_ptr() as *const T, n) })
+}
+
+/// Everything [`SamplingPlan::new`] needs to place the samples of one output row.
+struct Layout {
+    h: i64,
+    w: i64,
+    ho: i64,
+    wo: i64,
+    kernel: [i64; 2],
+    stride: [i64; 2],
+    padding: [i64; 2],
+    dilation: [i64; 2],
+    per_item: bool,
+    border: Border,
+}
+
+impl Layout {
+    /// Fills the corners and fractions of the `wo * K` samples of output row `row` (item-major:
+    /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
+    /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none).
+    fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
+        &self,
+        off: &[O],
+        row: usize,
+        idx: &mut [i32],
+        frac: &mut [W],
+    ) -> [i32; 2] {
+        let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
+        let [kh, kw] = self.kernel;
+        let taps = (kh * kw) as usize;
+        let plane = (ho * wo) as usize;
+        let (item, oy) = (row as i64 / ho, row as i64 % ho);
+        // Per-item tables stack the items' pixels, each followed by its zero row.
+        let base = if self.per_item { item * (h * w + 1) } else { 0 };
+        let item_off = &off[item as usize * 2 * taps * plane..];
+        let mut s = 0;
+        let mut reach = [i32::MAX, i32::MIN];
+        for ox in 0..wo {
+            let p = (oy * wo + ox) as usize;
+            for i in 0..kh {
+                for j in 0..kw {
+                    let k = (i * kw + j) as usize;
+                    let y = (oy * self.stride[0] - self.padding[0] + i * self.dilation[0]) as f64
+                        + item_off[2 * k * plane + p].into();
+                    let x = (ox * self.stride[1] - self.padding[1] + j * self.dilation[1]) as f64
+                        + item_off[(2 * k + 1) * plane + p].into();
+                    let mut inside = false;
+                    for (c, (flat, _)) in bilinear(y, x, h, w, self.border).into_iter().enumerate()
+                    {
+                        inside |= flat.is_some();
+                        idx[4 * s + c] = (base + flat.unwrap_or(h * w)) as i32;
+                    }
+                    if inside {
+                        // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
+                        let y0 = floor(y);
+                        reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
+                        frac[2 * s] = W::from_f64(y - y0);
+                        frac[2 * s + 1] = W::from_f64(x - floor(x));
+                    } else {
+                        frac[2 * s] = W::from_f64(0.0);
+                        frac[2 * s + 1] = W::from_f64(0.0);
+                    }
+                    s += 1;
+                }
+            }
+        }
+        reach
+    }
+}
+
+impl Layout {
+    /// The plan for offsets `off` (`[items, 2K, H_out, W_out]`, `items = batch.unwrap_or(1)`).
+    fn build<O: Copy + Into<f64> + Sync>(
+        &self,
+        off: &[O],
+        batch: Option<i64>,
+        kind: Kind,
+    ) -> Result<SamplingPlan> {
+        if !matches!(kind, Kind::Float | Kind::Double) {
+            return Err(Error::InvalidArgument(format!(
+                "plan weights must be float32 or float64, got {kind:?}"
+            )));
+        }
+        let (h, w, ho, wo) = (self.h, self.w, self.ho, self.wo);
+        let taps = self.kernel[0] * self.kernel[1];
+        let items = batch.unwrap_or(1);
+        let samples = (items * ho * wo * taps) as usize;
+        // Indices are int32 (half the memory of int64); refuse what overflows.
+        if items * (h * w + 1) > i32::MAX as i64 || 4 * samples > i32::MAX as usize {
+            return Err(Error::InvalidArgument(format!(
+                "a sampling plan of {items} x {ho}x{wo} x {taps} samples on a {h}x{w} input is \
+                 too large for int32 indices"
+            )));
+        }
+        let row = (wo * taps) as usize;
+        let index = Tensor::empty([4 * samples as i64], (Kind::Int, Device::Cpu));
+        // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `4 * samples` elements, only
+        // written through this slice (by disjoint row chunks) before it is moved into the plan.
+        let idx = unsafe { elements_mut::<i32>(index.data_ptr(), 4 * samples) };
+        let mut reach: Vec<[i32; 2]> = Vec::new();
+        fn rows_of<O: Copy + Into<f64> + Sync, W: PlanFloat>(
+            layout: &Layout,
+            off: &[O],
+            idx: &mut [i32],
+            frac: &mut [W],
+            row: usize,
+        ) -> Vec<[i32; 2]> {
+            idx.par_chunks_mut(4 * row)
+                .zip(frac.par_chunks_mut(2 * row))
+                .enumerate()
+                .map(|(r, (i, f))| layout.fill_row(off, r, i, f))
+                .collect()
+        }
+        let frac = match kind {
+            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
+            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
+        };
+        let rows: Vec<i32> = reach.into_iter().flatten().collect();
+        Ok(SamplingPlan {
+            index,
+            frac,
+            rows: Tensor::from_slice(&rows),
+            input_size: [h, w],
+            output_size: [ho, wo],
+            kernel: self.kernel,
+            batch,
+        })
+    }
+}
+
+/// Output size `[H_out, W_out]` of a convolution (PyTorch's formula), or an error naming the
+/// geometry if it is invalid or does not fit.
+fn output_size(
+    input_size: [i64; 2],
+    kernel: [i64; 2],
+    stride: [i64; 2],
+    padding: [i64; 2],
+    dilation: [i64; 2],
+) -> Result<[i64; 2]> {
+    let [h, w] = input_size;
+    if kernel.iter().chain(&input_size).any(|&v| v < 1)
+        || stride.iter().chain(&dilation).any(|&v| v < 1)
+        || padding.iter().any(|&p| p < 0)
+    {
+        return Err(Error::InvalidArgument(format!(
+            "input {input_size:?}, kernel {kernel:?}, stride {stride:?}, padding {padding:?}, \
+             dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
+        )));
+    }
+    let dim = |a: usize| {
+        (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
+    };
+    let (ho, wo) = (dim(0), dim(1));
+    if ho < 1 || wo < 1 {
+        return Err(Error::InvalidArgument(format!(
+            "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
+             {h}x{w} input"
+        )));
+    }
+    Ok([ho, wo])
+}
+
 impl SamplingPlan {
     /// Builds the plan from offsets `[2*kh*kw, H_out, W_out]` or `[B, 2*kh*kw, H_out, W_out]`
-    /// for an input of `input_size = [H, W]`; weights are stored in `kind`, tensors on the CPU.
-    /// Zeros outside the input (torchvision); see [`SamplingPlan::with_border`].
+    /// for an input of `input_size = [H, W]`; weights are stored in `kind` (float32 or
+    /// float64), tensors on the CPU. Runs in parallel over output rows. Zeros outside the input
+    /// (torchvision); see [`SamplingPlan::with_border`].
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         offsets: &Tensor,
@@ -80,107 +308,92 @@ impl SamplingPlan {
         kind: Kind,
         border: Border,
     ) -> Result<Self> {
-        let [h, w] = input_size;
-        let [kh, kw] = kernel;
-        if kh < 1
-            || kw < 1
-            || stride.iter().chain(&dilation).any(|&v| v < 1)
-            || padding.iter().any(|&p| p < 0)
-        {
-            return Err(Error::InvalidArgument(format!(
-                "kernel {kernel:?}, stride {stride:?}, padding {padding:?}, dilation {dilation:?}: \
-                 sizes, strides and dilations must be >= 1, padding >= 0"
-            )));
-        }
-        let out_dim = |a: usize| {
-            (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
-        };
-        let (ho, wo) = (out_dim(0), out_dim(1));
-        if ho < 1 || wo < 1 {
-            return Err(Error::InvalidArgument(format!(
-                "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
-                 {h}x{w} input"
-            )));
-        }
         check_float(offsets, "offsets")?;
-        let taps = kh * kw;
+        let [ho, wo] = output_size(input_size, kernel, stride, padding, dilation)?;
+        let taps = kernel[0] * kernel[1];
         let batch = match offsets.size().as_slice() {
             [c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] => None,
-            [b, c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] => Some(*b),
+            [b, c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] && *b >= 1 => Some(*b),
             other => {
                 return Err(Error::InvalidArgument(format!(
-                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {kh}x{kw} \
-                     kernel on a {h}x{w} input, got {other:?}",
+                    "offsets must be [{}, {ho}, {wo}] or [B, {}, {ho}, {wo}] for a {}x{} \
+                     kernel on a {}x{} input, got {other:?}",
                     2 * taps,
-                    2 * taps
+                    2 * taps,
+                    kernel[0],
+                    kernel[1],
+                    input_size[0],
+                    input_size[1]
                 )))
             }
         };
-        let off: Vec<f64> = Vec::<f64>::try_from(
-            offsets
-                .to_device(Device::Cpu)
-                .to_kind(Kind::Double)
-                .contiguous()
-                .view(-1),
-        )?;
-        let items = batch.unwrap_or(1);
-        let plane = (ho * wo) as usize;
-        let taps_u = taps as usize;
-        // One output row of one item per task: (indices, weights), 4 per sample.
-        let rows: Vec<(Vec<i64>, Vec<f64>)> = (0..items * ho)
-            .into_par_iter()
-            .map(|row| {
-                let (item, oy) = (row / ho, row % ho);
-                // Per-item tables stack the items' pixels, each followed by its zero row.
-                let base = if batch.is_some() {
-                    item * (h * w + 1)
-                } else {
-                    0
-                };
-                let item_off = &off[item as usize * 2 * taps_u * plane..];
-                let mut idx = Vec::with_capacity(wo as usize * taps_u * 4);
-                let mut wts = Vec::with_capacity(wo as usize * taps_u * 4);
-                for ox in 0..wo {
-                    let p = (oy * wo + ox) as usize;
-                    for i in 0..kh {
-                        for j in 0..kw {
-                            let k = (i * kw + j) as usize;
-                            let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64
-                                + item_off[2 * k * plane + p];
-                            let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64
-                                + item_off[(2 * k + 1) * plane + p];
-                            for (flat, wt) in bilinear(y, x, h, w, border) {
-                                idx.push(base + flat.unwrap_or(h * w));
-                                wts.push(wt);
-                            }
-                        }
-                    }
-                }
-                (idx, wts)
-            })
-            .collect();
-        let n = items * ho * wo * taps;
-        let (idx, wts): (Vec<i64>, Vec<f64>) = (
-            rows.iter().flat_map(|r| r.0.iter().copied()).collect(),
-            rows.iter().flat_map(|r| r.1.iter().copied()).collect(),
-        );
-        Ok(SamplingPlan {
-            index: Tensor::from_slice(&idx),
-            weight: Tensor::from_slice(&wts).to_kind(kind),
-            bags: Tensor::arange_start_step(0, 4 * n, 4, (Kind::Int64, Device::Cpu)),
-            input_size,
-            output_size: [ho, wo],
+        let layout = Layout {
+            h: input_size[0],
+            w: input_size[1],
+            ho,
+            wo,
             kernel,
-            batch,
-        })
+            stride,
+            padding,
+            dilation,
+            per_item: batch.is_some(),
+            border,
+        };
+        let off = offsets.to_device(Device::Cpu).contiguous();
+        match off.kind() {
+            Kind::Float => layout.build(elements::<f32>(&off)?, batch, kind),
+            _ => layout.build(elements::<f64>(&off)?, batch, kind),
+        }
     }
 
-    /// The same plan with its tensors on `device`.
+    /// [`SamplingPlan::with_border`] straight from a layer's [`Offsets`] (shared by the batch),
+    /// without copying them into a tensor first.
+    pub fn from_offsets(
+        offsets: &Offsets,
+        stride: [i64; 2],
+        padding: [i64; 2],
+        dilation: [i64; 2],
+        kind: Kind,
+        border: Border,
+    ) -> Result<Self> {
+        let input_size = offsets.input_size.map(|v| v as i64);
+        let kernel = offsets.kernel.map(|v| v as i64);
+        let out = output_size(input_size, kernel, stride, padding, dilation)?;
+        let taps = (kernel[0] * kernel[1]) as usize;
+        if out != offsets.output_size.map(|v| v as i64)
+            || offsets.data.len() != 2 * taps * offsets.output_size[0] * offsets.output_size[1]
+        {
+            return Err(Error::InvalidArgument(format!(
+                "offsets of {} values for a {:?} output do not fit stride {stride:?}, padding \
+                 {padding:?}, dilation {dilation:?} on a {input_size:?} input (output {out:?})",
+                offsets.data.len(),
+                offsets.output_size
+            )));
+        }
+        let layout = Layout {
+            h: input_size[0],
+            w: input_size[1],
+            ho: out[0],
+            wo: out[1],
+            kernel,
+            stride,
+            padding,
+            dilation,
+            per_item: false,
+            border,
+        };
+        layout.build(&offsets.data, None, kind)
+    }
+
+    /// The same plan with its tensors on `device` (shared, not copied, if already there).
     pub fn to_device(&self, device: Device) -> Self {
+        if device == self.device() {
+            return self.shallow_clone();
+        }
         SamplingPlan {
             index: self.index.to_device(device),
-            weight: self.weight.to_device(device),
-            bags: self.bags.to_device(device),
+            frac: self.frac.to_device(device),
+            rows: self.rows.shallow_clone(),
             ..*self
         }
     }
@@ -189,8 +402,8 @@ impl SamplingPlan {
     pub fn shallow_clone(&self) -> Self {
         SamplingPlan {
             index: self.index.shallow_clone(),
-            weight: self.weight.shallow_clone(),
-            bags: self.bags.shallow_clone(),
+            frac: self.frac.shallow_clone(),
+            rows: self.rows.shallow_clone(),
             ..*self
         }
     }
@@ -215,18 +428,111 @@ impl SamplingPlan {
         self.kernel
     }
 
+    /// `Some(B)` for a plan built from per-item offsets.
+    pub fn batch(&self) -> Option<i64> {
+        self.batch
+    }
+
     /// Device of the plan's tensors.
     pub fn device(&self) -> Device {
         self.index.device()
     }
 
+    /// Kind of the plan's fractions (and weights).
+    pub fn kind(&self) -> Kind {
+        self.frac.kind()
+    }
+
+    /// The corner indices `[N * 4]` (int32) and fractions `(ly, lx)` `[N * 2]`.
+    pub fn samples(&self) -> (&Tensor, &Tensor) {
+        (&self.index, &self.frac)
+    }
+
+    /// The bilinear corner weights `[N * 4]` in `kind`, in the order of the corner indices:
+    /// `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` (on the plan's device).
+    pub fn f_weights(&self, kind: Kind) -> Result<Tensor> {
+        let frac = self.frac.f_to_kind(kind)?.f_view([-1, 2])?;
+        let (ly, lx) = (frac.f_select(1, 0)?, frac.f_select(1, 1)?);
+        let (hy, hx) = (
+            ly.f_neg()?.f_add_scalar(1.0)?,
+            lx.f_neg()?.f_add_scalar(1.0)?,
+        );
+        Ok(Tensor::f_stack(
+            &[
+                hy.f_mul(&hx)?,
+                hy.f_mul(&lx)?,
+                ly.f_mul(&hx)?,
+                ly.f_mul(&lx)?,
+            ],
+            1,
+        )?
+        .f_view([-1])?)
+    }
+
+    /// `[items, H_out, 2]` (int32, CPU): the lowest and highest input row read by each output
+    /// row (lowest > highest where it reads none).
+    pub fn rows(&self) -> &Tensor {
+        &self.rows
+    }
+
+    /// Bytes held by the plan's tensors.
+    pub fn memory_bytes(&self) -> usize {
+        [&self.index, &self.frac, &self.rows]
+            .iter()
+            .map(|t| t.numel() * t.kind().elt_size_in_bytes())
+            .sum()
+    }
+
     /// The column matrix of `input`: for each output pixel, the bilinear samples of every tap
-    /// and channel.
+    /// and channel (the ATen path; any device).
     ///
     /// # Shapes
     /// - `input`: `[B, C, H, W]`
     /// - output: `[B, H_out * W_out, K, C]` (pixel-major, then tap, then channel)
     pub fn f_columns(&self, input: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = self.check_input(input)?;
+        let weight = self.f_weights(input.kind())?;
+        let (p, k) = (
+            self.output_size[0] * self.output_size[1],
+            self.kernel[0] * self.kernel[1],
+        );
+        let n = self.index.numel() as i64 / 4;
+        let bags = Tensor::f_arange_start_step(0, 4 * n, 4, (Kind::Int, self.device()))?;
+        let bag = |table: &Tensor| -> Result<Tensor> {
+            let (sum, _, _, _) = Tensor::f_embedding_bag(
+                table,
+                &self.index,
+                &bags,
+                false,
+                0, // mode: sum
+                false,
+                Some(&weight),
+                false,
+            )?;
+            Ok(sum)
+        };
+        match self.batch {
+            None => {
+                // Table [H*W + 1, B*C]: one row per pixel holding every item's channels, so the
+                // shared plan serves the whole batch without copying indices.
+                let table = input.f_permute([2, 3, 0, 1])?.f_reshape([h * w, b * c])?;
+                let zero = Tensor::f_zeros([1, b * c], (input.kind(), input.device()))?;
+                let table = Tensor::f_cat(&[table, zero], 0)?;
+                Ok(bag(&table)?.f_view([p, k, b, c])?.f_permute([2, 0, 1, 3])?)
+            }
+            Some(_) => {
+                // Table [B*(H*W + 1), C]: items stacked, each followed by its zero row.
+                let table = input.f_permute([0, 2, 3, 1])?.f_reshape([b, h * w, c])?;
+                let zero = Tensor::f_zeros([b, 1, c], (input.kind(), input.device()))?;
+                let table = Tensor::f_cat(&[table, zero], 1)?.f_reshape([b * (h * w + 1), c])?;
+                Ok(bag(&table)?.f_view([b, p, k, c])?)
+            }
+        }
+    }
+
+    /// Checks that `input` fits the plan: float, `[B, C, H, W]` with the plan's `H, W` (and `B`
+    /// for per-item plans), on the plan's device. Returns `(B, C, H, W)`.
+    pub(crate) fn check_input(&self, input: &Tensor) -> Result<(i64, i64, i64, i64)> {
         check_float(input, "input")?;
         let (b, c, h, w) = input.size4().map_err(|_| {
             Error::InvalidArgument(format!(
@@ -247,59 +553,40 @@ impl SamplingPlan {
                 self.device()
             )));
         }
-        let weight = self.weight.to_kind(input.kind());
-        let (p, k) = (
-            self.output_size[0] * self.output_size[1],
-            self.kernel[0] * self.kernel[1],
-        );
-        let bag = |table: &Tensor| -> Result<Tensor> {
-            let (sum, _, _, _) = Tensor::f_embedding_bag(
-                table,
-                &self.index,
-                &self.bags,
-                false,
-                0, // mode: sum
-                false,
-                Some(&weight),
-                false,
-            )?;
-            Ok(sum)
-        };
-        match self.batch {
-            None => {
-                // Table [H*W + 1, B*C]: one row per pixel holding every item's channels, so the
-                // shared plan serves the whole batch without copying indices.
-                let table = input.f_permute([2, 3, 0, 1])?.f_reshape([h * w, b * c])?;
-                let zero = Tensor::f_zeros([1, b * c], (input.kind(), input.device()))?;
-                let table = Tensor::f_cat(&[table, zero], 0)?;
-                Ok(bag(&table)?.f_view([p, k, b, c])?.f_permute([2, 0, 1, 3])?)
-            }
-            Some(pb) => {
-                if pb != b {
-                    return Err(Error::InvalidArgument(format!(
-                        "offsets have batch {pb} but input has batch {b}"
-                    )));
-                }
-                // Table [B*(H*W + 1), C]: items stacked, each followed by its zero row.
-                let table = input.f_permute([0, 2, 3, 1])?.f_reshape([b, h * w, c])?;
-                let zero = Tensor::f_zeros([b, 1, c], (input.kind(), input.device()))?;
-                let table = Tensor::f_cat(&[table, zero], 1)?.f_reshape([b * (h * w + 1), c])?;
-                Ok(bag(&table)?.f_view([b, p, k, c])?)
+        if let Some(pb) = self.batch {
+            if pb != b {
+                return Err(Error::InvalidArgument(format!(
+                    "offsets have batch {pb} but input has batch {b}"
+                )));
             }
         }
+        Ok((b, c, h, w))
+    }
+}
+
+/// `v.floor()` for finite `|v| < 2^53`, inline (without SSE4.1, `f64::floor` is a libm call that
+/// costs a tenth of the plan build).
+#[inline]
+fn floor(v: f64) -> f64 {
+    let t = v as i64 as f64;
+    if t > v {
+        t - 1.0
+    } else {
+        t
     }
 }
 
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
 /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
 /// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
+#[inline(always)]
 fn bilinear(y: f64, x: f64, h: i64, w: i64, border: Border) -> [(Option<i64>, f64); 4] {
     let wrap = border == Border::WrapX;
     let x_outside = !wrap && (x <= -1.0 || x >= w as f64);
     if y <= -1.0 || y >= h as f64 || x_outside || !y.is_finite() || !x.is_finite() {
         return [(None, 0.0); 4];
     }
-    let (y0, x0) = (y.floor() as i64, x.floor() as i64);
+    let (y0, x0) = (floor(y) as i64, floor(x) as i64);
     let (ly, lx) = (y - y0 as f64, x - x0 as f64);
     let (hy, hx) = (1.0 - ly, 1.0 - lx);
     let at = |yy: i64, xx: i64| {

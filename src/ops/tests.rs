@@ -153,3 +153,427 @@ fn bad_shapes_are_clear_errors() {
     .unwrap_err();
     assert!(e.to_string().contains("float32"), "{e}");
 }
+
+// ---------------------------------------------------------------------------------------------
+// The native CPU kernels against the ATen composition (two independent implementations of the
+// same plan), and the layouts and paths only the native kernels have.
+
+/// Float64 runs of the two implementations differ by summation order only: ~1e-15 relative.
+const F64_IMPL_TOL: f64 = 1e-12;
+/// Float32 runs: sums of up to ~500 products, different order: ~1e-6 relative at worst.
+const F32_IMPL_TOL: f64 = 2e-5;
+
+/// Output and gradients (input, weight, bias) of `(conv(x) * probe).sum()`.
+struct Grads {
+    out: Tensor,
+    input: Tensor,
+    weight: Tensor,
+    bias: Tensor,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run_backend(
+    x: &Tensor,
+    plan: &SamplingPlan,
+    w: &Tensor,
+    b: &Tensor,
+    groups: i64,
+    probe: &Tensor,
+    backend: Backend,
+) -> Grads {
+    let (x, w, b) = (
+        x.detach().set_requires_grad(true),
+        w.detach().set_requires_grad(true),
+        b.detach().set_requires_grad(true),
+    );
+    let out = deform_conv2d_planned_with(&x, plan, &w, Some(&b), groups, backend).unwrap();
+    let loss = (&out * probe).sum(out.kind());
+    let g = Tensor::run_backward(&[loss], &[&x, &w, &b], false, false);
+    Grads {
+        out: out.detach(),
+        input: g[0].shallow_clone(),
+        weight: g[1].shallow_clone(),
+        bias: g[2].shallow_clone(),
+    }
+}
+
+fn assert_same(a: &Grads, b: &Grads, tol: f64, what: &str) {
+    for (name, x, y) in [
+        ("output", &a.out, &b.out),
+        ("grad input", &a.input, &b.input),
+        ("grad weight", &a.weight, &b.weight),
+        ("grad bias", &a.bias, &b.bias),
+    ] {
+        assert_eq!(x.size(), y.size(), "{what}: {name} shape");
+        let rel = max_rel(x, y);
+        assert!(
+            rel < tol,
+            "{what}: {name} differs by {rel:e} (tolerance {tol:e})"
+        );
+    }
+}
+
+/// A channels-last copy of an NCHW tensor (same values, NHWC memory).
+fn channels_last(x: &Tensor) -> Tensor {
+    x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
+}
+
+fn is_channels_last(x: &Tensor) -> bool {
+    let (_, c, h, w) = x.size4().unwrap();
+    x.stride() == [h * w * c, 1, w * c, c]
+}
+
+#[test]
+fn native_matches_aten_on_random_plans() {
+    tch::manual_seed(2);
+    // (batch, c_in, c_out, h, w, kernel, stride, padding, dilation, groups, per-item offsets,
+    // offset scale in pixels: large scales put many samples partly or wholly outside).
+    let cases = [
+        (
+            2,
+            4,
+            6,
+            9,
+            11,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            false,
+            1.0,
+        ),
+        (3, 6, 4, 8, 7, [3, 3], [2, 1], [0, 2], [1, 2], 2, false, 3.0),
+        (2, 8, 8, 10, 6, [3, 5], [1, 2], [2, 1], [2, 1], 4, true, 2.0),
+        (
+            1,
+            5,
+            3,
+            12,
+            12,
+            [1, 1],
+            [1, 1],
+            [0, 0],
+            [1, 1],
+            1,
+            false,
+            6.0,
+        ),
+        (2, 3, 5, 6, 9, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 12.0),
+        // 1 and 2 channels: the unrolled gathers of the first layers.
+        (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
+        (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
+    ];
+    for (i, &(b, ci, co, h, w, k, s, p, d, g, per_item, scale)) in cases.iter().enumerate() {
+        for kind in [Kind::Double, Kind::Float] {
+            let opts = (kind, Device::Cpu);
+            let ho = (h + 2 * p[0] - d[0] * (k[0] - 1) - 1) / s[0] + 1;
+            let wo = (w + 2 * p[1] - d[1] * (k[1] - 1) - 1) / s[1] + 1;
+            let taps = k[0] * k[1];
+            let off = if per_item {
+                Tensor::randn([b, 2 * taps, ho, wo], opts) * scale
+            } else {
+                Tensor::randn([2 * taps, ho, wo], opts) * scale
+            };
+            let plan = SamplingPlan::new(&off, [h, w], k, s, p, d, kind).unwrap();
+            let x = Tensor::randn([b, ci, h, w], opts);
+            let wt = Tensor::randn([co, ci / g, k[0], k[1]], opts);
+            let bias = Tensor::randn([co], opts);
+            let probe = Tensor::randn([b, co, ho, wo], opts);
+            let native = run_backend(&x, &plan, &wt, &bias, g, &probe, Backend::Auto);
+            let aten = run_backend(&x, &plan, &wt, &bias, g, &probe, Backend::Aten);
+            let tol = if kind == Kind::Double {
+                F64_IMPL_TOL
+            } else {
+                F32_IMPL_TOL
+            };
+            assert_same(&native, &aten, tol, &format!("case {i} {kind:?}"));
+        }
+    }
+}
+
+#[test]
+fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
+    tch::manual_seed(3);
+    let opts = (Kind::Double, Device::Cpu);
+    let off = Tensor::randn([18, 7, 9], opts) * 1.5;
+    let plan =
+        SamplingPlan::new(&off, [7, 9], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let x = Tensor::randn([2, 6, 7, 9], opts);
+    let (w, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
+    let probe = Tensor::randn([2, 4, 7, 9], opts);
+    let reference = run_backend(&x, &plan, &w, &bias, 2, &probe, Backend::Aten);
+    // Channels-last in: channels-last out and input gradient, like conv2d.
+    let cl = run_backend(
+        &channels_last(&x),
+        &plan,
+        &w,
+        &bias,
+        2,
+        &probe,
+        Backend::Auto,
+    );
+    assert!(
+        is_channels_last(&cl.out),
+        "output strides {:?}",
+        cl.out.stride()
+    );
+    assert!(
+        is_channels_last(&cl.input),
+        "grad strides {:?}",
+        cl.input.stride()
+    );
+    assert_same(&cl, &reference, F64_IMPL_TOL, "channels-last input");
+    // A strided view (every other column of a wider tensor), a channels-last output gradient.
+    let wide = Tensor::randn([2, 6, 7, 18], opts);
+    let strided = wide.slice(3, 0, 18, 2);
+    assert!(!strided.is_contiguous());
+    let reference = run_backend(
+        &strided.contiguous(),
+        &plan,
+        &w,
+        &bias,
+        2,
+        &probe,
+        Backend::Aten,
+    );
+    let got = run_backend(
+        &strided,
+        &plan,
+        &w,
+        &bias,
+        2,
+        &channels_last(&probe),
+        Backend::Auto,
+    );
+    assert!(got.out.is_contiguous());
+    assert_same(&got, &reference, F64_IMPL_TOL, "strided input");
+    // A broadcast (stride-0) output gradient, as from `out.sum()`.
+    let x = x.detach().set_requires_grad(true);
+    let out = deform_conv2d_planned(&x, &plan, &w, Some(&bias), 2).unwrap();
+    let g = Tensor::run_backward(&[out.sum(Kind::Double)], &[&x], false, false);
+    let xa = x.detach().set_requires_grad(true);
+    let out = deform_conv2d_planned_with(&xa, &plan, &w, Some(&bias), 2, Backend::Aten).unwrap();
+    let ga = Tensor::run_backward(&[out.sum(Kind::Double)], &[&xa], false, false);
+    assert!(max_rel(&g[0], &ga[0]) < F64_IMPL_TOL);
+}
+
+/// Offsets that jump by many rows (up, down, alternating) force tall scatter bands and
+/// non-monotone row ranges; the input gradient must still be exact.
+#[test]
+fn input_gradient_is_exact_with_far_reaching_offsets() {
+    tch::manual_seed(4);
+    let opts = (Kind::Double, Device::Cpu);
+    let (h, w) = (24, 5);
+    let rows = Tensor::arange(h, opts).view([1, h, 1]);
+    // dy = +-(row mod 7) * 1.7, alternating with the row: samples cross many rows both ways.
+    let sign = Tensor::from_slice(&[1.0f64, -1.0])
+        .repeat([h / 2])
+        .view([1, h, 1]);
+    let dy = (rows.remainder(7.0) * 1.7 * sign).expand([9, h, w], false);
+    let dx = Tensor::randn([9, h, w], opts) * 0.3;
+    let off = Tensor::stack(&[dy, dx], 1).reshape([18, h, w]);
+    let plan =
+        SamplingPlan::new(&off, [h, w], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let x = Tensor::randn([2, 3, h, w], opts);
+    let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
+    let probe = Tensor::randn([2, 4, h, w], opts);
+    let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+    let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+    assert_same(&native, &aten, F64_IMPL_TOL, "far-reaching offsets");
+}
+
+/// Finite-difference check in f64 through the native path, with per-item offsets and a
+/// channels-last input (the shared-offsets NCHW case is `gradients_match_finite_differences`).
+#[test]
+fn native_gradients_match_finite_differences_per_item_channels_last() {
+    tch::manual_seed(5);
+    let opts = (Kind::Double, Device::Cpu);
+    let x = Tensor::randn([2, 4, 5, 6], opts).set_requires_grad(true);
+    let w = Tensor::randn([6, 2, 3, 3], opts).set_requires_grad(true);
+    let b = Tensor::randn([6], opts).set_requires_grad(true);
+    let off = Tensor::randn([2, 18, 5, 6], opts) * 2.0;
+    let plan =
+        SamplingPlan::new(&off, [5, 6], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let probe = Tensor::randn([2, 6, 5, 6], opts);
+    // The op sees a channels-last input; the variables stay NCHW for perturbing.
+    let loss = |x: &Tensor, w: &Tensor, b: &Tensor| -> Tensor {
+        let y = deform_conv2d_planned(&channels_last(x), &plan, w, Some(b), 2).unwrap();
+        (y * &probe).sum(Kind::Double)
+    };
+    let grads = Tensor::run_backward(&[loss(&x, &w, &b)], &[&x, &w, &b], false, false);
+    let eps = 1e-6;
+    for (which, g) in grads.iter().enumerate() {
+        for e in (0..g.numel() as i64).step_by(5) {
+            let fd = tch::no_grad(|| {
+                let vars = [x.detach().copy(), w.detach().copy(), b.detach().copy()];
+                let flat = vars[which].view(-1);
+                let v0 = flat.double_value(&[e]);
+                let _ = flat.get(e).fill_(v0 + eps);
+                let up = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
+                let _ = flat.get(e).fill_(v0 - eps);
+                let down = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
+                (up - down) / (2.0 * eps)
+            });
+            let an = g.reshape(-1).double_value(&[e]);
+            assert!(
+                (fd - an).abs() < FD_TOL * (1.0 + an.abs()),
+                "param {which} elem {e}: fd {fd} vs autograd {an}"
+            );
+        }
+    }
+}
+
+#[test]
+fn native_results_are_deterministic() {
+    tch::manual_seed(6);
+    let opts = (Kind::Float, Device::Cpu);
+    let off = Tensor::randn([18, 40, 40], opts) * 2.0;
+    let plan =
+        SamplingPlan::new(&off, [40, 40], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let x = Tensor::randn([3, 16, 40, 40], opts);
+    let (w, b) = (
+        Tensor::randn([16, 16, 3, 3], opts),
+        Tensor::randn([16], opts),
+    );
+    let probe = Tensor::randn([3, 16, 40, 40], opts);
+    let first = run_backend(&x, &plan, &w, &b, 1, &probe, Backend::Auto);
+    for _ in 0..3 {
+        let again = run_backend(&x, &plan, &w, &b, 1, &probe, Backend::Auto);
+        assert!(again.out.equal(&first.out));
+        assert!(again.input.equal(&first.input));
+        assert!(again.weight.equal(&first.weight));
+    }
+}
+
+/// C++ exceptions come back as errors, never as aborts: double backward is refused.
+#[test]
+fn double_backward_is_an_error_not_a_crash() {
+    let opts = (Kind::Double, Device::Cpu);
+    let off = Tensor::randn([18, 4, 4], opts);
+    let plan =
+        SamplingPlan::new(&off, [4, 4], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let x = Tensor::randn([1, 2, 4, 4], opts).set_requires_grad(true);
+    let w = Tensor::randn([2, 2, 3, 3], opts).set_requires_grad(true);
+    let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
+    let r = Tensor::f_run_backward(&[y.square().sum(Kind::Double)], &[&x], true, true);
+    if native_available() {
+        let e = r.expect_err("double backward must fail").to_string();
+        assert!(e.contains("double backward"), "{e}");
+    }
+}
+
+#[test]
+fn float32_plan_serves_a_float64_input() {
+    let opts = (Kind::Double, Device::Cpu);
+    let off = Tensor::randn([18, 5, 5], opts);
+    let plan32 =
+        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let plan64 =
+        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let x = Tensor::randn([1, 2, 5, 5], opts);
+    let w = Tensor::randn([3, 2, 3, 3], opts);
+    let a = deform_conv2d_planned(&x, &plan32, &w, None, 1).unwrap();
+    let b = deform_conv2d_planned(&x, &plan64, &w, None, 1).unwrap();
+    assert_eq!(a.kind(), Kind::Double);
+    // Weights rounded to float32: ~6e-8 relative each.
+    assert!(max_rel(&a, &b) < 1e-6);
+}
+
+/// Wrap-around plans (panoramas) feed the native kernels unchanged: columns taken modulo `W`,
+/// including a 1-wide input whose two horizontal corners are the same pixel.
+#[test]
+fn native_matches_aten_with_wrap_around() {
+    tch::manual_seed(7);
+    let opts = (Kind::Double, Device::Cpu);
+    for (h, w) in [(6, 8), (5, 1)] {
+        let off = Tensor::randn([18, h, w], opts) * 4.0;
+        let plan = SamplingPlan::with_border(
+            &off,
+            [h, w],
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            Kind::Double,
+            Border::WrapX,
+        )
+        .unwrap();
+        let x = Tensor::randn([2, 3, h, w], opts);
+        let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
+        let probe = Tensor::randn([2, 4, h, w], opts);
+        let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+        assert_same(
+            &native,
+            &aten,
+            F64_IMPL_TOL,
+            &format!("wrap-around {h}x{w}"),
+        );
+    }
+}
+
+#[test]
+fn plan_from_offsets_matches_plan_from_their_tensor() {
+    use crate::kernel::{compute_offsets, InputFrame, LayerGeometry};
+    let camera = crate::camera::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/cameras/f195.toml"
+    ))
+    .unwrap();
+    let geometry = LayerGeometry {
+        kernel: [3, 3],
+        stride: [2, 1],
+        padding: [1, 1],
+        dilation: [1, 2],
+    };
+    let off = compute_offsets(&camera, [24, 27], &geometry, &InputFrame::default()).unwrap();
+    let (s, p, d) = ([2, 1], [1, 1], [1, 2]);
+    let direct = SamplingPlan::from_offsets(&off, s, p, d, Kind::Float, Border::Zeros).unwrap();
+    let via = SamplingPlan::new(&off.to_tensor(), [24, 27], [3, 3], s, p, d, Kind::Float).unwrap();
+    let ((i1, f1), (i2, f2)) = (direct.samples(), via.samples());
+    assert!(i1.equal(i2) && f1.equal(f2) && direct.rows().equal(via.rows()));
+    // A geometry the offsets were not computed for is an error, not a wrong plan.
+    assert!(SamplingPlan::from_offsets(&off, [1, 1], p, d, Kind::Float, Border::Zeros).is_err());
+}
+
+#[test]
+fn plan_weights_are_the_bilinear_weights() {
+    // A 1x1 kernel on a 4x5 input; output pixel (0, 0) samples (y, x) = (1.25, 2.5): corners
+    // (1,2) (1,3) (2,2) (2,3).
+    let off = Tensor::zeros([2, 4, 5], (Kind::Double, Device::Cpu));
+    let _ = off.get(0).get(0).get(0).fill_(1.25);
+    let _ = off.get(1).get(0).get(0).fill_(2.5);
+    let plan =
+        SamplingPlan::new(&off, [4, 5], [1, 1], [1, 1], [0, 0], [1, 1], Kind::Double).unwrap();
+    let (index, _) = plan.samples();
+    assert_eq!(
+        Vec::<i32>::try_from(index.narrow(0, 0, 4)).unwrap(),
+        [7, 8, 12, 13]
+    );
+    let w = plan.f_weights(Kind::Double).unwrap().narrow(0, 0, 4);
+    let w = Vec::<f64>::try_from(w).unwrap();
+    let expected = [0.75 * 0.5, 0.75 * 0.5, 0.25 * 0.5, 0.25 * 0.5];
+    assert!(
+        w.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-15),
+        "{w:?}"
+    );
+}
+
+#[test]
+fn native_handles_an_empty_batch() {
+    if !native_available() {
+        return;
+    }
+    let opts = (Kind::Float, Device::Cpu);
+    let off = Tensor::randn([18, 5, 5], opts);
+    let plan =
+        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let x = Tensor::randn([0, 2, 5, 5], opts).set_requires_grad(true);
+    let w = Tensor::randn([3, 2, 3, 3], opts).set_requires_grad(true);
+    let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
+    assert_eq!(y.size(), [0, 3, 5, 5]);
+    let g = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x, &w], false, false);
+    assert_eq!(g[0].size(), [0, 2, 5, 5]);
+    assert_eq!(g[1].abs().sum(Kind::Float).double_value(&[]), 0.0);
+}

@@ -1,0 +1,81 @@
+//! The native CPU kernels (`deform.cpp`, compiled by `build.rs` against libtorch): a
+//! `torch::autograd::Function` called through one C entry point that takes and returns
+//! `at::Tensor*` handles (tch's `Tensor::as_ptr` / `Tensor::from_ptr`), and reports C++
+//! exceptions as an error message instead of letting them cross into Rust.
+
+use std::ffi::{c_char, CStr};
+
+use tch::Tensor;
+use torch_sys::C_tensor;
+
+use super::plan::SamplingPlan;
+use crate::error::{Error, Result};
+
+extern "C" {
+    /// See `deform.cpp`. Returns null on success (`*out` then holds a new tensor handle that
+    /// the caller owns), else a message to release with `calibconv_free_error`.
+    fn calibconv_deform_conv2d_cpu(
+        input: *const C_tensor,
+        weight: *const C_tensor,
+        bias: *const C_tensor,
+        index: *const C_tensor,
+        frac: *const C_tensor,
+        rows: *const C_tensor,
+        ho: i64,
+        wo: i64,
+        groups: i64,
+        per_item: i32,
+        out: *mut *mut C_tensor,
+    ) -> *mut c_char;
+    fn calibconv_free_error(message: *mut c_char);
+}
+
+/// The deformable convolution of CPU tensors through the native kernels. The caller has checked
+/// shapes, kinds and devices (see `super::check_call`).
+pub(super) fn deform_conv2d_cpu(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<Tensor> {
+    let kind = input.kind();
+    let (index, frac) = plan.samples();
+    let frac = frac.to_kind(kind);
+    let [ho, wo] = plan.output_size();
+    let mut out: *mut C_tensor = std::ptr::null_mut();
+    // SAFETY: every pointer is a live tensor handle borrowed for the duration of the call (the
+    // C++ side copies the handles it keeps), `bias` may be null, and `out` is written only on
+    // success with a fresh handle whose ownership passes to us.
+    let err = unsafe {
+        calibconv_deform_conv2d_cpu(
+            input.as_ptr(),
+            weight.as_ptr(),
+            bias.map_or(std::ptr::null(), |b| b.as_ptr()),
+            index.as_ptr(),
+            frac.as_ptr(),
+            plan.rows().as_ptr(),
+            ho,
+            wo,
+            groups,
+            i32::from(plan.batch().is_some()),
+            &mut out,
+        )
+    };
+    if !err.is_null() {
+        // SAFETY: a NUL-terminated message from the C++ side, released exactly once below.
+        let message = unsafe { CStr::from_ptr(err) }
+            .to_string_lossy()
+            .into_owned();
+        unsafe { calibconv_free_error(err) };
+        return Err(Error::Torch(tch::TchError::Torch(message)));
+    }
+    if out.is_null() {
+        return Err(Error::Torch(tch::TchError::Torch(
+            "native deform_conv2d returned no tensor".into(),
+        )));
+    }
+    // SAFETY: `out` is a fresh, owned `at::Tensor*` allocated with `new` by the C++ side, which
+    // is what tch frees on drop.
+    Ok(unsafe { Tensor::from_ptr(out) })
+}
