@@ -175,6 +175,8 @@ mod tests {
         assert_eq!(depth_colour(f32::NAN), [253, 231, 37]);
         let img = Tensor::rand([3, 4, 5], (Kind::Float, Device::Cpu));
         let gt = Tensor::rand([1, 4, 5], (Kind::Float, Device::Cpu)) + 0.5;
+        // At least one invalid pixel whatever the draw (regression: 1% of draws had none).
+        let _ = gt.get(0).get(2).get(3).fill_(0.6);
         let mask = gt.gt(0.7);
         let p = depth_panel(&img, &gt, &gt, &mask).unwrap();
         assert_eq!((p.width(), p.height()), (4 * 5 + 3 * 2, 4));
