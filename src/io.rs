@@ -36,6 +36,21 @@ pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// Encodes `img` as PNG and writes it atomically; an encoding failure is an [`Error::Image`]
+/// naming `path`.
+pub fn write_png_atomic(path: &Path, img: &image::RgbImage) -> Result<()> {
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| Error::Image {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    write_bytes_atomic(path, &bytes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -20,7 +20,7 @@ use anyhow::{Context, Result};
 use tch::Tensor;
 
 use calibconv::camera::Camera;
-use calibconv::io::{write_atomic, write_bytes_atomic};
+use calibconv::io::{write_atomic, write_png_atomic};
 use calibconv::kernel::InputFrame;
 
 use crate::cli::{Command, FrameArgs};
@@ -60,10 +60,5 @@ fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
 }
 
 fn save_png(path: &Path, img: &image::RgbImage) -> Result<()> {
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )?;
-    write_bytes_atomic(path, &bytes).with_context(|| format!("cannot write {}", path.display()))
+    write_png_atomic(path, img).with_context(|| format!("cannot write {}", path.display()))
 }

@@ -22,7 +22,7 @@ use tch::{Device, Kind, Tensor};
 use crate::camera::{Camera, CameraModel};
 use crate::data::BatchSource;
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
+use crate::io::{write_bytes_atomic, write_png_atomic};
 use crate::kernel::InputFrame;
 use crate::nn::{Head, UNet};
 use loss::{depth_loss, segmentation_loss, DepthLoss};
@@ -160,16 +160,7 @@ impl Evaluation {
             let path = dir
                 .join("predictions")
                 .join(format!("{}.png", sanitize(id)));
-            let mut bytes = Vec::new();
-            img.write_to(
-                &mut std::io::Cursor::new(&mut bytes),
-                image::ImageFormat::Png,
-            )
-            .map_err(|e| Error::Image {
-                path: path.clone(),
-                message: e.to_string(),
-            })?;
-            write_bytes_atomic(&path, &bytes)?;
+            write_png_atomic(&path, img)?;
         }
         Ok(())
     }

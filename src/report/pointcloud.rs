@@ -10,8 +10,8 @@
 use std::path::Path;
 
 use crate::camera::{Camera, CameraModel};
-use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
+use crate::error::Result;
+use crate::io::{write_bytes_atomic, write_png_atomic};
 
 /// A coloured point, camera frame, metres.
 pub type Point = ([f32; 3], [u8; 3]);
@@ -90,16 +90,7 @@ pub fn top_view(path: &Path, sets: &[(&[Point], [u8; 3])], size: u32) -> Result<
     }
     let [cx, cy] = to_px(0.0, 0.0);
     super::draw::disc(&mut img, cx, cy, 4.0, [0, 0, 0]);
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )
-    .map_err(|e| Error::Image {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    write_bytes_atomic(path, &bytes)
+    write_png_atomic(path, &img)
 }
 
 #[cfg(test)]

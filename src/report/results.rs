@@ -24,7 +24,7 @@ use super::plots::{
 };
 use crate::error::{Error, Result};
 use crate::eval::metrics::ALL_METRICS;
-use crate::io::write_bytes_atomic;
+use crate::io::{write_bytes_atomic, write_png_atomic};
 
 /// Metric columns of each task's table, in order.
 pub const DEPTH_COLUMNS: [&str; 7] = [
@@ -396,16 +396,7 @@ fn load_png(path: &Path) -> Option<RgbImage> {
 }
 
 fn save_png(path: &Path, img: &RgbImage) -> Result<()> {
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )
-    .map_err(|e| Error::Image {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    write_bytes_atomic(path, &bytes)
+    write_png_atomic(path, img)
 }
 
 /// Tile `i` of a prediction panel of `n` tiles (tiles separated by 2-pixel gaps, see
