@@ -40,7 +40,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
             "level {} {:<36} {:?}{}",
             p.level,
             p.exp.name,
-            sweep::state(&p.exp),
+            sweep::state(&p.exp)?,
             if p.deps.is_empty() {
                 String::new()
             } else {

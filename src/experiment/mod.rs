@@ -79,6 +79,7 @@
 //! images = 4                          # prediction PNGs
 //! ```
 
+pub mod layout;
 pub mod profile;
 pub mod run;
 pub mod source;

@@ -19,14 +19,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use serde_json::json;
-
+use super::layout::{write_record, RunLock, SweepRecord, SweepStatus};
 use super::profile::{self, Override, Profile};
 use super::run::{self, git_revision, RunOptions};
 use super::{Experiment, InitSpec, SourceOpener};
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
-use crate::train::last_path;
 
 /// One run of a sweep.
 #[derive(Clone, Debug)]
@@ -226,33 +224,34 @@ pub fn plan(
     Ok(out)
 }
 
-/// What the run directory of `exp` holds.
-pub fn state(exp: &Experiment) -> State {
-    let dir = &exp.run_dir;
-    if dir.join("summary.json").is_file() {
-        let evaluated = exp.evals.iter().all(|e| {
-            dir.join("eval")
-                .join(&e.name)
-                .join("metrics.json")
-                .is_file()
-        });
+/// What the run directory of `exp` holds. A `summary.json` that does not read as a
+/// [`super::layout::Summary`] is an error naming it.
+pub fn state(exp: &Experiment) -> Result<State> {
+    let dir = run::run_dir(exp);
+    Ok(if dir.summary_if_any()?.is_some() {
+        let evaluated = exp
+            .evals
+            .iter()
+            .all(|e| dir.metrics_json(&e.name).is_file());
         if evaluated {
             State::Complete
         } else {
             State::Trained
         }
-    } else if last_path(&run::checkpoint_dir(exp)).is_file() {
+    } else if dir.last_checkpoint().is_file() {
         State::Interrupted
     } else {
         State::New
-    }
+    })
 }
 
 /// `Err` if the run directory holds another configuration than `text`.
 fn check_same_config(exp: &Experiment, text: &str) -> Result<()> {
-    let stored = exp.run_dir.join("experiment.toml");
-    let Ok(old) = std::fs::read_to_string(&stored) else {
-        return Ok(());
+    let stored = run::run_dir(exp).experiment_toml();
+    let old = match std::fs::read_to_string(&stored) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(Error::io(&stored, e)),
     };
     let parse = |t: &str| toml::from_str::<toml::Table>(t).ok();
     if parse(&old) != parse(text) {
@@ -280,10 +279,36 @@ pub struct SweepOptions<'a> {
     pub opener: &'a (dyn SourceOpener + Sync),
 }
 
-fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
+/// Runs `p` holding its lock (taken first: a run another process holds fails at once and its
+/// records are left alone).
+fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Outcome {
+    let lock = match run::run_dir(&p.exp).lock() {
+        Ok(l) => l,
+        Err(e) => return Outcome::Failed(cause_chain(&e)),
+    };
+    let outcome = run_locked(p, opts, &lock).unwrap_or_else(|e| Outcome::Failed(cause_chain(&e)));
+    record(p, opts, &outcome, &lock)
+        .map(|()| outcome.clone())
+        .unwrap_or_else(|e| {
+            Outcome::Failed(format!("cannot write sweep.json: {}", cause_chain(&e)))
+        })
+}
+
+/// An error and its causes, `: `-separated.
+fn cause_chain(e: &Error) -> String {
+    let mut msg = e.to_string();
+    let mut src = std::error::Error::source(e);
+    while let Some(c) = src {
+        msg += &format!(": {c}");
+        src = c.source();
+    }
+    msg
+}
+
+fn run_locked(p: &Planned, opts: &SweepOptions<'_>, lock: &RunLock) -> Result<Outcome> {
     let exp = &p.exp;
     check_same_config(exp, &p.text)?;
-    let before = state(exp);
+    let before = state(exp)?;
     if before == State::Complete {
         return Ok(Outcome::Skipped);
     }
@@ -296,15 +321,17 @@ fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
     let start = Instant::now();
     let action = match before {
         State::Trained => {
-            run::evaluate(exp, None, &[], &ropts)?;
+            let t = Instant::now();
+            run::evaluate_locked(exp, None, &[], &ropts, lock)?;
+            run::record_evaluation_time(exp, t.elapsed().as_secs_f64())?;
             "evaluate"
         }
         State::Interrupted => {
-            run::train(exp, &ropts)?;
+            run::train_locked(exp, &ropts, lock)?;
             "resume"
         }
         _ => {
-            run::train(exp, &ropts)?;
+            run::train_locked(exp, &ropts, lock)?;
             "train"
         }
     };
@@ -314,33 +341,51 @@ fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
     })
 }
 
-fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome) -> Result<()> {
-    if !p.exp.run_dir.is_dir() || matches!(outcome, Outcome::Skipped) {
-        return Ok(());
-    }
+/// Writes the run's `sweep.json` (under its lock; nothing for a skipped run).
+fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLock) -> Result<()> {
     let (status, action, seconds, error) = match outcome {
-        Outcome::Done { action, seconds } => ("done", Some(*action), Some(*seconds), None),
-        Outcome::Failed(e) => ("failed", None, None, Some(e.clone())),
-        Outcome::Blocked(e) => ("blocked", None, None, Some(e.clone())),
-        Outcome::Skipped => unreachable!(),
+        Outcome::Skipped => return Ok(()),
+        Outcome::Done { action, seconds } => (
+            SweepStatus::Done,
+            Some(action.to_string()),
+            Some(*seconds),
+            None,
+        ),
+        Outcome::Failed(e) => (SweepStatus::Failed, None, None, Some(e.clone())),
+        Outcome::Blocked(e) => (SweepStatus::Blocked, None, None, Some(e.clone())),
     };
-    let doc = json!({
-        "experiment": p.exp.name,
-        "file": p.file,
-        "profile": opts.profile.name,
-        "profile_file": opts.profile.file,
-        "overrides": opts.overrides.iter().map(|o| format!("{}={}", o.key, o.value)).collect::<Vec<_>>(),
-        "level": p.level,
-        "depends_on": p.deps,
-        "git": git_revision(),
-        "status": status,
-        "action": action,
-        "seconds": seconds,
-        "error": error,
-        "experiment_text": p.text,
-    });
-    let text = serde_json::to_string_pretty(&doc).expect("json");
-    write_bytes_atomic(&p.exp.run_dir.join("sweep.json"), text.as_bytes())
+    let doc = SweepRecord {
+        experiment: p.exp.name.clone(),
+        file: p.file.clone(),
+        profile: opts.profile.name.clone(),
+        profile_file: opts.profile.file.clone(),
+        overrides: opts
+            .overrides
+            .iter()
+            .map(|o| format!("{}={}", o.key, o.value))
+            .collect(),
+        seed: None,
+        level: p.level,
+        depends_on: p.deps.clone(),
+        git: git_revision(),
+        status,
+        action,
+        seconds,
+        error,
+        experiment_text: p.text.clone(),
+    };
+    write_record(&run::run_dir(&p.exp).sweep_json(), &doc)
+}
+
+/// A blocked run: recorded in its `sweep.json` if its folder exists and is not in use.
+fn record_blocked(p: &Planned, opts: &SweepOptions<'_>, why: String) -> Outcome {
+    let outcome = Outcome::Blocked(why);
+    if p.exp.run_dir.is_dir() {
+        if let Ok(lock) = run::run_dir(&p.exp).lock() {
+            let _ = record(p, opts, &outcome, &lock);
+        }
+    }
+    outcome
 }
 
 /// A line above the progress bar, or on stderr when there is none.
@@ -389,23 +434,9 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                     };
                     bar.set_message(p.exp.name.clone());
                     let outcome = match blocked {
-                        Some(b) => Outcome::Blocked(b),
-                        None => run_one(p, opts).unwrap_or_else(|e| {
-                            let mut msg = e.to_string();
-                            let mut src = std::error::Error::source(&e);
-                            while let Some(c) = src {
-                                msg += &format!(": {c}");
-                                src = c.source();
-                            }
-                            Outcome::Failed(msg)
-                        }),
+                        Some(b) => record_blocked(p, opts, b),
+                        None => run_one(p, opts),
                     };
-                    if let Err(e) = record(p, opts, &outcome) {
-                        say(
-                            &bar,
-                            format!("warning: {}: cannot write sweep.json: {e}", p.exp.name),
-                        );
-                    }
                     let line = match &outcome {
                         Outcome::Skipped => "complete, skipped".to_string(),
                         Outcome::Done { action, seconds } => format!("{action}: {seconds:.1} s"),
