@@ -7,6 +7,21 @@
 //! - interrupted (`checkpoints/last.safetensors` without `summary.json`): resumed;
 //! - otherwise: trained from the start.
 //!
+//! # Seeds: replicates of a sweep, paired within a seed
+//!
+//! With seeds (`--seeds 0,1,2`, or the profile's `seeds = [0, 1, 2]`; the flag wins) every
+//! experiment runs once per seed `S`, with `seed = S` and its run directory in
+//! `OUTPUT/seed-S/NAME/` (`OUTPUT` is the experiment's `output` after the profile). Without
+//! seeds the run directories are `OUTPUT/NAME/`: one replicate with the experiments' own
+//! seeds. The design is paired: within a seed, every fine-tuning starts from that seed's
+//! baseline (`init = { experiment = ... }` resolves inside `OUTPUT/seed-S/`) and sees its
+//! data in the order, and with the augmentations, of seed `S` (the training source is
+//! shuffled by the experiment's seed; the kernel kind never enters the data order), so the
+//! standard, calibrated and rectified fine-tunings of one calibration differ only in the
+//! kernel. With `share_baseline = true` in the profile the baselines run once, in the first
+//! seed's folder, and the fine-tunings of every seed start from them. `OUTPUT/study.json`
+//! records the plan: profile, seeds, runs ([`super::layout::StudyRecord`]).
+//!
 //! A run directory that holds another configuration (its `experiment.toml` differs from the
 //! merged text as TOML) is a failure of that run, never overwritten. A failed run does not stop
 //! the sweep; runs that depend on it are reported as blocked. Each run directory gets
@@ -19,25 +34,69 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use super::layout::{write_record, RunLock, SweepRecord, SweepStatus};
+use super::layout::{self, write_record, RunLock, StudyRecord, StudyRun, SweepRecord, SweepStatus};
 use super::profile::{self, Override, Profile};
 use super::run::{self, git_revision, RunOptions};
 use super::{Experiment, InitSpec, SourceOpener};
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
 
 /// One run of a sweep.
 #[derive(Clone, Debug)]
 pub struct Planned {
     pub exp: Experiment,
+    /// The replicate it belongs to (`None`: a sweep without seeds).
+    pub seed: Option<u64>,
     /// The experiment file.
     pub file: PathBuf,
     /// The merged text it runs with.
     pub text: String,
-    /// Names of the runs of this sweep it starts from.
+    /// Keys ([`Planned::key`]) of the runs of this sweep it starts from.
     pub deps: Vec<String>,
     /// 0 for runs without dependencies in the sweep, else 1 + the deepest dependency's level.
     pub level: usize,
+}
+
+impl Planned {
+    /// Identifies the run within the sweep: `seed-S/NAME`, or `NAME` without seeds.
+    pub fn key(&self) -> String {
+        run_key(self.seed, &self.exp.name)
+    }
+}
+
+fn run_key(seed: Option<u64>, name: &str) -> String {
+    match seed {
+        Some(s) => format!("{}/{name}", layout::seed_folder(s)),
+        None => name.to_string(),
+    }
+}
+
+/// The replicates of a sweep.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Seeds {
+    /// Every seed of the study (empty: no replicates, the experiments' own seeds, run
+    /// directories `OUTPUT/NAME`).
+    pub seeds: Vec<u64>,
+    /// Plan only these of them (all if empty): a SLURM array task runs one seed while the
+    /// study's seed list still places a shared baseline.
+    pub only: Vec<u64>,
+    /// Baselines run once, for the first seed; every seed's fine-tunings start from them.
+    pub share_baseline: bool,
+}
+
+impl Seeds {
+    /// The profile's seeds, or `flag` (`--seeds`) when given.
+    pub fn from_profile(profile: &Profile, flag: Option<Vec<u64>>) -> Result<Seeds> {
+        let seeds = flag.or_else(|| profile.seeds.clone()).unwrap_or_default();
+        if !seeds.is_empty() {
+            profile::check_seeds(&seeds)
+                .map_err(|m| Error::InvalidArgument(format!("--seeds: {m}")))?;
+        }
+        Ok(Seeds {
+            seeds,
+            only: Vec::new(),
+            share_baseline: profile.share_baseline,
+        })
+    }
 }
 
 /// What a run directory holds.
@@ -131,22 +190,72 @@ pub fn find_profile(dir: &Path, name: &str) -> Result<Profile> {
 }
 
 /// Reads, merges and resolves every experiment of `dir`, keeps those matching one of `only`
-/// (all if empty), and orders them by dependency level, then name.
+/// (all if empty), and orders them by dependency level, then name. No replicates: see
+/// [`plan_seeds`].
 pub fn plan(
     dir: &Path,
     profile: &Profile,
     overrides: &[Override],
     only: &[String],
 ) -> Result<Vec<Planned>> {
-    let mut all = Vec::new();
+    plan_seeds(dir, profile, overrides, only, &Seeds::default())
+}
+
+/// Sets `seed = S` and `output = OUTPUT/seed-S` in a merged experiment text.
+fn with_seed(file: &Path, text: &str, seed: u64) -> Result<String> {
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| Error::Toml {
+        path: file.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let output = match table.get("output") {
+        None => PathBuf::from(super::DEFAULT_OUTPUT),
+        Some(toml::Value::String(s)) => PathBuf::from(s),
+        Some(_) => {
+            return Err(Error::Config {
+                path: file.to_path_buf(),
+                field: "output".into(),
+                message: "must be a path".into(),
+            })
+        }
+    };
+    let output = output.join(layout::seed_folder(seed));
+    table.insert("seed".into(), toml::Value::Integer(seed as i64));
+    table.insert(
+        "output".into(),
+        toml::Value::String(output.to_string_lossy().into_owned()),
+    );
+    let header = match text.lines().next() {
+        Some(l) if l.starts_with("# ") => l.to_string(),
+        _ => format!("# {}", file.display()),
+    };
+    Ok(format!(
+        "{header}, seed {seed}\n{}",
+        toml::to_string(&table).expect("a TOML table serialises")
+    ))
+}
+
+/// [`plan`] with replicates: with `seeds.seeds` empty as [`plan`]; else every experiment once
+/// per seed `S` (of `seeds.only`, if given), with `seed = S` and its run directory in
+/// `OUTPUT/seed-S/NAME`. Within a seed every fine-tuning starts from that seed's baseline
+/// (with `share_baseline`: the first seed's, and baselines are planned for the first seed
+/// only) and sees the data in the order of seed `S` (the data order depends on the seed and
+/// the data set, never on the kernel).
+pub fn plan_seeds(
+    dir: &Path,
+    profile: &Profile,
+    overrides: &[Override],
+    only: &[String],
+    seeds: &Seeds,
+) -> Result<Vec<Planned>> {
+    let mut base = Vec::new();
     for file in experiment_files(dir)? {
         let text = std::fs::read_to_string(&file).map_err(|e| Error::io(&file, e))?;
         let merged = profile::apply(&file, &text, profile, overrides)?;
         let exp = super::parse(&merged, &file)?.resolve(&file, &merged)?;
-        all.push((file, merged, exp));
+        base.push((file, merged, exp));
     }
     let mut seen = BTreeSet::new();
-    for (file, _, exp) in &all {
+    for (file, _, exp) in &base {
         if !seen.insert(exp.name.clone()) {
             return Err(Error::Config {
                 path: file.clone(),
@@ -155,7 +264,7 @@ pub fn plan(
             });
         }
     }
-    let selected: Vec<_> = all
+    let selected: Vec<_> = base
         .into_iter()
         .filter(|(_, _, e)| {
             only.is_empty()
@@ -176,52 +285,145 @@ pub fn plan(
             only.join(", ")
         )));
     }
-    let names: BTreeSet<String> = selected.iter().map(|(_, _, e)| e.name.clone()).collect();
-    let deps: BTreeMap<String, Vec<String>> = selected
-        .iter()
-        .map(|(_, _, e)| {
-            let d = match &e.init {
-                Some(InitSpec::Experiment { name, .. }) if names.contains(name) => {
-                    vec![name.clone()]
+    for s in &seeds.only {
+        if !seeds.seeds.contains(s) {
+            return Err(Error::InvalidArgument(format!(
+                "seed {s} is not one of the sweep's seeds ({:?})",
+                seeds.seeds
+            )));
+        }
+    }
+    // (run, its dependency's key if that run is in the plan or planned for another seed).
+    let mut all: Vec<(Planned, Option<String>)> = Vec::new();
+    let replicates: Vec<Option<u64>> = if seeds.seeds.is_empty() {
+        vec![None]
+    } else {
+        seeds.seeds.iter().map(|s| Some(*s)).collect()
+    };
+    let first = seeds.seeds.first().copied();
+    for &seed in &replicates {
+        if let Some(s) = seed {
+            if !seeds.only.is_empty() && !seeds.only.contains(&s) {
+                continue;
+            }
+        }
+        for (file, merged, exp) in &selected {
+            let baseline = exp.init.is_none();
+            if baseline && seeds.share_baseline && seed.is_some() && seed != first {
+                continue;
+            }
+            let (text, mut exp) = match seed {
+                None => (merged.clone(), exp.clone()),
+                Some(s) => {
+                    let text = with_seed(file, merged, s)?;
+                    let exp = super::parse(&text, file)?.resolve(file, &text)?;
+                    (text, exp)
                 }
-                _ => vec![],
             };
-            (e.name.clone(), d)
+            let mut dep = None;
+            if let Some(InitSpec::Experiment { name, checkpoints }) = &mut exp.init {
+                let from = if seeds.share_baseline { first } else { seed };
+                if from != seed {
+                    // The shared baseline lives in the first seed's folder.
+                    let output = exp.output.parent().unwrap_or(&exp.output).to_path_buf();
+                    *checkpoints = layout::ResultsDir::new(output)
+                        .run_dir(from, name)
+                        .checkpoints();
+                }
+                dep = Some(run_key(from, name));
+            }
+            all.push((
+                Planned {
+                    exp,
+                    seed,
+                    file: file.clone(),
+                    text,
+                    deps: Vec::new(),
+                    level: 0,
+                },
+                dep,
+            ));
+        }
+    }
+    let keys: BTreeSet<String> = all.iter().map(|(p, _)| p.key()).collect();
+    let mut out: Vec<Planned> = all
+        .into_iter()
+        .map(|(mut p, dep)| {
+            p.deps = dep.into_iter().filter(|d| keys.contains(d)).collect();
+            p
         })
         .collect();
     // Levels by repeated relaxation; more rounds than runs means a cycle.
-    let mut level: BTreeMap<String, usize> = names.iter().map(|n| (n.clone(), 0)).collect();
-    for round in 0..=names.len() {
+    let mut level: BTreeMap<String, usize> = keys.iter().map(|n| (n.clone(), 0)).collect();
+    for round in 0..=keys.len() {
         let mut changed = false;
-        for (n, ds) in &deps {
-            let l = ds.iter().map(|d| level[d] + 1).max().unwrap_or(0);
-            if l != level[n] {
-                level.insert(n.clone(), l);
+        for p in &out {
+            let l = p.deps.iter().map(|d| level[d] + 1).max().unwrap_or(0);
+            if l != level[&p.key()] {
+                level.insert(p.key(), l);
                 changed = true;
             }
         }
         if !changed {
             break;
         }
-        if round == names.len() {
+        if round == keys.len() {
             return Err(Error::InvalidArgument(format!(
                 "the experiments of {} start from each other in a cycle",
                 dir.display()
             )));
         }
     }
-    let mut out: Vec<Planned> = selected
-        .into_iter()
-        .map(|(file, text, exp)| Planned {
-            deps: deps[&exp.name].clone(),
-            level: level[&exp.name],
-            exp,
-            file,
-            text,
+    for p in &mut out {
+        p.level = level[&p.key()];
+    }
+    out.sort_by(|a, b| (a.level, a.seed, &a.exp.name).cmp(&(b.level, b.seed, &b.exp.name)));
+    Ok(out)
+}
+
+/// The `study.json` record of a plan.
+pub fn study_record(
+    dir: &Path,
+    plan: &[Planned],
+    profile: &Profile,
+    overrides: &[Override],
+    seeds: &Seeds,
+) -> StudyRecord {
+    StudyRecord {
+        dir: dir.to_path_buf(),
+        profile: profile.name.clone(),
+        profile_file: profile.file.clone(),
+        overrides: overrides
+            .iter()
+            .map(|o| format!("{}={}", o.key, o.value))
+            .collect(),
+        seeds: seeds.seeds.clone(),
+        share_baseline: seeds.share_baseline,
+        git: git_revision(),
+        runs: plan
+            .iter()
+            .map(|p| StudyRun {
+                name: p.exp.name.clone(),
+                seed: p.seed,
+                dir: PathBuf::from(p.key()),
+                level: p.level,
+                depends_on: p.deps.clone(),
+            })
+            .collect(),
+    }
+}
+
+/// The results folder of a plan: the output folder its run directories are in (above the
+/// `seed-S/` folders), if all of them share one.
+pub fn results_dir(plan: &[Planned]) -> Option<PathBuf> {
+    let dirs: BTreeSet<PathBuf> = plan
+        .iter()
+        .map(|p| match p.seed {
+            Some(_) => p.exp.output.parent().unwrap_or(&p.exp.output).to_path_buf(),
+            None => p.exp.output.clone(),
         })
         .collect();
-    out.sort_by(|a, b| (a.level, &a.exp.name).cmp(&(b.level, &b.exp.name)));
-    Ok(out)
+    (dirs.len() == 1).then(|| dirs.into_iter().next().expect("one"))
 }
 
 /// What the run directory of `exp` holds. A `summary.json` that does not read as a
@@ -364,7 +566,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
             .iter()
             .map(|o| format!("{}={}", o.key, o.value))
             .collect(),
-        seed: None,
+        seed: p.seed,
         level: p.level,
         depends_on: p.deps.clone(),
         git: git_revision(),
@@ -432,23 +634,28 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                             .find(|d| done.get(*d).is_some_and(Outcome::is_failure))
                             .map(|d| format!("its initial weights come from `{d}`, which failed"))
                     };
-                    bar.set_message(p.exp.name.clone());
+                    bar.set_message(p.key());
                     let outcome = match blocked {
                         Some(b) => record_blocked(p, opts, b),
                         None => run_one(p, opts),
                     };
                     let line = match &outcome {
                         Outcome::Skipped => "complete, skipped".to_string(),
-                        Outcome::Done { action, seconds } => format!("{action}: {seconds:.1} s"),
+                        Outcome::Done { action, seconds } => {
+                            let timing = run::run_dir(&p.exp)
+                                .summary_if_any()
+                                .ok()
+                                .flatten()
+                                .map(|s| format!(" ({})", s.timing.describe()))
+                                .unwrap_or_default();
+                            format!("{action}: {seconds:.1} s{timing}")
+                        }
                         Outcome::Failed(e) => format!("FAILED: {e}"),
                         Outcome::Blocked(e) => format!("blocked: {e}"),
                     };
-                    say(&bar, format!("{}: {line}", p.exp.name));
+                    say(&bar, format!("{}: {line}", p.key()));
                     bar.inc(1);
-                    outcomes
-                        .lock()
-                        .expect("outcomes")
-                        .insert(p.exp.name.clone(), outcome);
+                    outcomes.lock().expect("outcomes").insert(p.key(), outcome);
                 });
             }
         });
@@ -457,106 +664,10 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
     let mut done = outcomes.into_inner().expect("outcomes");
     plan.iter()
         .map(|p| {
-            let o = done.remove(&p.exp.name).expect("every run has an outcome");
-            (p.exp.name.clone(), o)
+            let o = done.remove(&p.key()).expect("every run has an outcome");
+            (p.key(), o)
         })
         .collect()
-}
-
-/// Writes SLURM batch scripts for `plan` into `out`: `level-K.sbatch` (one job array per
-/// dependency level; task `i` runs `calibconv sweep DIR --only NAME_i` with the same profile
-/// and overrides, so skipping and resuming work as on one machine) and `submit.sh`, which
-/// submits them in order, each level `--dependency=afterok` on the one before. Returns the
-/// files written.
-pub fn emit_slurm(
-    plan: &[Planned],
-    dir: &Path,
-    profile: &Profile,
-    overrides: &[Override],
-    out: &Path,
-) -> Result<Vec<PathBuf>> {
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let quote = |s: &str| format!("'{}'", s.replace('\'', "'\\''"));
-    // The binary that wrote the scripts (the cluster shares the file system), else `calibconv`
-    // from PATH.
-    let exe = std::env::current_exe()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|_| "calibconv".into());
-    let mut common = format!(
-        "{} sweep {}",
-        quote(&exe),
-        quote(&dir.display().to_string())
-    );
-    if let Some(f) = &profile.file {
-        common += &format!(" --profile {}", quote(&f.display().to_string()));
-    }
-    for o in overrides {
-        common += &format!(" --set {}", quote(&format!("{}={}", o.key, o.value)));
-    }
-    let max_level = plan.iter().map(|p| p.level).max().unwrap_or(0);
-    let mut files = Vec::new();
-    let mut submit = String::from(
-        "#!/bin/bash\n# Submits the sweep's job arrays, each level after the one before succeeded.\n\
-         set -euo pipefail\ncd \"$(dirname \"$0\")\"\n",
-    );
-    for level in 0..=max_level {
-        let names: Vec<&str> = plan
-            .iter()
-            .filter(|p| p.level == level)
-            .map(|p| p.exp.name.as_str())
-            .collect();
-        let file = out.join(format!("level-{level}.sbatch"));
-        let text = format!(
-            "#!/bin/bash\n\
-             #SBATCH --job-name=calibconv-level-{level}\n\
-             #SBATCH --array=0-{last}\n\
-             #SBATCH --gres=gpu:1\n\
-             #SBATCH --cpus-per-task=8\n\
-             #SBATCH --time=24:00:00\n\
-             #SBATCH --output=slurm-%A_%a.out\n\
-             # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
-             set -euo pipefail\n\
-             cd {root}\n\
-             RUNS=({runs})\n\
-             srun {common} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\"\n",
-            last = names.len() - 1,
-            n = names.len(),
-            prev = level.saturating_sub(1),
-            root = quote(
-                &std::env::current_dir()
-                    .map_err(|e| Error::io(Path::new("."), e))?
-                    .display()
-                    .to_string()
-            ),
-            runs = names.join(" "),
-        );
-        write_bytes_atomic(&file, text.as_bytes())?;
-        if level == 0 {
-            submit += &format!("j0=$(sbatch --parsable level-{level}.sbatch)\n");
-        } else {
-            submit += &format!(
-                "j{level}=$(sbatch --parsable --dependency=afterok:$j{prev} level-{level}.sbatch)\n",
-                prev = level - 1
-            );
-        }
-        files.push(file);
-    }
-    submit += "echo \"submitted:";
-    for level in 0..=max_level {
-        submit += &format!(" $j{level}");
-    }
-    submit += "\"\n";
-    let sub = out.join("submit.sh");
-    write_bytes_atomic(&sub, submit.as_bytes())?;
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        for f in files.iter().chain(std::iter::once(&sub)) {
-            let _ = std::fs::set_permissions(f, std::fs::Permissions::from_mode(0o755));
-        }
-    }
-    files.push(sub);
-    Ok(files)
 }
 
 #[cfg(test)]
