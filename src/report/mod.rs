@@ -1,8 +1,12 @@
-//! Figures people would rather look at than numbers.
+//! Figures people would rather look at than numbers, and the report of a sweep's results.
 //!
 //! - [`kernels`]: the grid of calibrated kernels over a fisheye image (paper Figure 1a).
 //! - [`tensorboard`], [`csv`]: training reporters ([`crate::train::Reporter`]): TensorBoard event
 //!   files and per-split CSV logs.
+//! - [`results`]: `calibconv report RESULTS`: reads the run directories of every seed into
+//!   [`study::Observations`], writes the tables with intervals over seeds, the paired-difference
+//!   table ([`tables`]), radial plots with bands over seeds, qualitative grids, the verdict
+//!   ([`verdict`]) and `REPORT.md`. [`stats`] holds the pure statistics (Student t, bootstrap).
 
 pub mod csv;
 pub mod draw;
@@ -10,4 +14,8 @@ pub mod kernels;
 pub mod plots;
 pub mod pointcloud;
 pub mod results;
+pub mod stats;
+pub mod study;
+pub mod tables;
 pub mod tensorboard;
+pub mod verdict;
