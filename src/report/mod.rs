@@ -8,11 +8,13 @@
 //!   table ([`tables`]), radial plots with bands over seeds, qualitative grids, the verdict
 //!   ([`verdict`]) and `REPORT.md`. [`stats`] holds the pure statistics (Student t, bootstrap).
 
+pub mod collect;
 pub mod csv;
 pub mod draw;
 pub mod kernels;
 pub mod plots;
 pub mod pointcloud;
+pub mod radial;
 pub mod results;
 pub mod stats;
 pub mod study;
