@@ -23,47 +23,16 @@ use super::study::{Block, Cell, Observations, Task, KERNELS};
 use super::tables::{paired_bootstrap, BootstrapIntervals};
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Averaging, Metric, ALL_METRICS};
-use crate::eval::record::{MetricsRecord, PerImageRecord, METRICS_FILE};
+use crate::eval::record::{MetricsRecord, PerImageRecord};
 use crate::experiment;
+use crate::experiment::layout::{ResultsDir, RunDir, StudyRecord};
 
-/// The prefix of a seed replicate's folder: `seed-S`.
-pub const SEED_PREFIX: &str = "seed-";
+pub use crate::experiment::layout::Replicate;
 
-/// One replicate of the sweep.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Replicate {
-    /// From `seed-S`; `None` for a results folder without seed folders.
-    pub seed: Option<u64>,
-    pub dir: PathBuf,
-}
-
-/// The replicates of `results`: its `seed-S` folders by seed, else `results` itself.
+/// The replicates of `results`: its `seed-S` folders by seed, else `results` itself
+/// ([`ResultsDir::replicates`]).
 pub fn replicates(results: &Path) -> Result<Vec<Replicate>> {
-    let mut seeds = Vec::new();
-    for entry in std::fs::read_dir(results).map_err(|e| Error::io(results, e))? {
-        let path = entry.map_err(|e| Error::io(results, e))?.path();
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
-        if let Some(s) = name
-            .as_deref()
-            .and_then(|n| n.strip_prefix(SEED_PREFIX))
-            .and_then(|s| s.parse::<u64>().ok())
-        {
-            if path.is_dir() {
-                seeds.push(Replicate {
-                    seed: Some(s),
-                    dir: path,
-                });
-            }
-        }
-    }
-    seeds.sort_by_key(|r| r.seed);
-    if seeds.is_empty() {
-        seeds.push(Replicate {
-            seed: None,
-            dir: results.to_path_buf(),
-        });
-    }
-    Ok(seeds)
+    ResultsDir::new(results).replicates()
 }
 
 /// One run directory.
@@ -101,6 +70,8 @@ pub struct Row {
 /// Everything read from a results folder.
 #[derive(Clone, Debug)]
 pub struct Study {
+    /// `RESULTS/study.json`, if a sweep wrote one (profile, seeds, shared baseline).
+    pub study: Option<StudyRecord>,
     pub replicates: Vec<Replicate>,
     pub runs: Vec<RunInfo>,
     /// In table order, then by seed.
@@ -115,49 +86,8 @@ fn labels(name: &str, kernel: &str) -> (String, String) {
     }
 }
 
-/// `summary.json`, as far as the report reads it.
-#[derive(serde::Deserialize)]
-struct SummaryFields {
-    steps: u64,
-    seconds: f64,
-}
-
-/// `sweep.json`, as far as the report reads it.
-#[derive(serde::Deserialize)]
-struct SweepFields {
-    profile: Option<String>,
-    #[serde(default)]
-    overrides: Vec<String>,
-    seconds: Option<f64>,
-}
-
-/// `run.json`, as far as the report reads it.
-#[derive(serde::Deserialize)]
-struct RunFields {
-    invocations: Vec<InvocationFields>,
-}
-
-#[derive(serde::Deserialize)]
-struct InvocationFields {
-    git: Option<String>,
-}
-
-/// `path` parsed, `None` if it does not exist, an error naming it if it does not parse.
-fn read_optional<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Option<T>> {
-    match std::fs::read_to_string(path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(Error::io(path, e)),
-        Ok(text) => serde_json::from_str(&text)
-            .map(Some)
-            .map_err(|e| Error::Format {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            }),
-    }
-}
-
-fn read_run(dir: &Path, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
-    let file = dir.join("experiment.toml");
+fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
+    let file = run.experiment_toml();
     let text = std::fs::read_to_string(&file).map_err(|e| Error::io(&file, e))?;
     let raw = experiment::parse(&text, &file)?;
     let task = Task::from(raw.task);
@@ -167,9 +97,10 @@ fn read_run(dir: &Path, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
         Block::Bl
     };
     let seed = seed.unwrap_or(raw.seed.unwrap_or(0));
-    let summary: Option<SummaryFields> = read_optional(&dir.join("summary.json"))?;
-    let sweep: Option<SweepFields> = read_optional(&dir.join("sweep.json"))?;
-    let run: Option<RunFields> = read_optional(&dir.join("run.json"))?;
+    let summary = run.summary_if_any()?;
+    let sweep = run.sweep_if_any()?;
+    let record = run.run_if_any()?;
+    let dir = run.path();
     let info = RunInfo {
         seed,
         name: raw.name.clone(),
@@ -180,32 +111,18 @@ fn read_run(dir: &Path, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
         train_seconds: summary.as_ref().map(|s| s.seconds),
         steps: summary.as_ref().map(|s| s.steps),
         sweep_seconds: sweep.as_ref().and_then(|s| s.seconds),
-        git: run.and_then(|r| r.invocations.last().and_then(|i| i.git.clone())),
+        git: record.as_ref().and_then(|r| r.last_git().map(String::from)),
         overrides: sweep
             .as_ref()
             .map(|s| s.overrides.clone())
             .unwrap_or_default(),
-        profile: sweep.and_then(|s| s.profile),
+        profile: sweep.map(|s| s.profile).filter(|p| !p.is_empty()),
     };
     let mut rows = Vec::new();
-    let eval_dir = dir.join("eval");
-    let mut evals: Vec<PathBuf> = match std::fs::read_dir(&eval_dir) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-        Err(e) => return Err(Error::io(&eval_dir, e)),
-        Ok(it) => it
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| p.is_dir())
-            .collect(),
-    };
-    evals.sort();
-    for e in evals {
-        let record = MetricsRecord::read(&e.join(METRICS_FILE))?;
-        let evaluation = record.about.evaluation.clone().unwrap_or_else(|| {
-            e.file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default()
-        });
+    for name in run.evaluation_names()? {
+        let e = run.eval_dir(&name);
+        let record = MetricsRecord::read(&run.metrics_json(&name))?;
+        let evaluation = record.about.evaluation.clone().unwrap_or(name);
         let (dataset, kernel) = labels(&evaluation, record.about.kernel.as_deref().unwrap_or(""));
         rows.push(Row {
             seed,
@@ -224,21 +141,15 @@ pub fn collect(results: &Path) -> Result<Study> {
     let replicates = replicates(results)?;
     let (mut runs, mut rows) = (Vec::new(), Vec::new());
     for rep in &replicates {
-        let mut dirs: Vec<PathBuf> = std::fs::read_dir(&rep.dir)
-            .map_err(|e| Error::io(&rep.dir, e))?
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| p.join("experiment.toml").is_file())
-            .collect();
-        dirs.sort();
-        for dir in dirs {
-            let (info, r) = read_run(&dir, rep.seed)?;
+        for run in ResultsDir::runs(rep)? {
+            let (info, r) = read_run(&run, rep.seed)?;
             runs.push(info);
             rows.extend(r);
         }
     }
     rows.sort_by(|a, b| (a.cell.order(), a.seed, &a.run).cmp(&(b.cell.order(), b.seed, &b.run)));
     Ok(Study {
+        study: ResultsDir::new(results).study_if_any()?,
         replicates,
         runs,
         rows,
@@ -349,8 +260,16 @@ impl Study {
         }
     }
 
-    /// The profiles the runs were swept with (`none` if none; comma-separated if several).
+    /// The profile of the study (`study.json`), else those the runs were swept with (`none`
+    /// if none; comma-separated if several).
     pub fn profile(&self) -> String {
+        if let Some(s) = &self.study {
+            return if s.profile.is_empty() {
+                "none".into()
+            } else {
+                s.profile.clone()
+            };
+        }
         let mut p: Vec<&str> = self
             .runs
             .iter()
@@ -363,6 +282,11 @@ impl Study {
         } else {
             p.join(",")
         }
+    }
+
+    /// Whether one baseline served the fine-tunings of every seed (`study.json`).
+    pub fn shared_baseline(&self) -> bool {
+        self.study.as_ref().is_some_and(|s| s.share_baseline)
     }
 
     /// Total sweep wall seconds of the runs (every seed), and the runs without a time.

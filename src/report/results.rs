@@ -204,6 +204,10 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
              not in the total.\n"
         );
     }
+    if study.shared_baseline() {
+        verdict_md += "\nThe BL rows come from one baseline shared by every seed (`study.json`: \
+                       `share_baseline`), so C5 has one observation and no interval.\n";
+    }
     let verdict_json = out.join("verdict.json");
     let verdict_file = out.join("verdict.md");
     write_bytes_atomic(

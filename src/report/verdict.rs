@@ -365,7 +365,7 @@ pub fn markdown(v: &Verdict) -> String {
     let mut s = format!(
         "## Verdict on the paper's claims\n\nProfile `{}`, seeds {:?} (n = {}), {} test images \
          per evaluation, depth metrics averaged `{}` (segmentation: one confusion matrix over \
-         the test set), total wall time of the runs {:.0} s. Differences are per seed, paired \
+         the test set), total wall time of the runs {:.0} s (the sum of the runs' own wall times; parallel runs overlap). Differences are per seed, paired \
          (the same seed's rows, the same test images); mean and 95% Student-t interval over \
          seeds; ± is the half-width: the smallest difference this study could detect. \
          `holds` / `contradicted`: the whole interval on the predicted / the other side of 0.\n\n",
