@@ -8,10 +8,13 @@
 //!   with `x = df / (df + t^2)` and `I` the regularized incomplete beta function (its continued
 //!   fraction, Numerical Recipes `betacf`), by bisection to [`QUANTILE_EPS`].
 //! - Over test images ([`bootstrap`]): `resamples` multisets of `n` indices drawn uniformly with
-//!   replacement from a [`SplitMix64`] stream seeded with `seed`; a statistic per resample; the
+//!   replacement from the project's SplitMix64 stream ([`crate::data::rng::Rng`]) seeded with
+//!   `seed`; a statistic per resample; the
 //!   interval is the `(1 - level) / 2` and `(1 + level) / 2` percentiles of the resampled values
 //!   (linear interpolation between order statistics, numpy's default). Pairing is the caller's:
 //!   the same indices select the same test images in both rows of a difference.
+
+use crate::data::rng::Rng;
 
 /// Bisection stops when the bracket is narrower than this (absolute, in t units).
 pub const QUANTILE_EPS: f64 = 1e-12;
@@ -194,31 +197,6 @@ impl MeanCi {
     }
 }
 
-/// SplitMix64 (Steele, Lea and Flood 2014): a small, fast, seedable generator whose stream is
-/// the same on every machine.
-#[derive(Clone, Debug)]
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    pub fn new(seed: u64) -> Self {
-        SplitMix64(seed)
-    }
-
-    /// The next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `0..n` (`n > 0`; Lemire's multiply-shift, bias below 2^-32 for n < 2^32).
-    pub fn below(&mut self, n: usize) -> usize {
-        ((self.next_u64() as u128 * n as u128) >> 64) as usize
-    }
-}
-
 /// The `q` quantile (`0..=1`) of sorted finite values, linear between order statistics.
 pub fn percentile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
@@ -245,7 +223,7 @@ pub fn bootstrap(
     level: f64,
     mut stat: impl FnMut(&[usize]) -> Vec<f64>,
 ) -> Vec<Option<[f64; 2]>> {
-    let mut rng = SplitMix64::new(seed);
+    let mut rng = Rng::new(seed);
     let mut values = vec![Vec::with_capacity(resamples); k];
     let mut idx = vec![0usize; n];
     if n == 0 {
@@ -253,7 +231,7 @@ pub fn bootstrap(
     }
     for _ in 0..resamples {
         for i in idx.iter_mut() {
-            *i = rng.below(n);
+            *i = rng.below(n as u64) as usize;
         }
         for (j, v) in stat(&idx).into_iter().enumerate().take(k) {
             if v.is_finite() {
@@ -354,19 +332,5 @@ mod tests {
         let c = bootstrap(10, 2, 100, 1, 0.95, |_| vec![3.0, f64::NAN]);
         assert_eq!(c, vec![Some([3.0, 3.0]), None]);
         assert_eq!(percentile(&[1.0, 2.0, 3.0, 4.0], 0.5), 2.5);
-    }
-
-    #[test]
-    fn splitmix_is_uniform_enough() {
-        let mut r = SplitMix64::new(0);
-        let mut counts = [0usize; 4];
-        for _ in 0..40_000 {
-            counts[r.below(4)] += 1;
-        }
-        // Expected 10000 each, sd ~87: 5 sd.
-        assert!(
-            counts.iter().all(|&c| (c as i64 - 10_000).abs() < 450),
-            "{counts:?}"
-        );
     }
 }
