@@ -218,7 +218,7 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     files.extend([verdict_json.clone(), verdict_file.clone()]);
     report += &format!(
         "{}\n({}, {})\n\n",
-        verdict_md.replacen("## ", "## ", 1),
+        verdict_md,
         link(&verdict_file, out),
         link(&verdict_json, out)
     );
