@@ -31,11 +31,7 @@ use metrics::{
     confusions, depth_sums, ClassCounts, DepthSums, MeanStd, Metric, RadialBins, SegScores,
     DEPTH_METRICS, SEGMENTATION_METRICS,
 };
-use record::{
-    metric_map as record_map, About, ClassRecord, DepthVariants, MetricsRecord, PerImageRecord,
-    RadialRecord, SampleRecord, METRICS_FILE, METRICS_FORMAT, PER_IMAGE_FILE, PER_IMAGE_FORMAT,
-    SEGMENTATION_AVERAGING, VERSION,
-};
+use record::{metric_map as record_map, SampleRecord, METRICS_FILE, PER_IMAGE_FILE};
 
 /// How to evaluate.
 #[derive(Clone, Debug)]
@@ -94,82 +90,6 @@ impl Evaluation {
     /// The value of `m`, if this task has it.
     pub fn metric(&self, m: Metric) -> Option<f64> {
         self.metrics.iter().find(|(k, _)| *k == m).map(|(_, v)| *v)
-    }
-
-    /// The `metrics.json` record, with `about` (an object; its `experiment`, `evaluation`,
-    /// `kernel` and `data` fields are typed, see [`About`]) merged in at the top level.
-    pub fn record(&self, about: &serde_json::Value) -> Result<MetricsRecord> {
-        let about: About = serde_json::from_value(about.clone())
-            .map_err(|e| Error::InvalidArgument(format!("evaluation `about`: {e} (in {about})")))?;
-        let depth = self.head == Head::Depth;
-        let task_metrics = || {
-            self.metrics
-                .iter()
-                .filter(|(m, _)| *m != Metric::Loss)
-                .copied()
-        };
-        let classes = self.classes.as_ref().map(|c| {
-            class_names(c.iou.len())
-                .into_iter()
-                .enumerate()
-                .map(|(i, n)| {
-                    let rec = ClassRecord {
-                        iou: c.iou[i],
-                        acc: c.acc[i],
-                        pixels: c.support[i],
-                    };
-                    (n, rec)
-                })
-                .collect()
-        });
-        let radial = self
-            .radial
-            .iter()
-            .map(|r| RadialRecord {
-                bin: r.bin,
-                r_lo: r.r_lo,
-                r_hi: r.r_hi,
-                pixels: r.pixels,
-                images: r.images,
-                pooled: record_map(r.values.iter().map(|v| (v.0, v.1))),
-                per_image_mean: record_map(r.values.iter().map(|v| (v.0, v.2))),
-                per_image_std: record_map(r.values.iter().map(|v| (v.0, v.3))),
-            })
-            .collect();
-        Ok(MetricsRecord {
-            format: METRICS_FORMAT.into(),
-            version: VERSION,
-            task: self.head.task_name().into(),
-            images: self.images,
-            pixels: self.pixels,
-            seconds: self.seconds,
-            metrics: record_map(self.metrics.iter().copied()),
-            depth: depth.then(|| DepthVariants {
-                per_image: record_map(self.per_image_mean.iter().copied()),
-                pooled: record_map(task_metrics()),
-            }),
-            segmentation_averaging: (!depth).then(|| SEGMENTATION_AVERAGING.to_string()),
-            segmentation_per_image_mean: (!depth)
-                .then(|| record_map(self.per_image_mean.iter().copied())),
-            classes,
-            radial,
-            per_image_file: PER_IMAGE_FILE.into(),
-            about,
-        })
-    }
-
-    /// The `per_image.json` record.
-    pub fn per_image_record(&self) -> PerImageRecord {
-        PerImageRecord {
-            format: PER_IMAGE_FORMAT.into(),
-            version: VERSION,
-            task: self.head.task_name().into(),
-            classes: match self.head {
-                Head::Segmentation { classes } => class_names(classes as usize),
-                Head::Depth => Vec::new(),
-            },
-            samples: self.samples.clone(),
-        }
     }
 
     /// `metrics.json` ([`Evaluation::record`]), `per_image.json`
@@ -638,6 +558,7 @@ mod tests {
     use super::*;
     use crate::data::memory::MemorySource;
     use metrics::Averaging;
+    use record::{MetricsRecord, PerImageRecord};
 
     /// float64 sums of a few values: rounding only.
     const TOL: f64 = 1e-12;

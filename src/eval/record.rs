@@ -21,7 +21,9 @@ use serde::{Deserialize, Serialize};
 use super::metrics::{
     Averaging, ClassCounts, DepthSums, Metric, SegScores, DEPTH_METRICS, SEGMENTATION_METRICS,
 };
+use super::{class_names, Evaluation};
 use crate::error::{Error, Result};
+use crate::nn::Head;
 
 /// File name of [`MetricsRecord`] in an evaluation folder.
 pub const METRICS_FILE: &str = "metrics.json";
@@ -283,6 +285,84 @@ impl PerImageRecord {
                 .copied()
                 .zip(s.metrics())
                 .collect()
+        }
+    }
+}
+
+impl Evaluation {
+    /// The `metrics.json` record, with `about` (an object; its `experiment`, `evaluation`,
+    /// `kernel` and `data` fields are typed, see [`About`]) merged in at the top level.
+    pub fn record(&self, about: &serde_json::Value) -> Result<MetricsRecord> {
+        let about: About = serde_json::from_value(about.clone())
+            .map_err(|e| Error::InvalidArgument(format!("evaluation `about`: {e} (in {about})")))?;
+        let depth = self.head == Head::Depth;
+        let task_metrics = || {
+            self.metrics
+                .iter()
+                .filter(|(m, _)| *m != Metric::Loss)
+                .copied()
+        };
+        let classes = self.classes.as_ref().map(|c| {
+            class_names(c.iou.len())
+                .into_iter()
+                .enumerate()
+                .map(|(i, n)| {
+                    let rec = ClassRecord {
+                        iou: c.iou[i],
+                        acc: c.acc[i],
+                        pixels: c.support[i],
+                    };
+                    (n, rec)
+                })
+                .collect()
+        });
+        let radial = self
+            .radial
+            .iter()
+            .map(|r| RadialRecord {
+                bin: r.bin,
+                r_lo: r.r_lo,
+                r_hi: r.r_hi,
+                pixels: r.pixels,
+                images: r.images,
+                pooled: metric_map(r.values.iter().map(|v| (v.0, v.1))),
+                per_image_mean: metric_map(r.values.iter().map(|v| (v.0, v.2))),
+                per_image_std: metric_map(r.values.iter().map(|v| (v.0, v.3))),
+            })
+            .collect();
+        Ok(MetricsRecord {
+            format: METRICS_FORMAT.into(),
+            version: VERSION,
+            task: self.head.task_name().into(),
+            images: self.images,
+            pixels: self.pixels,
+            seconds: self.seconds,
+            metrics: metric_map(self.metrics.iter().copied()),
+            depth: depth.then(|| DepthVariants {
+                per_image: metric_map(self.per_image_mean.iter().copied()),
+                pooled: metric_map(task_metrics()),
+            }),
+            segmentation_averaging: (!depth).then(|| SEGMENTATION_AVERAGING.to_string()),
+            segmentation_per_image_mean: (!depth)
+                .then(|| metric_map(self.per_image_mean.iter().copied())),
+            classes,
+            radial,
+            per_image_file: PER_IMAGE_FILE.into(),
+            about,
+        })
+    }
+
+    /// The `per_image.json` record.
+    pub fn per_image_record(&self) -> PerImageRecord {
+        PerImageRecord {
+            format: PER_IMAGE_FORMAT.into(),
+            version: VERSION,
+            task: self.head.task_name().into(),
+            classes: match self.head {
+                Head::Segmentation { classes } => class_names(classes as usize),
+                Head::Depth => Vec::new(),
+            },
+            samples: self.samples.clone(),
         }
     }
 }
