@@ -939,7 +939,7 @@ impl RawExperiment {
         let init = init.map(|(name, file)| match file {
             Some(f) => InitSpec::Checkpoint(f),
             None => InitSpec::Experiment {
-                checkpoints: output.join(&name).join("checkpoints"),
+                checkpoints: layout::RunDir::new(output.join(&name)).checkpoints(),
                 name,
             },
         });
