@@ -22,7 +22,8 @@ use super::radial::radial_plots;
 use super::study::Observations;
 use super::study::{Block, Task, CALIBRATED, STANDARD};
 use super::tables::{
-    cell_table, comparison_pairs, convention, difference_table, BOOTSTRAP_RESAMPLES,
+    cell_table, comparison_pairs, convention, difference_table, seed_values_csv,
+    BOOTSTRAP_RESAMPLES,
 };
 use super::verdict::{markdown, verdict, Meta};
 use crate::error::{Error, Result};
@@ -250,11 +251,14 @@ fn task_section(
         format!("## {title}\n\n{about}.\n\n{md}").as_bytes(),
     )?;
     write_bytes_atomic(&csv_file, csv.as_bytes())?;
-    files.extend([md_file.clone(), csv_file.clone()]);
+    let seeds_file = out.join(format!("values_{}.csv", task.short()));
+    write_bytes_atomic(&seeds_file, seed_values_csv(obs, task, columns).as_bytes())?;
+    files.extend([md_file.clone(), csv_file.clone(), seeds_file.clone()]);
     report += &format!(
-        "## {title}\n\n{about}.\n\n{md}\n({}, {})\n\n",
+        "## {title}\n\n{about}.\n\n{md}\n({}, {}; every seed's value: {})\n\n",
         link(&md_file, out),
-        link(&csv_file, out)
+        link(&csv_file, out),
+        link(&seeds_file, out)
     );
 
     let pairs = comparison_pairs(obs, task);

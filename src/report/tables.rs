@@ -155,6 +155,23 @@ pub fn cell_table(obs: &Observations, task: Task, columns: &[Metric]) -> (String
     (md, csv)
 }
 
+/// Every observed value of `task`'s cells, one line per (cell, seed, metric):
+/// `block,dataset,kernel,seed,metric,value` (what the table's means and intervals are made of).
+pub fn seed_values_csv(obs: &Observations, task: Task, columns: &[Metric]) -> String {
+    let mut csv = String::from("block,dataset,kernel,seed,metric,value\n");
+    for cell in obs.cells().into_iter().filter(|c| c.task == task) {
+        for &m in columns {
+            for (s, v) in obs.get(&cell, m) {
+                csv += &format!(
+                    "{},{},{},{s},{m},{v}\n",
+                    cell.block, cell.dataset, cell.kernel
+                );
+            }
+        }
+    }
+    csv
+}
+
 /// The (minuend, subtrahend) cell pairs of `task` that the difference table compares: per
 /// block and data set, each of [`COMPARISONS`] whose two rows were observed.
 pub fn comparison_pairs(obs: &Observations, task: Task) -> Vec<(Cell, Cell)> {
@@ -341,6 +358,13 @@ mod tests {
         let (md, _) = cell_table(&o, Task::Depth, &[Metric::Rmse]);
         assert!(md.contains("| FT | F195 | standard | 1 | 1.0000 |"), "{md}");
         assert!(convention(Task::Depth, Averaging::PerImage, 1).contains("need >= 2 seeds"));
+        let o = obs(&[(1.0, 0.9), (2.0, 1.0)]);
+        let csv = seed_values_csv(&o, Task::Depth, &[Metric::Rmse]);
+        assert_eq!(
+            csv,
+            "block,dataset,kernel,seed,metric,value\nFT,F195,standard,0,rmse,1\n\
+             FT,F195,standard,1,rmse,2\nFT,F195,calibrated,0,rmse,0.9\nFT,F195,calibrated,1,rmse,1\n"
+        );
         assert!(convention(Task::Depth, Averaging::PerImage, 3).contains("`per-image`"));
     }
 
