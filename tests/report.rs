@@ -215,3 +215,48 @@ fn an_unreadable_metrics_file_is_an_error_naming_it() {
     let e = write_report_with(&results, &results, &ReportOptions::default()).unwrap_err();
     assert!(e.to_string().contains(&per.display().to_string()), "{e}");
 }
+
+#[test]
+fn a_shared_baseline_leaves_c5_without_an_interval() {
+    // share_baseline: the BL run lives in the first seed's folder only.
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("results");
+    for (seed, gain) in [(0, 0.10), (1, 0.12), (2, 0.08)] {
+        write_seed(&results.join(format!("seed-{seed}")), seed, gain);
+        if seed > 0 {
+            let bl = results.join(format!("seed-{seed}/paper-depth-bl-pers"));
+            std::fs::remove_dir_all(bl).unwrap();
+        }
+    }
+    let study = calibconv::experiment::layout::StudyRecord {
+        dir: "experiments/paper".into(),
+        profile: "quick".into(),
+        profile_file: None,
+        overrides: vec![],
+        seeds: vec![0, 1, 2],
+        share_baseline: true,
+        git: None,
+        runs: vec![],
+    };
+    calibconv::experiment::layout::write_record(&results.join("study.json"), &study).unwrap();
+    write_report_with(&results, &results, &ReportOptions::default()).unwrap();
+    let v = read_verdict(&results);
+    assert_eq!(v.profile, "quick");
+    let c5 = v
+        .claims
+        .iter()
+        .find(|c| c.id == "C5" && c.metric == Metric::Rmse && c.compare.contains("F195"))
+        .unwrap();
+    assert_eq!((c5.per_seed.len(), c5.outcome), (1, Outcome::Inconclusive));
+    assert!(c5.reason.as_ref().unwrap().contains(">= 2 seeds"), "{c5:?}");
+    // The FT claims still have three seeds.
+    let c1 = v.claims.iter().find(|c| c.id == "C1").unwrap();
+    assert_eq!((c1.per_seed.len(), c1.outcome), (3, Outcome::Holds));
+    let md = std::fs::read_to_string(results.join("verdict.md")).unwrap();
+    assert!(md.contains("share_baseline"), "{md}");
+    let table = std::fs::read_to_string(results.join("table_depth.md")).unwrap();
+    assert!(
+        table.contains("| BL (Pers) | F195 | standard | 1 | "),
+        "{table}"
+    );
+}
