@@ -79,10 +79,22 @@ pub struct SweepArgs {
     /// `train.steps=10`); recorded in each run's sweep.json. Repeatable.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
+    /// Replicates: run the whole sweep once per seed, run directories OUTPUT/seed-S/NAME
+    /// (overrides the profile's `seeds`). `--seeds 0,1,2`.
+    #[arg(long, value_name = "S,S,...", value_delimiter = ',')]
+    pub seeds: Option<Vec<u64>>,
+    /// Of the seeds, run only this one (repeatable): what a SLURM array task runs.
+    #[arg(long, value_name = "S")]
+    pub only_seed: Vec<u64>,
     /// Write SLURM scripts (one job array per dependency level, chained with
-    /// --dependency=afterok) to DIR instead of running.
+    /// --dependency=afterok; one task per run and seed; resources from the profile's [slurm])
+    /// to DIR instead of running.
     #[arg(long, value_name = "DIR")]
     pub emit_slurm: Option<PathBuf>,
+    /// Override a key of the profile's [slurm] table for --emit-slurm (`gres=gpu:2`,
+    /// `time=02:00:00`, `extra=--qos=long` adds a line). Repeatable.
+    #[arg(long = "slurm-set", value_name = "KEY=VALUE")]
+    pub slurm_set: Vec<String>,
     /// List the plan (level, state) and stop.
     #[arg(long)]
     pub dry_run: bool,
@@ -93,11 +105,20 @@ pub struct SweepArgs {
 
 #[derive(Debug, Args)]
 pub struct ReportArgs {
-    /// A sweep's output folder: one run directory per experiment (e.g. results/quick).
+    /// A sweep's output folder: one run directory per experiment (e.g. results/quick), or one
+    /// `seed-S/` folder of them per seed.
     pub results: PathBuf,
-    /// Write the report here (default: RESULTS).
+    /// Write the report (tables, differences, plots, verdict.json, verdict.md, REPORT.md)
+    /// here (default: RESULTS).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// How depth metrics are averaged over the test images: `per-image` (the authors'
+    /// convention: per image, then the mean over images) or `pooled` (all pixels of the set).
+    #[arg(long, default_value = "per-image")]
+    pub averaging: calibconv::eval::metrics::Averaging,
+    /// Seed of the paired bootstrap over test images.
+    #[arg(long, default_value_t = 0)]
+    pub bootstrap_seed: u64,
 }
 
 #[derive(Debug, Args)]

@@ -56,6 +56,15 @@ pub enum Error {
         field: String,
         message: String,
     },
+    /// A record of a run directory (`summary.json`, `sweep.json`, ...) could not be read or
+    /// written as its type (see [`crate::experiment::layout`]).
+    #[error("{path}: {message}")]
+    Record { path: PathBuf, message: String },
+    /// A run directory is locked by another process (or another lock of this one).
+    #[error(
+        "{path} is in use by {holder} (it holds {path}/lock): wait for it to finish, or stop it"
+    )]
+    Busy { path: PathBuf, holder: String },
     /// Training produced a NaN or infinite value; nothing after `step` was saved.
     #[error(
         "training stopped: non-finite {what} ({value}) at step {step}; {}",

@@ -126,5 +126,75 @@ fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
             assert_eq!(bl.input.size, [64, 64]);
             assert_eq!(bl.model.base, 8);
         }
+        // Both profiles replicate over three seeds, each fine-tuning from its own seed's
+        // baseline; SLURM resources: no GPU for quick, one for paper.
+        assert_eq!(profile.seeds.as_deref(), Some(&[0, 1, 2][..]), "{name}");
+        let seeds = sweep::Seeds::from_profile(&profile, None).unwrap();
+        let replicated = sweep::plan_seeds(dir, &profile, &[], &[], &seeds).unwrap();
+        assert_eq!(replicated.len(), 36, "{name}");
+        for p in &replicated {
+            let s = p.seed.unwrap();
+            assert_eq!(p.exp.seed, s);
+            assert!(p.exp.run_dir.ends_with(format!("seed-{s}/{}", p.exp.name)));
+            if p.level == 1 {
+                assert!(p.deps.len() == 1 && p.deps[0].starts_with(&format!("seed-{s}/")));
+            }
+        }
+        let spec = calibconv::experiment::slurm::SlurmSpec::resolve(&profile, &[]).unwrap();
+        if name == "quick" {
+            assert_eq!((spec.gres.as_deref(), spec.cpus_per_task), (None, Some(1)));
+        } else {
+            assert_eq!(spec.gres.as_deref(), Some("gpu:1"));
+        }
     }
+}
+
+/// The quick data sets (`make demo`): at least 160 test images per set, from panoramas none
+/// of whose views are in the training or validation split.
+#[test]
+fn quick_data_sets_test_on_160_images_of_panoramas_not_used_in_training() {
+    use std::collections::BTreeSet;
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    // The configuration as `make demo` runs it, on 16-px-high panoramas (the splits do not
+    // depend on the panorama size) and one set.
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_calibconv"))
+        .args([
+            "synth",
+            "--config",
+            "data/synth-quick.toml",
+            "--set",
+            "f195",
+        ])
+        .args(["--pano-height", "16", "--out"])
+        .arg(out.path())
+        .current_dir(root)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let manifest: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("f195/manifest.json")).unwrap(),
+    )
+    .unwrap();
+    let split = |name: &str| -> Vec<String> {
+        manifest["splits"][name]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap().to_string())
+            .collect()
+    };
+    // Sample ids are PANORAMA_vVIEW.
+    let panoramas = |ids: &[String]| -> BTreeSet<String> {
+        ids.iter()
+            .map(|i| i.rsplit_once("_v").unwrap().0.to_string())
+            .collect()
+    };
+    let (train, val, test) = (split("train"), split("val"), split("test"));
+    assert!(test.len() >= 160, "{} test images", test.len());
+    let test_p = panoramas(&test);
+    assert!(test_p.len() >= 20, "{} test panoramas", test_p.len());
+    assert!(panoramas(&train).is_disjoint(&test_p));
+    assert!(panoramas(&val).is_disjoint(&test_p));
+    assert!(panoramas(&train).is_disjoint(&panoramas(&val)));
 }

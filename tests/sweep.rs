@@ -5,6 +5,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+use calibconv::experiment::layout::{RunDir, SweepStatus};
 use calibconv::experiment::profile::Override;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
@@ -122,16 +123,15 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     }
     assert!(matches!(by("after-broken"), Outcome::Blocked(_)), "{out:?}");
     // Each run records what produced it.
-    let rec: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("runs/ft/sweep.json")).unwrap())
-            .unwrap();
-    assert_eq!(rec["profile"], "tiny");
-    assert_eq!(rec["overrides"][0], "train.batch_size=1");
-    assert_eq!(rec["depends_on"][0], "bl");
-    assert!(rec["experiment_text"]
-        .as_str()
-        .unwrap()
-        .contains("steps = 2"));
+    let rec = RunDir::new(dir.join("runs/ft")).read_sweep().unwrap();
+    assert_eq!(rec.profile, "tiny");
+    assert_eq!(rec.overrides, ["train.batch_size=1"]);
+    assert_eq!(rec.depends_on, ["bl"]);
+    assert_eq!(rec.status, SweepStatus::Done);
+    assert!(rec.experiment_text.contains("steps = 2"));
+    // The summary records where the time went.
+    let summary = RunDir::new(dir.join("runs/ft")).read_summary().unwrap();
+    assert!(summary.timing.steps > 0.0 && summary.timing.evaluation.is_some());
     let stored = std::fs::read_to_string(dir.join("runs/ft/experiment.toml")).unwrap();
     assert!(
         stored.contains("lr = 0.0005") && stored.contains("batch_size = 1"),
@@ -141,7 +141,7 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
 
     // Again: complete runs are skipped; a run with evaluations missing is only evaluated.
     std::fs::remove_dir_all(dir.join("runs/ft/eval")).unwrap();
-    assert_eq!(sweep::state(&plan[3].exp), State::Trained);
+    assert_eq!(sweep::state(&plan[3].exp).unwrap(), State::Trained);
     let out = sweep::run_sweep(&plan, &opts);
     assert_eq!(out[0].1, Outcome::Skipped);
     assert!(
@@ -154,7 +154,7 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
         ),
         "{out:?}"
     );
-    assert_eq!(sweep::state(&plan[3].exp), State::Complete);
+    assert_eq!(sweep::state(&plan[3].exp).unwrap(), State::Complete);
 
     // Another configuration in the same run directory is refused, not overwritten.
     let other: Vec<Override> = vec!["optimizer.lr=0.1".parse().unwrap()];
@@ -178,19 +178,14 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     assert!(files.iter().any(|f| f.ends_with("table_depth.md")));
     let table = std::fs::read_to_string(dir.join("report/table_depth.csv")).unwrap();
     assert!(
-        table.starts_with("block,run,evaluation,dataset,kernel,mre,mae,rmse"),
+        table.starts_with("block,dataset,kernel,n,mre,mre_ci95_half_width,mae,"),
         "{table}"
     );
-    assert!(
-        table.contains("BL,bl,f195-standard,F195,standard,"),
-        "{table}"
-    );
-    assert!(
-        table.contains("FT,ft,f195-standard,F195,standard,"),
-        "{table}"
-    );
+    assert!(table.contains("BL,F195,standard,1,"), "{table}");
+    assert!(table.contains("FT,F195,standard,1,"), "{table}");
     let report = std::fs::read_to_string(dir.join("report/REPORT.md")).unwrap();
-    assert!(report.contains("| FT | F195 | standard |") && report.contains("[ft](../runs/ft)"));
+    assert!(report.contains("| FT | F195 | standard | 1 |") && report.contains("[ft](../runs/ft)"));
+    assert!(dir.join("report/verdict.json").is_file());
 }
 
 fn calibconv(dir: &Path, args: &[&str]) -> Output {

@@ -10,6 +10,7 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::experiment::{self, run, SourceRequest};
 use calibconv::report::pointcloud::{back_project, top_view, write_ply};
+use calibconv::report::results::{write_report_with, ReportOptions};
 
 use crate::cli::ReportArgs;
 
@@ -21,18 +22,33 @@ pub fn run(args: ReportArgs) -> Result<()> {
         Ok(None) => {}
         Err(e) => eprintln!("warning: no point cloud: {e:#}"),
     }
-    let written = calibconv::report::results::write_report(&args.results, &out)
+    let opts = ReportOptions {
+        averaging: args.averaging,
+        bootstrap_seed: args.bootstrap_seed,
+    };
+    let written = write_report_with(&args.results, &out, &opts)
         .with_context(|| format!("cannot report on {}", args.results.display()))?;
     for f in &written {
         println!("wrote {}", f.display());
     }
+    // The verdict table is what a reader came for: print it.
+    let verdict = out.join("verdict.md");
+    let text = std::fs::read_to_string(&verdict)
+        .with_context(|| format!("cannot read {}", verdict.display()))?;
+    println!("\n{text}");
     println!("report: {}", out.join("REPORT.md").display());
     Ok(())
 }
 
-/// The depth run to show: a fine-tuned calibrated one, the widest field of view first.
+/// The depth run to show: a fine-tuned calibrated one, the widest field of view first (of the
+/// first seed replicate).
 fn pick_run(results: &Path) -> Option<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::fs::read_dir(results)
+    // With seed replicates, the first seed's.
+    let first = calibconv::report::collect::replicates(results)
+        .ok()?
+        .into_iter()
+        .next()?;
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(&first.dir)
         .ok()?
         .flatten()
         .map(|e| e.path())

@@ -1,11 +1,14 @@
-//! `calibconv sweep DIR [--profile P] [--only PATTERN] [--jobs N] [--set K=V] [--emit-slurm D]`.
+//! `calibconv sweep DIR [--profile P] [--seeds S,..] [--only PATTERN] [--jobs N] [--set K=V]
+//! [--emit-slurm D [--slurm-set K=V]]`.
 
 use std::io::IsTerminal;
 
 use anyhow::{bail, Context, Result};
 
+use calibconv::experiment::layout::{write_record, ResultsDir};
 use calibconv::experiment::profile::{Override, Profile};
-use calibconv::experiment::sweep::{self, Outcome, SweepOptions};
+use calibconv::experiment::slurm::{emit_slurm, SlurmSpec};
+use calibconv::experiment::sweep::{self, Outcome, Seeds, SweepOptions};
 use calibconv::experiment::DefaultOpener;
 
 use crate::cli::SweepArgs;
@@ -24,11 +27,40 @@ pub fn run(args: SweepArgs) -> Result<()> {
         anyhow::ensure!(t > 0, "--threads must be positive");
         tch::set_num_threads(t);
     }
-    let plan = sweep::plan(&args.dir, &profile, &overrides, &args.only)
+    let mut seeds = Seeds::from_profile(&profile, args.seeds.clone())?;
+    if !args.only_seed.is_empty() {
+        anyhow::ensure!(
+            !seeds.seeds.is_empty(),
+            "--only-seed needs seeds (--seeds or the profile's `seeds`)"
+        );
+        seeds.only = args.only_seed.clone();
+    }
+    let plan = sweep::plan_seeds(&args.dir, &profile, &overrides, &args.only, &seeds)
         .with_context(|| format!("cannot plan the sweep of {}", args.dir.display()))?;
+    // The study's record, for a sweep of the whole study (not one task of it).
+    let whole = args.only.is_empty() && args.only_seed.is_empty() && !args.dry_run;
+    let write_study = || -> Result<()> {
+        if let (true, Some(results)) = (whole, sweep::results_dir(&plan)) {
+            let file = ResultsDir::new(results).study_json();
+            let record = sweep::study_record(&args.dir, &plan, &profile, &overrides, &seeds);
+            write_record(&file, &record)?;
+        }
+        Ok(())
+    };
+    let slurm_sets = args
+        .slurm_set
+        .iter()
+        .map(|s| s.parse::<Override>())
+        .collect::<calibconv::error::Result<Vec<_>>>()?;
+    anyhow::ensure!(
+        slurm_sets.is_empty() || args.emit_slurm.is_some(),
+        "--slurm-set applies to --emit-slurm"
+    );
     if let Some(out) = &args.emit_slurm {
-        let files = sweep::emit_slurm(&plan, &args.dir, &profile, &overrides, out)
+        let spec = SlurmSpec::resolve(&profile, &slurm_sets)?;
+        let files = emit_slurm(&plan, &args.dir, &profile, &overrides, &seeds, &spec, out)
             .with_context(|| format!("cannot write SLURM scripts to {}", out.display()))?;
+        write_study()?;
         for f in &files {
             println!("wrote {}", f.display());
         }
@@ -37,10 +69,10 @@ pub fn run(args: SweepArgs) -> Result<()> {
     }
     for p in &plan {
         eprintln!(
-            "level {} {:<36} {:?}{}",
+            "level {} {:<44} {:?}{}",
             p.level,
-            p.exp.name,
-            sweep::state(&p.exp),
+            p.key(),
+            sweep::state(&p.exp)?,
             if p.deps.is_empty() {
                 String::new()
             } else {
@@ -51,6 +83,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
     if args.dry_run {
         return Ok(());
     }
+    write_study()?;
     let start = std::time::Instant::now();
     let outcomes = sweep::run_sweep(
         &plan,
@@ -78,8 +111,8 @@ pub fn run(args: SweepArgs) -> Result<()> {
         failed.len(),
         start.elapsed().as_secs_f64()
     );
-    if let Some(p) = plan.first() {
-        println!("results in {}", p.exp.output.display());
+    if let Some(r) = sweep::results_dir(&plan) {
+        println!("results in {}", r.display());
     }
     if !failed.is_empty() {
         for (name, o) in &failed {

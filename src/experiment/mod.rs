@@ -79,8 +79,10 @@
 //! images = 4                          # prediction PNGs
 //! ```
 
+pub mod layout;
 pub mod profile;
 pub mod run;
+pub mod slurm;
 pub mod source;
 pub mod suggest;
 pub mod sweep;
@@ -105,6 +107,9 @@ use crate::train::schedule::{Decay, Schedule};
 use crate::train::Length;
 pub use run::{evaluate, train, RunOptions};
 pub use source::{open_source, DefaultOpener, SourceOpener, SourceRequest, SourceSpec};
+
+/// The output folder of an experiment without `output`.
+pub const DEFAULT_OUTPUT: &str = "runs";
 
 /// The task, as written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -929,12 +934,12 @@ impl RawExperiment {
         };
 
         // Output.
-        let output = absolute(&self.output.unwrap_or_else(|| PathBuf::from("runs")))?;
+        let output = absolute(&self.output.unwrap_or_else(|| PathBuf::from(DEFAULT_OUTPUT)))?;
         let run_dir = output.join(&self.name);
         let init = init.map(|(name, file)| match file {
             Some(f) => InitSpec::Checkpoint(f),
             None => InitSpec::Experiment {
-                checkpoints: output.join(&name).join("checkpoints"),
+                checkpoints: layout::RunDir::new(output.join(&name)).checkpoints(),
                 name,
             },
         });

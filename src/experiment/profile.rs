@@ -1,9 +1,17 @@
 //! Profiles and command-line overrides: TOML overlays merged over an experiment file's text
 //! before it is parsed, so one set of experiment files serves several settings.
 //!
-//! A profile file has up to three tables, each an overlay in the experiment schema:
+//! A profile file has up to three overlay tables in the experiment schema, and the settings
+//! of the sweep itself:
 //!
 //! ```toml
+//! seeds = [0, 1, 2]           # replicates (`calibconv sweep --seeds` overrides): each seed
+//!                             # runs the whole sweep in OUTPUT/seed-S/ (see experiment::sweep)
+//! share_baseline = false      # true: baselines run once (the first seed) and every seed's
+//!                             # fine-tunings start from them
+//! [slurm]                     # resources of `--emit-slurm` job arrays (see experiment::slurm)
+//! cpus_per_task = 1
+//! time = "00:30:00"
 //! [all]                       # over every experiment
 //! data_root = "data/synth"
 //! input = { width = 128, padding = [0, 14] }
@@ -41,6 +49,12 @@ pub struct Profile {
     pub all: Table,
     pub baseline: Table,
     pub finetune: Table,
+    /// Replicate seeds (`None`: no replicates, the experiments' own seeds).
+    pub seeds: Option<Vec<u64>>,
+    /// One baseline for every seed (in the first seed's folder).
+    pub share_baseline: bool,
+    /// The `[slurm]` table, as written (resolved by [`super::slurm::SlurmSpec`]).
+    pub slurm: Table,
 }
 
 /// One `--set KEY=VALUE`.
@@ -98,12 +112,36 @@ impl Profile {
             }
         };
         let (all, baseline, finetune) = (take("all")?, take("baseline")?, take("finetune")?);
+        let slurm = take("slurm")?;
+        let bad = |field: &str, message: &str| Error::Config {
+            path: file.to_path_buf(),
+            field: field.into(),
+            message: message.into(),
+        };
+        let seeds = match table.remove("seeds") {
+            None => None,
+            Some(Value::Array(a)) => {
+                let seeds: Option<Vec<u64>> = a
+                    .iter()
+                    .map(|v| v.as_integer().and_then(|i| u64::try_from(i).ok()))
+                    .collect();
+                let seeds = seeds.ok_or_else(|| bad("seeds", "must be non-negative integers"))?;
+                check_seeds(&seeds).map_err(|m| bad("seeds", &m))?;
+                Some(seeds)
+            }
+            Some(_) => return Err(bad("seeds", "must be an array of integers, [0, 1, 2]")),
+        };
+        let share_baseline = match table.remove("share_baseline") {
+            None => false,
+            Some(Value::Boolean(b)) => b,
+            Some(_) => return Err(bad("share_baseline", "must be true or false")),
+        };
         if let Some(k) = table.keys().next() {
-            return Err(Error::Config {
-                path: file.to_path_buf(),
-                field: k.clone(),
-                message: "a profile has only [all], [baseline] and [finetune] tables".into(),
-            });
+            return Err(bad(
+                k,
+                "a profile has only the keys seeds and share_baseline and the tables [all], \
+                 [baseline], [finetune] and [slurm]",
+            ));
         }
         Ok(Profile {
             name: file
@@ -114,8 +152,23 @@ impl Profile {
             all,
             baseline,
             finetune,
+            seeds,
+            share_baseline,
+            slurm,
         })
     }
+}
+
+/// `Err` (a message) unless `seeds` is non-empty without repeats.
+pub fn check_seeds(seeds: &[u64]) -> std::result::Result<(), String> {
+    if seeds.is_empty() {
+        return Err("give at least one seed".into());
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    if let Some(s) = seeds.iter().find(|s| !seen.insert(**s)) {
+        return Err(format!("seed {s} is given twice"));
+    }
+    Ok(())
 }
 
 /// Merges `over` into `base` key by key (see the module docs).

@@ -1,27 +1,24 @@
 //! Running an [`Experiment`]: its run directory, training, and the evaluations after it.
 //!
-//! ```text
-//! OUTPUT/NAME/
-//!   experiment.toml        the experiment file as given (the last invocation's)
-//!   config.json            the resolved experiment: every default, absolute paths
-//!   run.json               one record per invocation: command, time, git revision, device
-//!   checkpoints/           last.safetensors, last.optim.safetensors, best.safetensors
-//!   train.csv  val.csv     training and validation scalars by step
-//!   tb/                    TensorBoard event files (`tensorboard --logdir OUTPUT`)
-//!   summary.json           what the last training call did (steps, losses, best, throughput)
-//!   eval/EVAL/             metrics.json, metrics.csv, radial.csv, radial_METRIC.png,
-//!                          predictions/*.png
-//!   evaluations.csv        one row per evaluation in eval/ (rebuilt after every evaluation)
-//! ```
+//! The run directory's layout and records are [`super::layout`]'s. While a process trains or
+//! evaluates a run it holds the run's lock ([`RunLock`]): a second `calibconv train` or
+//! `calibconv eval` of the same run directory fails at once, naming the holder's PID.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use serde_json::json;
 use tch::nn::VarStore;
 
+use super::layout::{
+    self, write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord,
+    Summary, Timing,
+};
+
 use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
 use crate::data::loader::Augment;
+use crate::data::BatchSource;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Metric, RadialBins, ALL_METRICS};
 use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
@@ -31,7 +28,7 @@ use crate::report::csv::CsvLog;
 use crate::report::plots;
 use crate::report::tensorboard::TensorBoard;
 use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
-use crate::train::{self, best_path, last_path, Reporter, TrainConfig, TrainRun, TrainSummary};
+use crate::train::{self, Reporter, TrainConfig, TrainRun, TrainSummary};
 
 /// How to run.
 #[derive(Clone, Copy)]
@@ -64,9 +61,14 @@ pub struct TrainOutcome {
     pub evaluations: Vec<EvalOutcome>,
 }
 
+/// The run directory of `exp`.
+pub fn run_dir(exp: &Experiment) -> RunDir {
+    RunDir::new(&exp.run_dir)
+}
+
 /// The checkpoint folder of a run.
 pub fn checkpoint_dir(exp: &Experiment) -> PathBuf {
-    exp.run_dir.join("checkpoints")
+    run_dir(exp).checkpoints()
 }
 
 /// `git describe --always --dirty` of the current directory, if git answers.
@@ -96,41 +98,66 @@ pub fn build_model(
 
 /// The best checkpoint of a run directory's `checkpoints/`, else its last, if any.
 pub fn best_or_last(dir: &Path) -> Option<PathBuf> {
-    [best_path(dir), last_path(dir)]
+    [train::best_path(dir), train::last_path(dir)]
         .into_iter()
         .find(|p| p.is_file())
 }
 
-fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
-    let text = serde_json::to_string_pretty(value).expect("json");
-    write_bytes_atomic(path, text.as_bytes())
-}
-
-/// Appends an invocation record to `run.json`.
-fn record_invocation(exp: &Experiment, command: &str, extra: serde_json::Value) -> Result<()> {
-    let path = exp.run_dir.join("run.json");
-    let mut doc: serde_json::Value = std::fs::read_to_string(&path)
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok())
-        .unwrap_or_else(|| json!({"experiment": exp.name, "invocations": []}));
-    let record = json!({
-        "command": command,
-        "unix_time": std::time::SystemTime::now()
+/// Appends an invocation record to `run.json` (an unreadable `run.json` is an error: it is
+/// never replaced).
+fn record_invocation(exp: &Experiment, command: &str, details: InvocationDetails) -> Result<()> {
+    let dir = run_dir(exp);
+    let mut doc = dir.run_if_any()?.unwrap_or_else(|| RunRecord {
+        experiment: exp.name.clone(),
+        invocations: Vec::new(),
+    });
+    doc.invocations.push(Invocation {
+        command: command.into(),
+        unix_time: std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_secs())
             .unwrap_or(0),
-        "git": git_revision(),
-        "calibconv_version": env!("CARGO_PKG_VERSION"),
-        "device": exp.device,
-        "resolved_device": exp.device().ok().map(|d| format!("{d:?}")),
-        "torch_threads": tch::get_num_threads(),
-        "args": std::env::args().collect::<Vec<_>>(),
-        "details": extra,
+        git: git_revision(),
+        calibconv_version: env!("CARGO_PKG_VERSION").into(),
+        device: exp.device.clone(),
+        resolved_device: exp.device().ok().map(|d| format!("{d:?}")),
+        torch_threads: i64::from(tch::get_num_threads()),
+        args: std::env::args().collect(),
+        pid: Some(std::process::id()),
+        details,
     });
-    if let Some(list) = doc["invocations"].as_array_mut() {
-        list.push(record);
+    write_record(&dir.run_json(), &doc)
+}
+
+/// `Err` unless `lock` is the lock of `exp`'s run directory.
+fn check_lock(exp: &Experiment, lock: &RunLock) -> Result<()> {
+    let want = run_dir(exp).lock_file();
+    if lock.path() != want {
+        return Err(Error::InvalidArgument(format!(
+            "{} is not the lock of run {} ({})",
+            lock.path().display(),
+            exp.name,
+            want.display()
+        )));
     }
-    write_json(&path, &doc)
+    Ok(())
+}
+
+/// Opens the training source of `exp` as training does: shuffled by the experiment's seed
+/// (the data order and the augmentations depend on the seed and the data set only, never on
+/// the kernel), with the experiment's augmentations.
+pub fn open_training_source(
+    exp: &Experiment,
+    opener: &dyn SourceOpener,
+) -> Result<Box<dyn BatchSource>> {
+    let t = &exp.train;
+    opener.open(&source_for(
+        &exp.train_data,
+        &exp.input,
+        t.batch_size,
+        Some(exp.seed),
+        t.augment,
+    ))
 }
 
 fn source_for<'a>(
@@ -188,11 +215,23 @@ pub fn init_checkpoint(exp: &Experiment) -> Result<Option<PathBuf>> {
 }
 
 /// Trains `exp` (from scratch, from its initial checkpoint, or resumed), then runs its
-/// evaluations on the best checkpoint.
+/// evaluations on the best checkpoint, holding the run directory's lock.
 pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
+    let lock = run_dir(exp).lock()?;
+    train_locked(exp, opts, &lock)
+}
+
+/// [`train`] with the run's lock already held (by a sweep).
+pub fn train_locked(
+    exp: &Experiment,
+    opts: &RunOptions<'_>,
+    lock: &RunLock,
+) -> Result<TrainOutcome> {
+    check_lock(exp, lock)?;
+    let dir = run_dir(exp);
     let device = exp.device()?;
-    let ckdir = checkpoint_dir(exp);
-    let last = last_path(&ckdir);
+    let ckdir = dir.checkpoints();
+    let last = dir.last_checkpoint();
     if opts.resume && !last.is_file() {
         return Err(Error::Checkpoint {
             path: last,
@@ -211,7 +250,7 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         });
     }
     std::fs::create_dir_all(&ckdir).map_err(|e| Error::io(&ckdir, e))?;
-    let stored = exp.run_dir.join("experiment.toml");
+    let stored = dir.experiment_toml();
     if opts.resume && opts.verbose {
         if let Ok(old) = std::fs::read_to_string(&stored) {
             if old != exp.text {
@@ -226,17 +265,16 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
     // it has resumed (a refused resume leaves the run's description alone).
     let describe_run = || -> Result<()> {
         write_bytes_atomic(&stored, exp.text.as_bytes())?;
-        write_json(
-            &exp.run_dir.join("config.json"),
-            &serde_json::to_value(exp).expect("experiment serialises"),
-        )
+        write_record(&dir.config_json(), exp)
     };
     if !opts.resume {
         describe_run()?;
     }
 
+    let t_build = Instant::now();
     let vs = VarStore::new(device);
     let model = build_model(exp, &vs, exp.kernel, &exp.input)?;
+    let build_seconds = t_build.elapsed().as_secs_f64();
     let mut init_from = None;
     let mut resume_step = None;
     if opts.resume {
@@ -249,17 +287,16 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
     record_invocation(
         exp,
         "train",
-        json!({"resume": opts.resume, "resume_step": resume_step, "init": init_from}),
+        InvocationDetails::Train {
+            resume: opts.resume,
+            resume_step,
+            init: init_from,
+        },
     )?;
 
     let t = &exp.train;
-    let train_src = opts.opener.open(&source_for(
-        &exp.train_data,
-        &exp.input,
-        t.batch_size,
-        Some(exp.seed),
-        t.augment,
-    ))?;
+    let t_data = Instant::now();
+    let train_src = open_training_source(exp, opts.opener)?;
     let val_src = match &exp.val_data {
         Some(spec) => Some(opts.opener.open(&source_for(
             spec,
@@ -270,6 +307,7 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         ))?),
         None => None,
     };
+    let data_seconds = t_data.elapsed().as_secs_f64();
     let val_opts = EvalOptions {
         bins: radial_bins(&exp.input, t.radial_bins, None)?,
         panels: t.images,
@@ -309,7 +347,7 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
         git: git_revision(),
     };
     let mut reporters: Vec<Box<dyn Reporter>> = vec![
-        Box::new(TensorBoard::create(&exp.run_dir.join("tb"))?),
+        Box::new(TensorBoard::create(&dir.tb())?),
         Box::new(CsvLog::create(&exp.run_dir, resume_step)?),
     ];
     if opts.verbose {
@@ -346,21 +384,34 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
     if opts.resume {
         describe_run()?;
     }
-    write_json(
-        &exp.run_dir.join("summary.json"),
-        &json!({
-            "experiment": exp.name,
-            "steps": summary.steps,
-            "steps_this_run": summary.steps_this_run,
-            "first_loss": summary.first_loss,
-            "last_loss": summary.last_loss,
-            "best": summary.best.map(|(m, v, s)| json!({"metric": m.name(), "value": v, "step": s})),
-            "images_per_s": summary.images_per_s,
-            "seconds": summary.seconds,
-            "last_checkpoint": summary.last_checkpoint,
-            "best_checkpoint": summary.best_checkpoint,
+    let mut record = Summary {
+        experiment: exp.name.clone(),
+        seed: Some(exp.seed),
+        steps: summary.steps,
+        steps_this_run: summary.steps_this_run,
+        first_loss: summary.first_loss,
+        last_loss: summary.last_loss,
+        best: summary.best.map(|(m, value, step)| BestRecord {
+            metric: m.name().into(),
+            value,
+            step,
         }),
-    )?;
+        images_per_s: summary.images_per_s,
+        seconds: summary.seconds,
+        timing: Timing {
+            build: build_seconds,
+            data: data_seconds,
+            steps: summary.step_seconds,
+            validation: summary.validation_seconds,
+            checkpoints: summary.checkpoint_seconds,
+            evaluation: None,
+        },
+        last_checkpoint: summary.last_checkpoint.clone(),
+        best_checkpoint: summary.best_checkpoint.clone(),
+    };
+    // Written before the evaluations: with it the run counts as trained (a sweep then only
+    // evaluates); rewritten with their time after them.
+    write_record(&dir.summary_json(), &record)?;
     if opts.verbose {
         eprintln!(
             "trained {} steps in {:.1} s ({:.1} images/s); loss {:.4} -> {:.4}",
@@ -371,7 +422,13 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
             summary.last_loss
         );
     }
-    let evaluations = evaluate(exp, None, &[], opts)?;
+    let t_eval = Instant::now();
+    let evaluations = evaluate_locked(exp, None, &[], opts, lock)?;
+    record.timing.evaluation = Some(t_eval.elapsed().as_secs_f64());
+    write_record(&dir.summary_json(), &record)?;
+    if opts.verbose {
+        eprintln!("{}: {}", exp.name, record.timing.describe());
+    }
     Ok(TrainOutcome {
         summary,
         evaluations,
@@ -379,13 +436,39 @@ pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
 }
 
 /// Runs the evaluations of `exp` named in `only` (all if empty) on `checkpoint` (default: the
-/// run's best, else its last), writing `eval/NAME/` and `evaluations.csv`.
+/// run's best, else its last), writing `eval/NAME/` and `evaluations.csv`, holding the run
+/// directory's lock.
 pub fn evaluate(
     exp: &Experiment,
     checkpoint: Option<&Path>,
     only: &[String],
     opts: &RunOptions<'_>,
 ) -> Result<Vec<EvalOutcome>> {
+    let lock = run_dir(exp).lock()?;
+    evaluate_locked(exp, checkpoint, only, opts, &lock)
+}
+
+/// Records `seconds` as the evaluation time of the run's `summary.json` (after a sweep
+/// evaluated a trained run); nothing without a summary.
+pub fn record_evaluation_time(exp: &Experiment, seconds: f64) -> Result<()> {
+    let dir = run_dir(exp);
+    if let Some(mut s) = dir.summary_if_any()? {
+        s.timing.evaluation = Some(seconds);
+        write_record(&dir.summary_json(), &s)?;
+    }
+    Ok(())
+}
+
+/// [`evaluate`] with the run's lock already held.
+pub fn evaluate_locked(
+    exp: &Experiment,
+    checkpoint: Option<&Path>,
+    only: &[String],
+    opts: &RunOptions<'_>,
+    lock: &RunLock,
+) -> Result<Vec<EvalOutcome>> {
+    check_lock(exp, lock)?;
+    let rd = run_dir(exp);
     let names: Vec<&str> = exp.evals.iter().map(|e| e.name.as_str()).collect();
     for o in only {
         if !names.contains(&o.as_str()) {
@@ -426,7 +509,10 @@ pub fn evaluate(
     record_invocation(
         exp,
         "eval",
-        json!({"checkpoint": ckpt, "evaluations": selected.iter().map(|e| &e.name).collect::<Vec<_>>()}),
+        InvocationDetails::Eval {
+            checkpoint: ckpt.clone(),
+            evaluations: selected.iter().map(|e| e.name.clone()).collect(),
+        },
     )?;
     let info = TensorFile::open(&ckpt)?.info()?;
     let mut out = Vec::new();
@@ -449,7 +535,7 @@ pub fn evaluate(
             progress: opts.progress,
         };
         let e = eval::evaluate(&model, source.as_ref(), &eopts)?;
-        let dir = exp.run_dir.join("eval").join(&spec.name);
+        let dir = rd.eval_dir(&spec.name);
         let about = json!({
             "experiment": exp.name,
             "evaluation": spec.name,
@@ -541,17 +627,12 @@ fn write_radial_plots(dir: &Path, e: &Evaluation, spec: &EvalSpec) -> Result<()>
 /// evaluation (sorted by name), columns `evaluation, data, kernel, checkpoint_step, images`
 /// then every metric any of them has.
 pub fn write_evaluations_csv(run_dir: &Path) -> Result<()> {
-    let eval_dir = run_dir.join("eval");
+    let rd = RunDir::new(run_dir);
     let mut docs = Vec::new();
-    if let Ok(entries) = std::fs::read_dir(&eval_dir) {
-        for entry in entries.flatten() {
-            let p = entry.path().join("metrics.json");
-            if let Ok(text) = std::fs::read_to_string(&p) {
-                let doc: serde_json::Value = serde_json::from_str(&text)
-                    .map_err(|e| Error::InvalidArgument(format!("{}: {e}", p.display())))?;
-                docs.push(doc);
-            }
-        }
+    for name in rd.evaluation_names()? {
+        // metrics.json is crate::eval's record; only the columns of this table are read here.
+        let doc: serde_json::Value = layout::read_record(&rd.metrics_json(&name))?;
+        docs.push(doc);
     }
     docs.sort_by(|a, b| a["evaluation"].as_str().cmp(&b["evaluation"].as_str()));
     let present: BTreeSet<&str> = docs
@@ -588,5 +669,5 @@ pub fn write_evaluations_csv(run_dir: &Path) -> Result<()> {
             values.join(",")
         );
     }
-    write_bytes_atomic(&run_dir.join("evaluations.csv"), csv.as_bytes())
+    write_bytes_atomic(&rd.evaluations_csv(), csv.as_bytes())
 }

@@ -7,6 +7,21 @@
 //! - interrupted (`checkpoints/last.safetensors` without `summary.json`): resumed;
 //! - otherwise: trained from the start.
 //!
+//! # Seeds: replicates of a sweep, paired within a seed
+//!
+//! With seeds (`--seeds 0,1,2`, or the profile's `seeds = [0, 1, 2]`; the flag wins) every
+//! experiment runs once per seed `S`, with `seed = S` and its run directory in
+//! `OUTPUT/seed-S/NAME/` (`OUTPUT` is the experiment's `output` after the profile). Without
+//! seeds the run directories are `OUTPUT/NAME/`: one replicate with the experiments' own
+//! seeds. The design is paired: within a seed, every fine-tuning starts from that seed's
+//! baseline (`init = { experiment = ... }` resolves inside `OUTPUT/seed-S/`) and sees its
+//! data in the order, and with the augmentations, of seed `S` (the training source is
+//! shuffled by the experiment's seed; the kernel kind never enters the data order), so the
+//! standard, calibrated and rectified fine-tunings of one calibration differ only in the
+//! kernel. With `share_baseline = true` in the profile the baselines run once, in the first
+//! seed's folder, and the fine-tunings of every seed start from them. `OUTPUT/study.json`
+//! records the plan: profile, seeds, runs ([`super::layout::StudyRecord`]).
+//!
 //! A run directory that holds another configuration (its `experiment.toml` differs from the
 //! merged text as TOML) is a failure of that run, never overwritten. A failed run does not stop
 //! the sweep; runs that depend on it are reported as blocked. Each run directory gets
@@ -19,27 +34,69 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use serde_json::json;
-
+use super::layout::{self, write_record, RunLock, StudyRecord, StudyRun, SweepRecord, SweepStatus};
 use super::profile::{self, Override, Profile};
 use super::run::{self, git_revision, RunOptions};
 use super::{Experiment, InitSpec, SourceOpener};
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
-use crate::train::last_path;
 
 /// One run of a sweep.
 #[derive(Clone, Debug)]
 pub struct Planned {
     pub exp: Experiment,
+    /// The replicate it belongs to (`None`: a sweep without seeds).
+    pub seed: Option<u64>,
     /// The experiment file.
     pub file: PathBuf,
     /// The merged text it runs with.
     pub text: String,
-    /// Names of the runs of this sweep it starts from.
+    /// Keys ([`Planned::key`]) of the runs of this sweep it starts from.
     pub deps: Vec<String>,
     /// 0 for runs without dependencies in the sweep, else 1 + the deepest dependency's level.
     pub level: usize,
+}
+
+impl Planned {
+    /// Identifies the run within the sweep: `seed-S/NAME`, or `NAME` without seeds.
+    pub fn key(&self) -> String {
+        run_key(self.seed, &self.exp.name)
+    }
+}
+
+fn run_key(seed: Option<u64>, name: &str) -> String {
+    match seed {
+        Some(s) => format!("{}/{name}", layout::seed_folder(s)),
+        None => name.to_string(),
+    }
+}
+
+/// The replicates of a sweep.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Seeds {
+    /// Every seed of the study (empty: no replicates, the experiments' own seeds, run
+    /// directories `OUTPUT/NAME`).
+    pub seeds: Vec<u64>,
+    /// Plan only these of them (all if empty): a SLURM array task runs one seed while the
+    /// study's seed list still places a shared baseline.
+    pub only: Vec<u64>,
+    /// Baselines run once, for the first seed; every seed's fine-tunings start from them.
+    pub share_baseline: bool,
+}
+
+impl Seeds {
+    /// The profile's seeds, or `flag` (`--seeds`) when given.
+    pub fn from_profile(profile: &Profile, flag: Option<Vec<u64>>) -> Result<Seeds> {
+        let seeds = flag.or_else(|| profile.seeds.clone()).unwrap_or_default();
+        if !seeds.is_empty() {
+            profile::check_seeds(&seeds)
+                .map_err(|m| Error::InvalidArgument(format!("--seeds: {m}")))?;
+        }
+        Ok(Seeds {
+            seeds,
+            only: Vec::new(),
+            share_baseline: profile.share_baseline,
+        })
+    }
 }
 
 /// What a run directory holds.
@@ -133,22 +190,72 @@ pub fn find_profile(dir: &Path, name: &str) -> Result<Profile> {
 }
 
 /// Reads, merges and resolves every experiment of `dir`, keeps those matching one of `only`
-/// (all if empty), and orders them by dependency level, then name.
+/// (all if empty), and orders them by dependency level, then name. No replicates: see
+/// [`plan_seeds`].
 pub fn plan(
     dir: &Path,
     profile: &Profile,
     overrides: &[Override],
     only: &[String],
 ) -> Result<Vec<Planned>> {
-    let mut all = Vec::new();
+    plan_seeds(dir, profile, overrides, only, &Seeds::default())
+}
+
+/// Sets `seed = S` and `output = OUTPUT/seed-S` in a merged experiment text.
+fn with_seed(file: &Path, text: &str, seed: u64) -> Result<String> {
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| Error::Toml {
+        path: file.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    let output = match table.get("output") {
+        None => PathBuf::from(super::DEFAULT_OUTPUT),
+        Some(toml::Value::String(s)) => PathBuf::from(s),
+        Some(_) => {
+            return Err(Error::Config {
+                path: file.to_path_buf(),
+                field: "output".into(),
+                message: "must be a path".into(),
+            })
+        }
+    };
+    let output = output.join(layout::seed_folder(seed));
+    table.insert("seed".into(), toml::Value::Integer(seed as i64));
+    table.insert(
+        "output".into(),
+        toml::Value::String(output.to_string_lossy().into_owned()),
+    );
+    let header = match text.lines().next() {
+        Some(l) if l.starts_with("# ") => l.to_string(),
+        _ => format!("# {}", file.display()),
+    };
+    Ok(format!(
+        "{header}, seed {seed}\n{}",
+        toml::to_string(&table).expect("a TOML table serialises")
+    ))
+}
+
+/// [`plan`] with replicates: with `seeds.seeds` empty as [`plan`]; else every experiment once
+/// per seed `S` (of `seeds.only`, if given), with `seed = S` and its run directory in
+/// `OUTPUT/seed-S/NAME`. Within a seed every fine-tuning starts from that seed's baseline
+/// (with `share_baseline`: the first seed's, and baselines are planned for the first seed
+/// only) and sees the data in the order of seed `S` (the data order depends on the seed and
+/// the data set, never on the kernel).
+pub fn plan_seeds(
+    dir: &Path,
+    profile: &Profile,
+    overrides: &[Override],
+    only: &[String],
+    seeds: &Seeds,
+) -> Result<Vec<Planned>> {
+    let mut base = Vec::new();
     for file in experiment_files(dir)? {
         let text = std::fs::read_to_string(&file).map_err(|e| Error::io(&file, e))?;
         let merged = profile::apply(&file, &text, profile, overrides)?;
         let exp = super::parse(&merged, &file)?.resolve(&file, &merged)?;
-        all.push((file, merged, exp));
+        base.push((file, merged, exp));
     }
     let mut seen = BTreeSet::new();
-    for (file, _, exp) in &all {
+    for (file, _, exp) in &base {
         if !seen.insert(exp.name.clone()) {
             return Err(Error::Config {
                 path: file.clone(),
@@ -157,7 +264,7 @@ pub fn plan(
             });
         }
     }
-    let selected: Vec<_> = all
+    let selected: Vec<_> = base
         .into_iter()
         .filter(|(_, _, e)| {
             only.is_empty()
@@ -178,81 +285,175 @@ pub fn plan(
             only.join(", ")
         )));
     }
-    let names: BTreeSet<String> = selected.iter().map(|(_, _, e)| e.name.clone()).collect();
-    let deps: BTreeMap<String, Vec<String>> = selected
-        .iter()
-        .map(|(_, _, e)| {
-            let d = match &e.init {
-                Some(InitSpec::Experiment { name, .. }) if names.contains(name) => {
-                    vec![name.clone()]
+    for s in &seeds.only {
+        if !seeds.seeds.contains(s) {
+            return Err(Error::InvalidArgument(format!(
+                "seed {s} is not one of the sweep's seeds ({:?})",
+                seeds.seeds
+            )));
+        }
+    }
+    // (run, its dependency's key if that run is in the plan or planned for another seed).
+    let mut all: Vec<(Planned, Option<String>)> = Vec::new();
+    let replicates: Vec<Option<u64>> = if seeds.seeds.is_empty() {
+        vec![None]
+    } else {
+        seeds.seeds.iter().map(|s| Some(*s)).collect()
+    };
+    let first = seeds.seeds.first().copied();
+    for &seed in &replicates {
+        if let Some(s) = seed {
+            if !seeds.only.is_empty() && !seeds.only.contains(&s) {
+                continue;
+            }
+        }
+        for (file, merged, exp) in &selected {
+            let baseline = exp.init.is_none();
+            if baseline && seeds.share_baseline && seed.is_some() && seed != first {
+                continue;
+            }
+            let (text, mut exp) = match seed {
+                None => (merged.clone(), exp.clone()),
+                Some(s) => {
+                    let text = with_seed(file, merged, s)?;
+                    let exp = super::parse(&text, file)?.resolve(file, &text)?;
+                    (text, exp)
                 }
-                _ => vec![],
             };
-            (e.name.clone(), d)
+            let mut dep = None;
+            if let Some(InitSpec::Experiment { name, checkpoints }) = &mut exp.init {
+                let from = if seeds.share_baseline { first } else { seed };
+                if from != seed {
+                    // The shared baseline lives in the first seed's folder.
+                    let output = exp.output.parent().unwrap_or(&exp.output).to_path_buf();
+                    *checkpoints = layout::ResultsDir::new(output)
+                        .run_dir(from, name)
+                        .checkpoints();
+                }
+                dep = Some(run_key(from, name));
+            }
+            all.push((
+                Planned {
+                    exp,
+                    seed,
+                    file: file.clone(),
+                    text,
+                    deps: Vec::new(),
+                    level: 0,
+                },
+                dep,
+            ));
+        }
+    }
+    let keys: BTreeSet<String> = all.iter().map(|(p, _)| p.key()).collect();
+    let mut out: Vec<Planned> = all
+        .into_iter()
+        .map(|(mut p, dep)| {
+            p.deps = dep.into_iter().filter(|d| keys.contains(d)).collect();
+            p
         })
         .collect();
     // Levels by repeated relaxation; more rounds than runs means a cycle.
-    let mut level: BTreeMap<String, usize> = names.iter().map(|n| (n.clone(), 0)).collect();
-    for round in 0..=names.len() {
+    let mut level: BTreeMap<String, usize> = keys.iter().map(|n| (n.clone(), 0)).collect();
+    for round in 0..=keys.len() {
         let mut changed = false;
-        for (n, ds) in &deps {
-            let l = ds.iter().map(|d| level[d] + 1).max().unwrap_or(0);
-            if l != level[n] {
-                level.insert(n.clone(), l);
+        for p in &out {
+            let l = p.deps.iter().map(|d| level[d] + 1).max().unwrap_or(0);
+            if l != level[&p.key()] {
+                level.insert(p.key(), l);
                 changed = true;
             }
         }
         if !changed {
             break;
         }
-        if round == names.len() {
+        if round == keys.len() {
             return Err(Error::InvalidArgument(format!(
                 "the experiments of {} start from each other in a cycle",
                 dir.display()
             )));
         }
     }
-    let mut out: Vec<Planned> = selected
-        .into_iter()
-        .map(|(file, text, exp)| Planned {
-            deps: deps[&exp.name].clone(),
-            level: level[&exp.name],
-            exp,
-            file,
-            text,
-        })
-        .collect();
-    out.sort_by(|a, b| (a.level, &a.exp.name).cmp(&(b.level, &b.exp.name)));
+    for p in &mut out {
+        p.level = level[&p.key()];
+    }
+    out.sort_by(|a, b| (a.level, a.seed, &a.exp.name).cmp(&(b.level, b.seed, &b.exp.name)));
     Ok(out)
 }
 
-/// What the run directory of `exp` holds.
-pub fn state(exp: &Experiment) -> State {
-    let dir = &exp.run_dir;
-    if dir.join("summary.json").is_file() {
-        let evaluated = exp.evals.iter().all(|e| {
-            dir.join("eval")
-                .join(&e.name)
-                .join("metrics.json")
-                .is_file()
-        });
+/// The `study.json` record of a plan.
+pub fn study_record(
+    dir: &Path,
+    plan: &[Planned],
+    profile: &Profile,
+    overrides: &[Override],
+    seeds: &Seeds,
+) -> StudyRecord {
+    StudyRecord {
+        dir: dir.to_path_buf(),
+        profile: profile.name.clone(),
+        profile_file: profile.file.clone(),
+        overrides: overrides
+            .iter()
+            .map(|o| format!("{}={}", o.key, o.value))
+            .collect(),
+        seeds: seeds.seeds.clone(),
+        share_baseline: seeds.share_baseline,
+        git: git_revision(),
+        runs: plan
+            .iter()
+            .map(|p| StudyRun {
+                name: p.exp.name.clone(),
+                seed: p.seed,
+                dir: PathBuf::from(p.key()),
+                level: p.level,
+                depends_on: p.deps.clone(),
+            })
+            .collect(),
+    }
+}
+
+/// The results folder of a plan: the output folder its run directories are in (above the
+/// `seed-S/` folders), if all of them share one.
+pub fn results_dir(plan: &[Planned]) -> Option<PathBuf> {
+    let dirs: BTreeSet<PathBuf> = plan
+        .iter()
+        .map(|p| match p.seed {
+            Some(_) => p.exp.output.parent().unwrap_or(&p.exp.output).to_path_buf(),
+            None => p.exp.output.clone(),
+        })
+        .collect();
+    (dirs.len() == 1).then(|| dirs.into_iter().next().expect("one"))
+}
+
+/// What the run directory of `exp` holds. A `summary.json` that does not read as a
+/// [`super::layout::Summary`] is an error naming it.
+pub fn state(exp: &Experiment) -> Result<State> {
+    let dir = run::run_dir(exp);
+    Ok(if dir.summary_if_any()?.is_some() {
+        let evaluated = exp
+            .evals
+            .iter()
+            .all(|e| dir.metrics_json(&e.name).is_file());
         if evaluated {
             State::Complete
         } else {
             State::Trained
         }
-    } else if last_path(&run::checkpoint_dir(exp)).is_file() {
+    } else if dir.last_checkpoint().is_file() {
         State::Interrupted
     } else {
         State::New
-    }
+    })
 }
 
 /// `Err` if the run directory holds another configuration than `text`.
 fn check_same_config(exp: &Experiment, text: &str) -> Result<()> {
-    let stored = exp.run_dir.join("experiment.toml");
-    let Ok(old) = std::fs::read_to_string(&stored) else {
-        return Ok(());
+    let stored = run::run_dir(exp).experiment_toml();
+    let old = match std::fs::read_to_string(&stored) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(Error::io(&stored, e)),
     };
     let parse = |t: &str| toml::from_str::<toml::Table>(t).ok();
     if parse(&old) != parse(text) {
@@ -280,10 +481,36 @@ pub struct SweepOptions<'a> {
     pub opener: &'a (dyn SourceOpener + Sync),
 }
 
-fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
+/// Runs `p` holding its lock (taken first: a run another process holds fails at once and its
+/// records are left alone).
+fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Outcome {
+    let lock = match run::run_dir(&p.exp).lock() {
+        Ok(l) => l,
+        Err(e) => return Outcome::Failed(cause_chain(&e)),
+    };
+    let outcome = run_locked(p, opts, &lock).unwrap_or_else(|e| Outcome::Failed(cause_chain(&e)));
+    record(p, opts, &outcome, &lock)
+        .map(|()| outcome.clone())
+        .unwrap_or_else(|e| {
+            Outcome::Failed(format!("cannot write sweep.json: {}", cause_chain(&e)))
+        })
+}
+
+/// An error and its causes, `: `-separated.
+fn cause_chain(e: &Error) -> String {
+    let mut msg = e.to_string();
+    let mut src = std::error::Error::source(e);
+    while let Some(c) = src {
+        msg += &format!(": {c}");
+        src = c.source();
+    }
+    msg
+}
+
+fn run_locked(p: &Planned, opts: &SweepOptions<'_>, lock: &RunLock) -> Result<Outcome> {
     let exp = &p.exp;
     check_same_config(exp, &p.text)?;
-    let before = state(exp);
+    let before = state(exp)?;
     if before == State::Complete {
         return Ok(Outcome::Skipped);
     }
@@ -296,15 +523,17 @@ fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
     let start = Instant::now();
     let action = match before {
         State::Trained => {
-            run::evaluate(exp, None, &[], &ropts)?;
+            let t = Instant::now();
+            run::evaluate_locked(exp, None, &[], &ropts, lock)?;
+            run::record_evaluation_time(exp, t.elapsed().as_secs_f64())?;
             "evaluate"
         }
         State::Interrupted => {
-            run::train(exp, &ropts)?;
+            run::train_locked(exp, &ropts, lock)?;
             "resume"
         }
         _ => {
-            run::train(exp, &ropts)?;
+            run::train_locked(exp, &ropts, lock)?;
             "train"
         }
     };
@@ -314,33 +543,51 @@ fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Result<Outcome> {
     })
 }
 
-fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome) -> Result<()> {
-    if !p.exp.run_dir.is_dir() || matches!(outcome, Outcome::Skipped) {
-        return Ok(());
-    }
+/// Writes the run's `sweep.json` (under its lock; nothing for a skipped run).
+fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLock) -> Result<()> {
     let (status, action, seconds, error) = match outcome {
-        Outcome::Done { action, seconds } => ("done", Some(*action), Some(*seconds), None),
-        Outcome::Failed(e) => ("failed", None, None, Some(e.clone())),
-        Outcome::Blocked(e) => ("blocked", None, None, Some(e.clone())),
-        Outcome::Skipped => unreachable!(),
+        Outcome::Skipped => return Ok(()),
+        Outcome::Done { action, seconds } => (
+            SweepStatus::Done,
+            Some(action.to_string()),
+            Some(*seconds),
+            None,
+        ),
+        Outcome::Failed(e) => (SweepStatus::Failed, None, None, Some(e.clone())),
+        Outcome::Blocked(e) => (SweepStatus::Blocked, None, None, Some(e.clone())),
     };
-    let doc = json!({
-        "experiment": p.exp.name,
-        "file": p.file,
-        "profile": opts.profile.name,
-        "profile_file": opts.profile.file,
-        "overrides": opts.overrides.iter().map(|o| format!("{}={}", o.key, o.value)).collect::<Vec<_>>(),
-        "level": p.level,
-        "depends_on": p.deps,
-        "git": git_revision(),
-        "status": status,
-        "action": action,
-        "seconds": seconds,
-        "error": error,
-        "experiment_text": p.text,
-    });
-    let text = serde_json::to_string_pretty(&doc).expect("json");
-    write_bytes_atomic(&p.exp.run_dir.join("sweep.json"), text.as_bytes())
+    let doc = SweepRecord {
+        experiment: p.exp.name.clone(),
+        file: p.file.clone(),
+        profile: opts.profile.name.clone(),
+        profile_file: opts.profile.file.clone(),
+        overrides: opts
+            .overrides
+            .iter()
+            .map(|o| format!("{}={}", o.key, o.value))
+            .collect(),
+        seed: p.seed,
+        level: p.level,
+        depends_on: p.deps.clone(),
+        git: git_revision(),
+        status,
+        action,
+        seconds,
+        error,
+        experiment_text: p.text.clone(),
+    };
+    write_record(&run::run_dir(&p.exp).sweep_json(), &doc)
+}
+
+/// A blocked run: recorded in its `sweep.json` if its folder exists and is not in use.
+fn record_blocked(p: &Planned, opts: &SweepOptions<'_>, why: String) -> Outcome {
+    let outcome = Outcome::Blocked(why);
+    if p.exp.run_dir.is_dir() {
+        if let Ok(lock) = run::run_dir(&p.exp).lock() {
+            let _ = record(p, opts, &outcome, &lock);
+        }
+    }
+    outcome
 }
 
 /// A line above the progress bar, or on stderr when there is none.
@@ -387,37 +634,28 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                             .find(|d| done.get(*d).is_some_and(Outcome::is_failure))
                             .map(|d| format!("its initial weights come from `{d}`, which failed"))
                     };
-                    bar.set_message(p.exp.name.clone());
+                    bar.set_message(p.key());
                     let outcome = match blocked {
-                        Some(b) => Outcome::Blocked(b),
-                        None => run_one(p, opts).unwrap_or_else(|e| {
-                            let mut msg = e.to_string();
-                            let mut src = std::error::Error::source(&e);
-                            while let Some(c) = src {
-                                msg += &format!(": {c}");
-                                src = c.source();
-                            }
-                            Outcome::Failed(msg)
-                        }),
+                        Some(b) => record_blocked(p, opts, b),
+                        None => run_one(p, opts),
                     };
-                    if let Err(e) = record(p, opts, &outcome) {
-                        say(
-                            &bar,
-                            format!("warning: {}: cannot write sweep.json: {e}", p.exp.name),
-                        );
-                    }
                     let line = match &outcome {
                         Outcome::Skipped => "complete, skipped".to_string(),
-                        Outcome::Done { action, seconds } => format!("{action}: {seconds:.1} s"),
+                        Outcome::Done { action, seconds } => {
+                            let timing = run::run_dir(&p.exp)
+                                .summary_if_any()
+                                .ok()
+                                .flatten()
+                                .map(|s| format!(" ({})", s.timing.describe()))
+                                .unwrap_or_default();
+                            format!("{action}: {seconds:.1} s{timing}")
+                        }
                         Outcome::Failed(e) => format!("FAILED: {e}"),
                         Outcome::Blocked(e) => format!("blocked: {e}"),
                     };
-                    say(&bar, format!("{}: {line}", p.exp.name));
+                    say(&bar, format!("{}: {line}", p.key()));
                     bar.inc(1);
-                    outcomes
-                        .lock()
-                        .expect("outcomes")
-                        .insert(p.exp.name.clone(), outcome);
+                    outcomes.lock().expect("outcomes").insert(p.key(), outcome);
                 });
             }
         });
@@ -426,106 +664,10 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
     let mut done = outcomes.into_inner().expect("outcomes");
     plan.iter()
         .map(|p| {
-            let o = done.remove(&p.exp.name).expect("every run has an outcome");
-            (p.exp.name.clone(), o)
+            let o = done.remove(&p.key()).expect("every run has an outcome");
+            (p.key(), o)
         })
         .collect()
-}
-
-/// Writes SLURM batch scripts for `plan` into `out`: `level-K.sbatch` (one job array per
-/// dependency level; task `i` runs `calibconv sweep DIR --only NAME_i` with the same profile
-/// and overrides, so skipping and resuming work as on one machine) and `submit.sh`, which
-/// submits them in order, each level `--dependency=afterok` on the one before. Returns the
-/// files written.
-pub fn emit_slurm(
-    plan: &[Planned],
-    dir: &Path,
-    profile: &Profile,
-    overrides: &[Override],
-    out: &Path,
-) -> Result<Vec<PathBuf>> {
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let quote = |s: &str| format!("'{}'", s.replace('\'', "'\\''"));
-    // The binary that wrote the scripts (the cluster shares the file system), else `calibconv`
-    // from PATH.
-    let exe = std::env::current_exe()
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|_| "calibconv".into());
-    let mut common = format!(
-        "{} sweep {}",
-        quote(&exe),
-        quote(&dir.display().to_string())
-    );
-    if let Some(f) = &profile.file {
-        common += &format!(" --profile {}", quote(&f.display().to_string()));
-    }
-    for o in overrides {
-        common += &format!(" --set {}", quote(&format!("{}={}", o.key, o.value)));
-    }
-    let max_level = plan.iter().map(|p| p.level).max().unwrap_or(0);
-    let mut files = Vec::new();
-    let mut submit = String::from(
-        "#!/bin/bash\n# Submits the sweep's job arrays, each level after the one before succeeded.\n\
-         set -euo pipefail\ncd \"$(dirname \"$0\")\"\n",
-    );
-    for level in 0..=max_level {
-        let names: Vec<&str> = plan
-            .iter()
-            .filter(|p| p.level == level)
-            .map(|p| p.exp.name.as_str())
-            .collect();
-        let file = out.join(format!("level-{level}.sbatch"));
-        let text = format!(
-            "#!/bin/bash\n\
-             #SBATCH --job-name=calibconv-level-{level}\n\
-             #SBATCH --array=0-{last}\n\
-             #SBATCH --gres=gpu:1\n\
-             #SBATCH --cpus-per-task=8\n\
-             #SBATCH --time=24:00:00\n\
-             #SBATCH --output=slurm-%A_%a.out\n\
-             # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
-             set -euo pipefail\n\
-             cd {root}\n\
-             RUNS=({runs})\n\
-             srun {common} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\"\n",
-            last = names.len() - 1,
-            n = names.len(),
-            prev = level.saturating_sub(1),
-            root = quote(
-                &std::env::current_dir()
-                    .map_err(|e| Error::io(Path::new("."), e))?
-                    .display()
-                    .to_string()
-            ),
-            runs = names.join(" "),
-        );
-        write_bytes_atomic(&file, text.as_bytes())?;
-        if level == 0 {
-            submit += &format!("j0=$(sbatch --parsable level-{level}.sbatch)\n");
-        } else {
-            submit += &format!(
-                "j{level}=$(sbatch --parsable --dependency=afterok:$j{prev} level-{level}.sbatch)\n",
-                prev = level - 1
-            );
-        }
-        files.push(file);
-    }
-    submit += "echo \"submitted:";
-    for level in 0..=max_level {
-        submit += &format!(" $j{level}");
-    }
-    submit += "\"\n";
-    let sub = out.join("submit.sh");
-    write_bytes_atomic(&sub, submit.as_bytes())?;
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        for f in files.iter().chain(std::iter::once(&sub)) {
-            let _ = std::fs::set_permissions(f, std::fs::Permissions::from_mode(0o755));
-        }
-    }
-    files.push(sub);
-    Ok(files)
 }
 
 #[cfg(test)]

@@ -151,6 +151,11 @@ pub struct TrainSummary {
     /// excluded) and wall time of this call.
     pub images_per_s: f64,
     pub seconds: f64,
+    /// Of `seconds`: training steps (batches, forward, backward, update), validation passes,
+    /// checkpoint writes.
+    pub step_seconds: f64,
+    pub validation_seconds: f64,
+    pub checkpoint_seconds: f64,
     pub last_checkpoint: PathBuf,
     pub best_checkpoint: Option<PathBuf>,
 }
@@ -332,6 +337,7 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
     let (mut first_loss, mut last_loss) = (f64::NAN, f64::NAN);
     let mut images = 0u64;
     let mut train_secs = 0.0f64;
+    let (mut val_secs, mut ckpt_secs) = (0.0f64, 0.0f64);
     let mut window_images = 0u64;
     let mut window_start = Instant::now();
     let mut validations = Vec::new();
@@ -403,6 +409,8 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
             let checkpoint_now =
                 validate_now || cfg.checkpoint_every.is_some_and(|n| step % n == 0);
             if let (true, Some((source, opts))) = (validate_now, &val) {
+                let t_val = Instant::now();
+                let mut best_secs = 0.0;
                 let e = evaluate(model, *source, opts)?;
                 let values = scalar_pairs(&e);
                 reporter.scalars("val", step, &values)?;
@@ -428,7 +436,9 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
                     });
                     let mut bi = info.clone();
                     bi.step = step;
+                    let t_ckpt = Instant::now();
                     checkpoint::save(&best_file, vs, &bi)?;
+                    best_secs = t_ckpt.elapsed().as_secs_f64();
                 }
                 say(format!(
                     "step {step}/{total}: train loss {last_loss:.4}, val {} {v:.4}{}",
@@ -436,11 +446,15 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
                     if improved { " (best)" } else { "" }
                 ));
                 validations.push((step, e.metrics.clone()));
+                val_secs += t_val.elapsed().as_secs_f64() - best_secs;
+                ckpt_secs += best_secs;
             }
             if checkpoint_now {
+                let t_ckpt = Instant::now();
                 info.metrics.insert("train_loss".into(), last_loss);
                 save_last(&mut info, &adam, &best, step, epoch, seen)?;
                 reporter.flush()?;
+                ckpt_secs += t_ckpt.elapsed().as_secs_f64();
             }
             if step >= total {
                 break 'epochs;
@@ -473,6 +487,9 @@ pub fn train(run: TrainRun<'_>, cfg: &TrainConfig) -> Result<TrainSummary> {
             f64::NAN
         },
         seconds: start.elapsed().as_secs_f64(),
+        step_seconds: train_secs,
+        validation_seconds: val_secs,
+        checkpoint_seconds: ckpt_secs,
         last_checkpoint: last,
         best_checkpoint: best_file.exists().then_some(best_file),
     })

@@ -1,0 +1,111 @@
+//! The run-directory lock across processes: while `calibconv train` trains a run, a second
+//! `calibconv train` or `calibconv eval` of it fails at once with an error naming the first
+//! one's PID; after `kill -9` of the holder the lock is free again (the OS releases it).
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use calibconv::experiment::layout::RunDir;
+
+/// How long the holder may take to start training and write its first checkpoint (a loaded
+/// 2-core machine builds the binary's libtorch state in a few seconds).
+const START_TIMEOUT: Duration = Duration::from_secs(120);
+/// "At once": a refused process exits well before it could have built a network.
+const REFUSAL_TIMEOUT: Duration = Duration::from_secs(20);
+
+fn experiment(dir: &Path) -> String {
+    format!(
+        r#"name = "locked"
+task = "depth"
+device = "cpu"
+output = "{out}"
+
+[model]
+preset = "tiny"
+kernel = "standard"
+
+[input]
+camera = "{root}/data/cameras/f195.toml"
+padding = [8, 0]
+size = [16, 16]
+
+[data]
+train = {{ toy = 8, split = "train" }}
+test = {{ toy = 4, split = "test" }}
+
+[train]
+steps = 100000000
+batch_size = 2
+checkpoint_every = 2
+
+[optimizer]
+lr = 1e-3
+"#,
+        out = dir.join("runs").display(),
+        root = env!("CARGO_MANIFEST_DIR"),
+    )
+}
+
+fn calibconv(args: &[&str]) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_calibconv"));
+    c.args(args).env("OMP_NUM_THREADS", "1");
+    c
+}
+
+#[test]
+fn a_second_process_is_refused_naming_the_holder_and_kill_9_leaves_no_stale_lock() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("locked.toml");
+    std::fs::write(&file, experiment(tmp.path())).unwrap();
+    let f = file.display().to_string();
+    let run = RunDir::new(tmp.path().join("runs/locked"));
+
+    let mut holder = calibconv(&["train", &f, "-q"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let pid = holder.id();
+    let start = Instant::now();
+    loop {
+        let locked_by_it =
+            std::fs::read_to_string(run.lock_file()).is_ok_and(|t| t.trim() == pid.to_string());
+        if locked_by_it && run.last_checkpoint().is_file() {
+            break;
+        }
+        assert!(
+            holder.try_wait().unwrap().is_none(),
+            "the training process ended early"
+        );
+        assert!(start.elapsed() < START_TIMEOUT, "no checkpoint yet");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+
+    for cmd in ["train", "eval"] {
+        let t = Instant::now();
+        let o = calibconv(&[cmd, &f, "-q"]).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{cmd}: {err}");
+        assert!(
+            err.contains(&format!("in use by process {pid}")),
+            "{cmd}: {err}"
+        );
+        assert!(
+            t.elapsed() < REFUSAL_TIMEOUT,
+            "{cmd} took {:?}",
+            t.elapsed()
+        );
+    }
+
+    holder.kill().unwrap(); // SIGKILL
+    holder.wait().unwrap();
+    // The lock file still names the dead process; the lock itself is gone.
+    assert_eq!(
+        std::fs::read_to_string(run.lock_file()).unwrap().trim(),
+        pid.to_string()
+    );
+    let o = calibconv(&["eval", &f, "-q"]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(run.metrics_json("test").is_file());
+}
