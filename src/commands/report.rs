@@ -8,6 +8,7 @@ use anyhow::{bail, Context, Result};
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
+use calibconv::experiment::layout::{Replicate, ResultsDir};
 use calibconv::experiment::{self, run, SourceRequest};
 use calibconv::report::pointcloud::{back_project, top_view, write_ply};
 use calibconv::report::results::{write_report_with, ReportOptions};
@@ -16,6 +17,7 @@ use crate::cli::ReportArgs;
 
 pub fn run(args: ReportArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.results.clone());
+    warn_unused_runs(&args.results)?;
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     match point_cloud(&args.results, &out) {
         Ok(Some(run)) => println!("point cloud of the first test image of {run}"),
@@ -37,6 +39,39 @@ pub fn run(args: ReportArgs) -> Result<()> {
         .with_context(|| format!("cannot read {}", verdict.display()))?;
     println!("\n{text}");
     println!("report: {}", out.join("REPORT.md").display());
+    Ok(())
+}
+
+/// With `seed-S/` replicates the report reads only them: say so when run directories sit at
+/// the top level too (an older single-seed sweep into the same folder), instead of ignoring
+/// them silently.
+fn warn_unused_runs(results: &Path) -> Result<()> {
+    let dir = ResultsDir::new(results);
+    let replicates = dir.replicates()?;
+    if replicates.iter().all(|r| r.seed.is_none()) {
+        return Ok(());
+    }
+    let top = Replicate {
+        seed: None,
+        dir: results.to_path_buf(),
+    };
+    let unused = ResultsDir::runs(&top)?;
+    if !unused.is_empty() {
+        let names: Vec<String> = unused
+            .iter()
+            .filter_map(|r| {
+                r.path()
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+            })
+            .collect();
+        eprintln!(
+            "warning: {} has seed-S/ replicates; the report ignores the {} run directories at its top level ({})",
+            results.display(),
+            names.len(),
+            names.join(", ")
+        );
+    }
     Ok(())
 }
 
