@@ -105,11 +105,20 @@ pub struct SweepArgs {
 
 #[derive(Debug, Args)]
 pub struct ReportArgs {
-    /// A sweep's output folder: one run directory per experiment (e.g. results/quick).
+    /// A sweep's output folder: one run directory per experiment (e.g. results/quick), or one
+    /// `seed-S/` folder of them per seed.
     pub results: PathBuf,
-    /// Write the report here (default: RESULTS).
+    /// Write the report (tables, differences, plots, verdict.json, verdict.md, REPORT.md)
+    /// here (default: RESULTS).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// How depth metrics are averaged over the test images: `per-image` (the authors'
+    /// convention: per image, then the mean over images) or `pooled` (all pixels of the set).
+    #[arg(long, default_value = "per-image")]
+    pub averaging: calibconv::eval::metrics::Averaging,
+    /// Seed of the paired bootstrap over test images.
+    #[arg(long, default_value_t = 0)]
+    pub bootstrap_seed: u64,
 }
 
 #[derive(Debug, Args)]

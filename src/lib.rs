@@ -24,8 +24,9 @@
 //!   Stanford 2D-3D-S loader, on-disk data sets and their prefetching loader; in-memory
 //!   sources ([`data::memory`]) and a toy task ([`data::toy`]) for tests and smoke runs.
 //! - [`eval`]: losses on valid pixels, the paper's metrics (depth MRE..delta3, segmentation
-//!   mIoU / mAcc from one confusion matrix over the set), radial bins around the principal
-//!   point, prediction pictures, and the evaluator that writes metrics JSON / CSV.
+//!   mIoU / mAcc from one confusion matrix over the set; depth per image, the authors'
+//!   convention, and pooled), radial bins around the principal point, prediction pictures, and
+//!   the evaluator that writes `metrics.json` / `per_image.json` (typed records) and CSV.
 //! - [`train`]: Adam with a savable state, learning-rate schedules, safetensors checkpoints
 //!   with metadata (atomic, mismatches listed by name), and the trainer: periodic validation,
 //!   best checkpoint, exact resume, stop on NaN / Inf. Output goes through the
@@ -37,7 +38,9 @@
 //!   (skip, resume, keep going past failures, SLURM scripts), as `calibconv sweep` runs them.
 //! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots, point
 //!   clouds), the training reporters (TensorBoard event files, CSV logs), and the report of a
-//!   sweep's results (the paper's tables, radial plots, qualitative grids, `REPORT.md`).
+//!   sweep's results over seed replicates (the paper's tables with Student-t intervals over
+//!   seeds, paired differences with a bootstrap over test images, radial plots, qualitative
+//!   grids, the computed verdict on the paper's claims, `REPORT.md`).
 //! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;

@@ -178,19 +178,14 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     assert!(files.iter().any(|f| f.ends_with("table_depth.md")));
     let table = std::fs::read_to_string(dir.join("report/table_depth.csv")).unwrap();
     assert!(
-        table.starts_with("block,run,evaluation,dataset,kernel,mre,mae,rmse"),
+        table.starts_with("block,dataset,kernel,n,mre,mre_ci95_half_width,mae,"),
         "{table}"
     );
-    assert!(
-        table.contains("BL,bl,f195-standard,F195,standard,"),
-        "{table}"
-    );
-    assert!(
-        table.contains("FT,ft,f195-standard,F195,standard,"),
-        "{table}"
-    );
+    assert!(table.contains("BL,F195,standard,1,"), "{table}");
+    assert!(table.contains("FT,F195,standard,1,"), "{table}");
     let report = std::fs::read_to_string(dir.join("report/REPORT.md")).unwrap();
-    assert!(report.contains("| FT | F195 | standard |") && report.contains("[ft](../runs/ft)"));
+    assert!(report.contains("| FT | F195 | standard | 1 |") && report.contains("[ft](../runs/ft)"));
+    assert!(dir.join("report/verdict.json").is_file());
 }
 
 fn calibconv(dir: &Path, args: &[&str]) -> Output {

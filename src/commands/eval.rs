@@ -33,7 +33,17 @@ pub fn run(args: EvalArgs) -> Result<()> {
             .iter()
             .map(|(m, v)| format!("{m} {v:.4}"))
             .collect();
-        println!("{}: {} -> {}", o.name, metrics.join(", "), o.dir.display());
+        // What these numbers are: metrics.json also holds depth's per-image convention.
+        let convention = match o.evaluation.head.task_name() {
+            "depth" => "pooled over the valid pixels of the set; per-image values in metrics.json",
+            _ => "one confusion matrix over the set",
+        };
+        println!(
+            "{}: {} ({convention}) -> {}",
+            o.name,
+            metrics.join(", "),
+            o.dir.display()
+        );
     }
     Ok(())
 }

@@ -8,31 +8,82 @@ use anyhow::{bail, Context, Result};
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
+use calibconv::experiment::layout::{Replicate, ResultsDir};
 use calibconv::experiment::{self, run, SourceRequest};
 use calibconv::report::pointcloud::{back_project, top_view, write_ply};
+use calibconv::report::results::{write_report_with, ReportOptions};
 
 use crate::cli::ReportArgs;
 
 pub fn run(args: ReportArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.results.clone());
+    warn_unused_runs(&args.results)?;
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     match point_cloud(&args.results, &out) {
         Ok(Some(run)) => println!("point cloud of the first test image of {run}"),
         Ok(None) => {}
         Err(e) => eprintln!("warning: no point cloud: {e:#}"),
     }
-    let written = calibconv::report::results::write_report(&args.results, &out)
+    let opts = ReportOptions {
+        averaging: args.averaging,
+        bootstrap_seed: args.bootstrap_seed,
+    };
+    let written = write_report_with(&args.results, &out, &opts)
         .with_context(|| format!("cannot report on {}", args.results.display()))?;
     for f in &written {
         println!("wrote {}", f.display());
     }
+    // The verdict table is what a reader came for: print it.
+    let verdict = out.join("verdict.md");
+    let text = std::fs::read_to_string(&verdict)
+        .with_context(|| format!("cannot read {}", verdict.display()))?;
+    println!("\n{text}");
     println!("report: {}", out.join("REPORT.md").display());
     Ok(())
 }
 
-/// The depth run to show: a fine-tuned calibrated one, the widest field of view first.
+/// With `seed-S/` replicates the report reads only them: say so when run directories sit at
+/// the top level too (an older single-seed sweep into the same folder), instead of ignoring
+/// them silently.
+fn warn_unused_runs(results: &Path) -> Result<()> {
+    let dir = ResultsDir::new(results);
+    let replicates = dir.replicates()?;
+    if replicates.iter().all(|r| r.seed.is_none()) {
+        return Ok(());
+    }
+    let top = Replicate {
+        seed: None,
+        dir: results.to_path_buf(),
+    };
+    let unused = ResultsDir::runs(&top)?;
+    if !unused.is_empty() {
+        let names: Vec<String> = unused
+            .iter()
+            .filter_map(|r| {
+                r.path()
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+            })
+            .collect();
+        eprintln!(
+            "warning: {} has seed-S/ replicates; the report ignores the {} run directories at its top level ({})",
+            results.display(),
+            names.len(),
+            names.join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// The depth run to show: a fine-tuned calibrated one, the widest field of view first (of the
+/// first seed replicate).
 fn pick_run(results: &Path) -> Option<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::fs::read_dir(results)
+    // With seed replicates, the first seed's.
+    let first = calibconv::report::collect::replicates(results)
+        .ok()?
+        .into_iter()
+        .next()?;
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(&first.dir)
         .ok()?
         .flatten()
         .map(|e| e.path())

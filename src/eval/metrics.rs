@@ -12,10 +12,19 @@
 //! delta_n  = fraction of pixels with max(d / g, g / d) < 1.25^n,  n = 1, 2, 3
 //! ```
 //!
-//! "mean" is over every valid pixel of the set (sums accumulated in float64, one division at
-//! the end), so large images weigh by their pixel count and RMSE is the root of the set's mean
-//! square, not a mean of per-image RMSEs. The per-image mean of each metric is reported as well.
-//! A non-finite prediction is not skipped: it makes the metrics non-finite, so it shows.
+//! Two conventions for "mean" ([`Averaging`]), both reported:
+//!
+//! - `per-image` (the authors' metrics code, github Sbrunoberenguel/DepthEstimationMetrics
+//!   `metrics.py`, and the default of the report's Table 1): each metric per image over the
+//!   image's valid pixels, then the mean over the images that have a valid pixel, so RMSE is
+//!   the mean of per-image RMSEs;
+//! - `pooled`: over every valid pixel of the set (sums accumulated in float64, one division at
+//!   the end), so large images weigh by their pixel count and RMSE is the root of the set's
+//!   mean square. Training validates with this one.
+//!
+//! Valid pixels are `mask && g > 0` (the authors: `g > 1e-7`; their RMSE_log also drops
+//! `d <= 1e-7`, here the network's depth is positive by construction). A non-finite prediction
+//! is not skipped: it makes the metrics non-finite, so it shows.
 //!
 //! # Segmentation (the paper's Table 2)
 //!
@@ -37,6 +46,7 @@
 use std::fmt;
 use std::str::FromStr;
 
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use tch::{Kind, Tensor};
 
 use crate::error::{Error, Result};
@@ -148,6 +158,70 @@ impl Metric {
     }
 }
 
+impl Serialize for Metric {
+    fn serialize<S: Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> Deserialize<'de> for Metric {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+/// How a depth metric is averaged over a set of images.
+///
+/// - `per-image` (the authors' convention, github Sbrunoberenguel/DepthEstimationMetrics
+///   `metrics.py`): every metric per image over its valid pixels, then the mean over the images
+///   (images without a valid pixel do not count). RMSE is the mean of per-image RMSEs.
+/// - `pooled`: every valid pixel of the set in one mean, so an image weighs by its valid pixels
+///   and RMSE is the root of the set's mean square.
+///
+/// Segmentation is neither: mIoU / mAcc come from one confusion matrix over the set whichever
+/// averaging a table asks for.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum Averaging {
+    /// Per image, then the mean over images (the default of Table 1).
+    #[default]
+    PerImage,
+    /// All valid pixels of the set pooled.
+    Pooled,
+}
+
+impl Averaging {
+    /// `per-image` or `pooled`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Averaging::PerImage => "per-image",
+            Averaging::Pooled => "pooled",
+        }
+    }
+}
+
+impl fmt::Display for Averaging {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Averaging {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "per-image" => Ok(Averaging::PerImage),
+            "pooled" => Ok(Averaging::Pooled),
+            _ => Err(format!(
+                "unknown averaging `{s}` (expected per-image or pooled)"
+            )),
+        }
+    }
+}
+
 impl fmt::Display for Metric {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -207,7 +281,7 @@ impl MeanStd {
 }
 
 /// Float64 sums of the depth errors over a set of valid pixels.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct DepthSums {
     /// Pixels.
     pub count: f64,
@@ -346,15 +420,75 @@ pub struct SegScores {
     pub pixel_acc: f64,
 }
 
+/// Per-class pixel counts of a confusion matrix: what mIoU, mAcc and pixel accuracy need, and
+/// what adds up over images (the set's counts are the sums of its images' counts).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClassCounts {
+    /// Per class: true positives (the diagonal), ground-truth pixels (row sums) and predicted
+    /// pixels (column sums).
+    pub tp: Vec<u64>,
+    pub gt: Vec<u64>,
+    pub pred: Vec<u64>,
+}
+
+impl ClassCounts {
+    /// Zero counts for `classes` classes.
+    pub fn new(classes: usize) -> Self {
+        ClassCounts {
+            tp: vec![0; classes],
+            gt: vec![0; classes],
+            pred: vec![0; classes],
+        }
+    }
+
+    /// The counts of a `classes x classes` confusion matrix (rows ground truth).
+    pub fn from_confusion(cm: &[u64], classes: usize) -> Self {
+        let mut c = ClassCounts::new(classes);
+        for r in 0..classes {
+            for k in 0..classes {
+                let v = cm[r * classes + k];
+                c.gt[r] += v;
+                c.pred[k] += v;
+                if r == k {
+                    c.tp[r] += v;
+                }
+            }
+        }
+        c
+    }
+
+    /// Adds `o` in (same number of classes).
+    pub fn add(&mut self, o: &ClassCounts) {
+        for (a, b) in [
+            (&mut self.tp, &o.tp),
+            (&mut self.gt, &o.gt),
+            (&mut self.pred, &o.pred),
+        ] {
+            for (x, y) in a.iter_mut().zip(b) {
+                *x += *y;
+            }
+        }
+    }
+
+    /// Labelled pixels.
+    pub fn pixels(&self) -> u64 {
+        self.gt.iter().sum()
+    }
+}
+
 impl SegScores {
     /// Scores of a `classes x classes` confusion matrix (rows ground truth).
     pub fn from_confusion(cm: &[u64], classes: usize) -> Self {
+        SegScores::from_counts(&ClassCounts::from_confusion(cm, classes))
+    }
+
+    /// Scores of per-class counts (see [`ClassCounts`]).
+    pub fn from_counts(counts: &ClassCounts) -> Self {
+        let classes = counts.tp.len();
         let (mut iou, mut acc, mut support) = (Vec::new(), Vec::new(), Vec::new());
         let (mut tp_all, mut gt_all) = (0u64, 0u64);
         for c in 0..classes {
-            let tp = cm[c * classes + c];
-            let gt: u64 = cm[c * classes..(c + 1) * classes].iter().sum();
-            let pr: u64 = (0..classes).map(|r| cm[r * classes + c]).sum();
+            let (tp, gt, pr) = (counts.tp[c], counts.gt[c], counts.pred[c]);
             let union = gt + pr - tp;
             iou.push((union > 0).then(|| tp as f64 / union as f64));
             acc.push((gt > 0).then(|| tp as f64 / gt as f64));

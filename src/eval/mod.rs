@@ -1,7 +1,8 @@
 //! Evaluation: run a network over a [`BatchSource`] and accumulate the paper's metrics over the
-//! whole set, overall and per radial bin (see [`metrics`] for the definitions), plus a few
-//! prediction pictures. [`Evaluation::write`] writes `metrics.json`, `metrics.csv`,
-//! `radial.csv` and `predictions/*.png`.
+//! whole set, overall and per radial bin (see [`metrics`] for the definitions), per test image,
+//! plus a few prediction pictures. [`Evaluation::write`] writes `metrics.json` and
+//! `per_image.json` (the typed records of [`record`]), `metrics.csv`, `radial.csv` and
+//! `predictions/*.png`.
 //!
 //! The network runs in eval mode (BatchNorm running statistics) without gradients; batches are
 //! moved to the requested device. Radial distances are measured in network-input pixels from
@@ -9,6 +10,7 @@
 
 pub mod loss;
 pub mod metrics;
+pub mod record;
 pub mod visual;
 
 use std::collections::BTreeMap;
@@ -16,7 +18,6 @@ use std::path::Path;
 use std::time::Instant;
 
 use image::RgbImage;
-use serde_json::json;
 use tch::{Device, Kind, Tensor};
 
 use crate::camera::{Camera, CameraModel};
@@ -27,9 +28,10 @@ use crate::kernel::InputFrame;
 use crate::nn::{Head, UNet};
 use loss::{depth_loss, segmentation_loss, DepthLoss};
 use metrics::{
-    confusions, depth_sums, DepthSums, MeanStd, Metric, RadialBins, SegScores, DEPTH_METRICS,
-    SEGMENTATION_METRICS,
+    confusions, depth_sums, ClassCounts, DepthSums, MeanStd, Metric, RadialBins, SegScores,
+    DEPTH_METRICS, SEGMENTATION_METRICS,
 };
+use record::{metric_map as record_map, SampleRecord, METRICS_FILE, PER_IMAGE_FILE};
 
 /// How to evaluate.
 #[derive(Clone, Debug)]
@@ -70,8 +72,11 @@ pub struct Evaluation {
     pub pixels: u64,
     /// [`Metric::Loss`] then the task's metrics, pooled over the set.
     pub metrics: Vec<(Metric, f64)>,
-    /// The task's metrics averaged over images (each image's own metric).
+    /// The task's metrics averaged over images (each image's own metric): depth's `per-image`
+    /// convention ([`metrics::Averaging`]).
     pub per_image_mean: Vec<(Metric, f64)>,
+    /// Every evaluated image, in the source's order.
+    pub samples: Vec<SampleRecord>,
     /// Segmentation: per-class scores of the whole-set confusion matrix.
     pub classes: Option<SegScores>,
     pub radial: Vec<RadialRow>,
@@ -87,40 +92,32 @@ impl Evaluation {
         self.metrics.iter().find(|(k, _)| *k == m).map(|(_, v)| *v)
     }
 
-    /// `metrics.json` (with `about` merged in at the top level), `metrics.csv` (a header of
-    /// metric names and one row), `radial.csv`, and `predictions/<id>.png`, all written
+    /// `metrics.json` ([`Evaluation::record`]), `per_image.json`
+    /// ([`Evaluation::per_image_record`]), `metrics.csv` (a header of metric names and one
+    /// row: the `metrics` of the record), `radial.csv`, and `predictions/<id>.png`, all written
     /// atomically into `dir`.
     pub fn write(&self, dir: &Path, about: &serde_json::Value) -> Result<()> {
-        let mut doc = json!({
-            "task": self.head.task_name(),
-            "images": self.images,
-            "pixels": self.pixels,
-            "seconds": self.seconds,
-            "metrics": pairs_to_json(&self.metrics),
-            "per_image_mean": pairs_to_json(&self.per_image_mean),
-            "radial_bins": self.radial.len(),
-        });
-        if let Some(c) = &self.classes {
-            let names = class_names(c.iou.len());
-            let per_class: serde_json::Map<String, serde_json::Value> = names
-                .iter()
-                .enumerate()
-                .map(|(i, n)| {
-                    (
-                        n.clone(),
-                        json!({"iou": c.iou[i], "acc": c.acc[i], "pixels": c.support[i]}),
-                    )
-                })
-                .collect();
-            doc["classes"] = serde_json::Value::Object(per_class);
+        let record = serde_json::to_string_pretty(&self.record(about)?).expect("json");
+        write_bytes_atomic(&dir.join(METRICS_FILE), record.as_bytes())?;
+        // One line per sample: readable, and a tenth of the pretty size.
+        let per_image = self.per_image_record();
+        let mut text = format!(
+            "{{\"format\": \"{}\", \"version\": {}, \"task\": \"{}\", \"classes\": {},\n\"samples\": [\n",
+            per_image.format,
+            per_image.version,
+            per_image.task,
+            serde_json::to_string(&per_image.classes).expect("json")
+        );
+        for (i, s) in per_image.samples.iter().enumerate() {
+            text += &serde_json::to_string(s).expect("json");
+            text += if i + 1 < per_image.samples.len() {
+                ",\n"
+            } else {
+                "\n"
+            };
         }
-        if let (Some(obj), Some(about)) = (doc.as_object_mut(), about.as_object()) {
-            for (k, v) in about {
-                obj.insert(k.clone(), v.clone());
-            }
-        }
-        let text = serde_json::to_string_pretty(&doc).expect("json");
-        write_bytes_atomic(&dir.join("metrics.json"), text.as_bytes())?;
+        text += "]}\n";
+        write_bytes_atomic(&dir.join(PER_IMAGE_FILE), text.as_bytes())?;
 
         let header: Vec<&str> = self.metrics.iter().map(|(m, _)| m.name()).collect();
         let row: Vec<String> = self.metrics.iter().map(|(_, v)| fmt_f64(*v)).collect();
@@ -182,14 +179,6 @@ pub fn fmt_f64(v: f64) -> String {
     } else {
         format!("{v}")
     }
-}
-
-fn pairs_to_json(pairs: &[(Metric, f64)]) -> serde_json::Value {
-    let map: serde_json::Map<String, serde_json::Value> = pairs
-        .iter()
-        .map(|(m, v)| (m.name().to_string(), json!(v.is_finite().then_some(*v))))
-        .collect();
-    serde_json::Value::Object(map)
 }
 
 fn sanitize(id: &str) -> String {
@@ -312,6 +301,7 @@ pub fn evaluate_with(
     let mut bin_pixels = vec![0u64; n_bins];
     let mut bin_images = vec![0u64; n_bins];
     let mut panels = Vec::new();
+    let mut samples = Vec::new();
     let bar = progress_bar(source.len() as u64, "eval", opts.progress);
     let _guard = tch::no_grad_guard();
     for batch in source.batches(0, 0) {
@@ -339,11 +329,18 @@ pub fn evaluate_with(
                     loss_weight += n_valid;
                 }
                 let sums = depth_sums(&out, &gt, &valid, &group.unsqueeze(1), b as usize * groups)?;
-                for img in sums.chunks(groups) {
+                for (i, img) in sums.chunks(groups).enumerate() {
                     let mut whole = DepthSums::default();
                     img.iter().for_each(|s| whole.add(s));
                     total.add(&whole);
                     pixels += whole.count as u64;
+                    samples.push(SampleRecord {
+                        id: batch.ids[i].clone(),
+                        pixels: whole.count as u64,
+                        metrics: record_map(DEPTH_METRICS.iter().copied().zip(whole.metrics())),
+                        depth_sums: Some(whole),
+                        class_counts: None,
+                    });
                     if whole.count > 0.0 {
                         for (st, v) in image_stats.iter_mut().zip(whole.metrics()) {
                             st.push(v);
@@ -392,18 +389,26 @@ pub fn evaluate_with(
                 }
                 let pred = out.argmax(1, false);
                 let cms = confusions(&pred, &labels, &group, c, b as usize * groups)?;
-                for img in cms.chunks(groups) {
+                for (i, img) in cms.chunks(groups).enumerate() {
                     let mut whole = vec![0u64; c * c];
                     img.iter().for_each(|cm| add_vec(&mut whole, cm));
                     add_vec(total, &whole);
                     let n: u64 = whole.iter().sum();
                     pixels += n;
+                    let counts = ClassCounts::from_confusion(&whole, c);
+                    let own = SegScores::from_counts(&counts).metrics();
                     if n > 0 {
-                        let s = SegScores::from_confusion(&whole, c).metrics();
-                        for (st, v) in image_stats.iter_mut().zip(s) {
+                        for (st, v) in image_stats.iter_mut().zip(own) {
                             st.push(v);
                         }
                     }
+                    samples.push(SampleRecord {
+                        id: batch.ids[i].clone(),
+                        pixels: n,
+                        metrics: record_map(SEGMENTATION_METRICS.iter().copied().zip(own)),
+                        depth_sums: None,
+                        class_counts: Some(counts),
+                    });
                     for k in 0..n_bins {
                         let n: u64 = img[k].iter().sum();
                         if n > 0 {
@@ -532,6 +537,7 @@ pub fn evaluate_with(
         per_image_mean,
         classes,
         radial,
+        samples,
         panels,
         seconds: start.elapsed().as_secs_f64(),
     })
@@ -547,8 +553,12 @@ pub fn metric_map(e: &Evaluation) -> BTreeMap<String, f64> {
 
 #[cfg(test)]
 mod tests {
+    use serde_json::json;
+
     use super::*;
     use crate::data::memory::MemorySource;
+    use metrics::Averaging;
+    use record::{MetricsRecord, PerImageRecord};
 
     /// float64 sums of a few values: rounding only.
     const TOL: f64 = 1e-12;
@@ -615,12 +625,69 @@ mod tests {
             "{radial}"
         );
         assert_eq!(radial.lines().count(), 3);
-        let doc: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(dir.path().join("metrics.json")).unwrap(),
-        )
-        .unwrap();
-        assert_eq!(doc["evaluation"], "unit");
+        let rec = MetricsRecord::read(&dir.path().join("metrics.json")).unwrap();
+        assert_eq!(rec.about.evaluation.as_deref(), Some("unit"));
         assert!(dir.path().join("predictions/a.png").exists());
+
+        // Both depth conventions, by hand. Image 0: errors [0, 1, 0, 0]; image 1 (3 valid):
+        // [0, 0, 2]. Per image RMSE sqrt(1/4) = 1/2 and sqrt(4/3); delta1 (ratios 1, 2, 1, 1
+        // and 1, 1, 3) 3/4 and 2/3. Per-image: the means of those; pooled: over the 7 pixels.
+        let per_image_rmse = (0.5 + (4.0f64 / 3.0).sqrt()) / 2.0;
+        let cases = [
+            (Metric::Rmse, Averaging::PerImage, per_image_rmse),
+            (Metric::Rmse, Averaging::Pooled, (5.0f64 / 7.0).sqrt()),
+            (
+                Metric::Delta1,
+                Averaging::PerImage,
+                (0.75 + 2.0 / 3.0) / 2.0,
+            ),
+            (Metric::Delta1, Averaging::Pooled, 5.0 / 7.0),
+            (Metric::Mae, Averaging::PerImage, (0.25 + 2.0 / 3.0) / 2.0),
+            (Metric::Mae, Averaging::Pooled, 3.0 / 7.0),
+        ];
+        for (m, a, want) in cases {
+            let got = rec.value(m, a).unwrap();
+            assert!((got - want).abs() < TOL, "{m} {a}: {got} vs {want}");
+        }
+        // `metrics` keeps what training validates with: pooled.
+        assert_eq!(
+            rec.metrics[&Metric::Rmse],
+            rec.depth.as_ref().unwrap().pooled[&Metric::Rmse]
+        );
+        assert_eq!(rec.radial.len(), 2);
+        assert_eq!(rec.radial[1].per_image_mean[&Metric::Mae], Some(0.5));
+
+        // per_image.json: both images by id; re-aggregating all of them gives the set's
+        // values, and a resample with image 0 twice gives image 0's own.
+        let per = PerImageRecord::read(&dir.path().join("per_image.json")).unwrap();
+        let ids: Vec<&str> = per.samples.iter().map(|s| s.id.as_str()).collect();
+        assert_eq!(ids, ["a", "b/c"]);
+        assert_eq!(per.samples[1].pixels, 3);
+        let rmse1 = per.samples[1].metrics[&Metric::Rmse].unwrap();
+        assert!((rmse1 - (4.0f64 / 3.0).sqrt()).abs() < TOL);
+        for a in [Averaging::PerImage, Averaging::Pooled] {
+            for (m, v) in per.aggregate(&[0, 1], a) {
+                let want = rec.value(m, a).unwrap();
+                assert!((v - want).abs() < TOL, "{m} {a}: {v} vs {want}");
+            }
+            let rmse = per.aggregate(&[0, 0], a)[2];
+            assert_eq!(rmse.0, Metric::Rmse);
+            assert!((rmse.1 - 0.5).abs() < TOL);
+        }
+    }
+
+    #[test]
+    fn old_metrics_json_is_refused_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.json");
+        std::fs::write(&path, r#"{"task": "depth", "metrics": {"rmse": 1.0}}"#).unwrap();
+        let e = MetricsRecord::read(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("metrics.json") && e.contains("run the evaluation again"),
+            "{e}"
+        );
+        let e = MetricsRecord::read(&dir.path().join("none.json")).unwrap_err();
+        assert!(e.to_string().contains("none.json"), "{e}");
     }
 
     #[test]
@@ -658,6 +725,24 @@ mod tests {
         // mAcc: class 0 1/1, class 1 2/3.
         assert!((e.metric(Metric::MAcc).unwrap() - (1.0 + 2.0 / 3.0) / 2.0).abs() < TOL);
         assert!((e.metric(Metric::PixelAcc).unwrap() - 0.75).abs() < TOL);
-        assert_eq!(e.classes.unwrap().support, [1, 3]);
+        assert_eq!(e.classes.as_ref().unwrap().support, [1, 3]);
+        // Per image: the class counts; summed over both images they give the set's scores.
+        let per = e.per_image_record();
+        let c0 = per.samples[0].class_counts.as_ref().unwrap();
+        assert_eq!(
+            (&c0.tp, &c0.gt, &c0.pred),
+            (&vec![1, 0], &vec![1, 1], &vec![2, 0])
+        );
+        let all = per.aggregate(&[0, 1], Averaging::PerImage);
+        assert!((all[0].1 - (0.5 + 2.0 / 3.0) / 2.0).abs() < TOL);
+        // Image 1 twice: gt [1, 1] pred [1, 1] twice -> class 1 only, IoU 1.
+        assert_eq!(per.aggregate(&[1, 1], Averaging::Pooled)[0].1, 1.0);
+        let rec = e.record(&json!({})).unwrap();
+        assert_eq!(
+            rec.segmentation_averaging.as_deref(),
+            Some("one confusion matrix over the set")
+        );
+        assert!(rec.depth.is_none());
+        assert_eq!(rec.classes.unwrap()["class1"].pixels, 3);
     }
 }

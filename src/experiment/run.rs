@@ -12,8 +12,8 @@ use serde_json::json;
 use tch::nn::VarStore;
 
 use super::layout::{
-    self, write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord,
-    Summary, Timing,
+    write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord, Summary,
+    Timing,
 };
 
 use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
@@ -21,6 +21,7 @@ use crate::data::loader::Augment;
 use crate::data::BatchSource;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Metric, RadialBins, ALL_METRICS};
+use crate::eval::record::MetricsRecord;
 use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
 use crate::io::write_bytes_atomic;
 use crate::nn::UNet;
@@ -628,44 +629,42 @@ fn write_radial_plots(dir: &Path, e: &Evaluation, spec: &EvalSpec) -> Result<()>
 /// then every metric any of them has.
 pub fn write_evaluations_csv(run_dir: &Path) -> Result<()> {
     let rd = RunDir::new(run_dir);
-    let mut docs = Vec::new();
+    let mut records = Vec::new();
     for name in rd.evaluation_names()? {
-        // metrics.json is crate::eval's record; only the columns of this table are read here.
-        let doc: serde_json::Value = layout::read_record(&rd.metrics_json(&name))?;
-        docs.push(doc);
+        records.push(MetricsRecord::read(&rd.metrics_json(&name))?);
     }
-    docs.sort_by(|a, b| a["evaluation"].as_str().cmp(&b["evaluation"].as_str()));
-    let present: BTreeSet<&str> = docs
+    records.sort_by(|a, b| a.about.evaluation.cmp(&b.about.evaluation));
+    let present: BTreeSet<Metric> = records
         .iter()
-        .filter_map(|d| d["metrics"].as_object())
-        .flat_map(|m| m.keys().map(|k| k.as_str()))
+        .flat_map(|r| r.metrics.keys().copied())
         .collect();
-    let metrics: Vec<&str> = ALL_METRICS
+    let metrics: Vec<Metric> = ALL_METRICS
         .iter()
-        .map(|m| m.name())
+        .copied()
         .filter(|m| present.contains(m))
         .collect();
+    let names: Vec<&str> = metrics.iter().map(|m| m.name()).collect();
     let mut csv = format!(
         "evaluation,data,kernel,checkpoint_step,images,{}\n",
-        metrics.join(",")
+        names.join(",")
     );
-    for d in &docs {
-        let s = |k: &str| match &d[k] {
-            serde_json::Value::String(s) => s.replace(',', ";"),
-            serde_json::Value::Null => String::new(),
-            v => v.to_string(),
+    let text = |s: &Option<String>| s.as_deref().unwrap_or("").replace(',', ";");
+    for r in &records {
+        let step = match r.about.other.get("checkpoint_step") {
+            Some(serde_json::Value::Number(n)) => n.to_string(),
+            _ => String::new(),
         };
         let values: Vec<String> = metrics
             .iter()
-            .map(|m| fmt_f64(d["metrics"][*m].as_f64().unwrap_or(f64::NAN)))
+            .map(|m| fmt_f64(r.metrics.get(m).copied().flatten().unwrap_or(f64::NAN)))
             .collect();
         csv += &format!(
             "{},{},{},{},{},{}\n",
-            s("evaluation"),
-            s("data"),
-            s("kernel"),
-            s("checkpoint_step"),
-            s("images"),
+            text(&r.about.evaluation),
+            text(&r.about.data),
+            text(&r.about.kernel),
+            step,
+            r.images,
             values.join(",")
         );
     }

@@ -1,0 +1,302 @@
+//! Reading a sweep's results folder for the report.
+//!
+//! ```text
+//! RESULTS/seed-S/NAME/...   one replicate of the whole sweep per seed S (`--seeds 0,1,2`)
+//! RESULTS/NAME/...          no `seed-*` folder: the folder is one replicate (its runs' seed)
+//! ```
+//!
+//! A run directory is a folder with `experiment.toml` (see [`crate::experiment::run`]); its
+//! evaluations are `eval/EVAL/metrics.json` ([`MetricsRecord`]) with `per_image.json`
+//! ([`PerImageRecord`]) beside it. An evaluation named `SET-KERNEL` (`f195-calibrated`,
+//! `f165-rectified`) is the row *data set* `SET`, *kernel* `KERNEL`; other names are rows of
+//! their own (data set = the name, kernel = the evaluation's kernel). Runs without
+//! `model.init` are the **BL** block, runs with one **FT**.
+//!
+//! Every file the report reads must parse: an unreadable `experiment.toml`, `metrics.json`,
+//! `summary.json` or `sweep.json` is an error naming it (an absent `summary.json` or
+//! `sweep.json` is a run trained outside a sweep: its times are blank).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use super::study::{Block, Cell, Observations, Task, KERNELS};
+use super::tables::{paired_bootstrap, BootstrapIntervals};
+use crate::error::{Error, Result};
+use crate::eval::metrics::{Averaging, Metric, ALL_METRICS};
+use crate::eval::record::{MetricsRecord, PerImageRecord};
+use crate::experiment;
+use crate::experiment::layout::{ResultsDir, RunDir, StudyRecord};
+
+pub use crate::experiment::layout::Replicate;
+
+/// The replicates of `results`: its `seed-S` folders by seed, else `results` itself
+/// ([`ResultsDir::replicates`]).
+pub fn replicates(results: &Path) -> Result<Vec<Replicate>> {
+    ResultsDir::new(results).replicates()
+}
+
+/// One run directory.
+#[derive(Clone, Debug)]
+pub struct RunInfo {
+    /// The replicate's seed (the run's own `seed` without seed folders).
+    pub seed: u64,
+    pub name: String,
+    pub dir: PathBuf,
+    pub task: Task,
+    pub block: Block,
+    /// The experiment text it ran with (`experiment.toml`).
+    pub text: String,
+    /// Training wall time and steps (`summary.json`), sweep wall time (`sweep.json`).
+    pub train_seconds: Option<f64>,
+    pub steps: Option<u64>,
+    pub sweep_seconds: Option<f64>,
+    pub git: Option<String>,
+    pub overrides: Vec<String>,
+    pub profile: Option<String>,
+}
+
+/// One evaluation of one run.
+#[derive(Clone, Debug)]
+pub struct Row {
+    pub seed: u64,
+    pub run: String,
+    pub cell: Cell,
+    pub evaluation: String,
+    pub record: MetricsRecord,
+    /// `RUN/eval/NAME`.
+    pub dir: PathBuf,
+}
+
+/// Everything read from a results folder.
+#[derive(Clone, Debug)]
+pub struct Study {
+    /// `RESULTS/study.json`, if a sweep wrote one (profile, seeds, shared baseline).
+    pub study: Option<StudyRecord>,
+    pub replicates: Vec<Replicate>,
+    pub runs: Vec<RunInfo>,
+    /// In table order, then by seed.
+    pub rows: Vec<Row>,
+}
+
+/// The data set and kernel labels of an evaluation.
+fn labels(name: &str, kernel: &str) -> (String, String) {
+    match name.rsplit_once('-') {
+        Some((set, k)) if KERNELS.contains(&k) => (set.to_uppercase(), k.to_string()),
+        _ => (name.to_string(), kernel.to_string()),
+    }
+}
+
+fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
+    let file = run.experiment_toml();
+    let text = std::fs::read_to_string(&file).map_err(|e| Error::io(&file, e))?;
+    let raw = experiment::parse(&text, &file)?;
+    let task = Task::from(raw.task);
+    let block = if raw.model.init.is_some() {
+        Block::Ft
+    } else {
+        Block::Bl
+    };
+    let seed = seed.unwrap_or(raw.seed.unwrap_or(0));
+    let summary = run.summary_if_any()?;
+    let sweep = run.sweep_if_any()?;
+    let record = run.run_if_any()?;
+    let dir = run.path();
+    let info = RunInfo {
+        seed,
+        name: raw.name.clone(),
+        dir: dir.to_path_buf(),
+        task,
+        block,
+        text: text.clone(),
+        train_seconds: summary.as_ref().map(|s| s.seconds),
+        steps: summary.as_ref().map(|s| s.steps),
+        sweep_seconds: sweep.as_ref().and_then(|s| s.seconds),
+        git: record.as_ref().and_then(|r| r.last_git().map(String::from)),
+        overrides: sweep
+            .as_ref()
+            .map(|s| s.overrides.clone())
+            .unwrap_or_default(),
+        profile: sweep.map(|s| s.profile).filter(|p| !p.is_empty()),
+    };
+    let mut rows = Vec::new();
+    for name in run.evaluation_names()? {
+        let e = run.eval_dir(&name);
+        let record = MetricsRecord::read(&run.metrics_json(&name))?;
+        let evaluation = record.about.evaluation.clone().unwrap_or(name);
+        let (dataset, kernel) = labels(&evaluation, record.about.kernel.as_deref().unwrap_or(""));
+        rows.push(Row {
+            seed,
+            run: raw.name.clone(),
+            cell: Cell::new(task, block, &dataset, &kernel),
+            evaluation,
+            record,
+            dir: e,
+        });
+    }
+    Ok((info, rows))
+}
+
+/// Reads every run directory of every replicate of `results`.
+pub fn collect(results: &Path) -> Result<Study> {
+    let replicates = replicates(results)?;
+    let (mut runs, mut rows) = (Vec::new(), Vec::new());
+    for rep in &replicates {
+        for run in ResultsDir::runs(rep)? {
+            let (info, r) = read_run(&run, rep.seed)?;
+            runs.push(info);
+            rows.extend(r);
+        }
+    }
+    rows.sort_by(|a, b| (a.cell.order(), a.seed, &a.run).cmp(&(b.cell.order(), b.seed, &b.run)));
+    Ok(Study {
+        study: ResultsDir::new(results).study_if_any()?,
+        replicates,
+        runs,
+        rows,
+    })
+}
+
+impl Study {
+    /// The per-seed values of every metric of every row under `averaging`, and the radial
+    /// curves of every metric. Two evaluations of one cell in one seed are an error (the
+    /// table could not say which it shows).
+    pub fn observations(&self, averaging: Averaging) -> Result<Observations> {
+        let mut obs = Observations::default();
+        let mut seen: BTreeMap<(Cell, u64), &Path> = BTreeMap::new();
+        for r in &self.rows {
+            if let Some(other) = seen.insert((r.cell.clone(), r.seed), &r.dir) {
+                return Err(Error::InvalidArgument(format!(
+                    "two evaluations are the row `{}` of seed {}: {} and {}",
+                    r.cell,
+                    r.seed,
+                    other.display(),
+                    r.dir.display()
+                )));
+            }
+            let depth = r.record.is_depth();
+            for m in ALL_METRICS {
+                if let Some(v) = r.record.value(m, averaging) {
+                    obs.insert(&r.cell, m, r.seed, v);
+                }
+                if m == Metric::Loss || r.record.radial.iter().all(|b| !b.pooled.contains_key(&m)) {
+                    continue;
+                }
+                let curve: Vec<f64> = r
+                    .record
+                    .radial
+                    .iter()
+                    .map(|b| b.value(m, averaging, depth).unwrap_or(f64::NAN))
+                    .collect();
+                obs.radial
+                    .entry((r.cell.clone(), m))
+                    .or_default()
+                    .insert(r.seed, curve);
+            }
+        }
+        Ok(obs)
+    }
+
+    /// The row of `cell` in `seed`, if any.
+    pub fn row(&self, cell: &Cell, seed: u64) -> Option<&Row> {
+        self.rows.iter().find(|r| r.cell == *cell && r.seed == seed)
+    }
+
+    /// Per seed, the paired bootstrap intervals of every comparison in `pairs` (resampling
+    /// seeded with `seed + replicate seed`), from each row's `per_image.json` (an error naming
+    /// the file if it cannot be read).
+    pub fn bootstrap(
+        &self,
+        pairs: &[(Cell, Cell)],
+        averaging: Averaging,
+        seed: u64,
+    ) -> Result<BootstrapIntervals> {
+        let mut out = BootstrapIntervals::new();
+        let mut cache: BTreeMap<PathBuf, PerImageRecord> = BTreeMap::new();
+        let mut load = |row: &Row| -> Result<PerImageRecord> {
+            let path = row.dir.join(&row.record.per_image_file);
+            if let Some(r) = cache.get(&path) {
+                return Ok(r.clone());
+            }
+            let r = PerImageRecord::read(&path)?;
+            cache.insert(path, r.clone());
+            Ok(r)
+        };
+        let seeds: Vec<u64> = {
+            let mut s: Vec<u64> = self.rows.iter().map(|r| r.seed).collect();
+            s.sort();
+            s.dedup();
+            s
+        };
+        for (a, b) in pairs {
+            for &s in &seeds {
+                let (Some(ra), Some(rb)) = (self.row(a, s), self.row(b, s)) else {
+                    continue;
+                };
+                let (pa, pb) = (load(ra)?, load(rb)?);
+                let iv = paired_bootstrap(&pa, &pb, averaging, seed.wrapping_add(s));
+                for (m, i) in iv.unwrap_or_default() {
+                    out.entry((a.clone(), b.clone(), m))
+                        .or_default()
+                        .insert(s, i);
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Test images of the evaluations (the FT rows' count when they agree; otherwise the
+    /// smallest count of any row).
+    pub fn test_images(&self) -> u64 {
+        let ft: Vec<u64> = self
+            .rows
+            .iter()
+            .filter(|r| r.cell.block == Block::Ft)
+            .map(|r| r.record.images)
+            .collect();
+        let all: Vec<u64> = self.rows.iter().map(|r| r.record.images).collect();
+        match ft.first() {
+            Some(&n) if ft.iter().all(|&x| x == n) => n,
+            _ => all.into_iter().min().unwrap_or(0),
+        }
+    }
+
+    /// The profile of the study (`study.json`), else those the runs were swept with (`none`
+    /// if none; comma-separated if several).
+    pub fn profile(&self) -> String {
+        if let Some(s) = &self.study {
+            return if s.profile.is_empty() {
+                "none".into()
+            } else {
+                s.profile.clone()
+            };
+        }
+        let mut p: Vec<&str> = self
+            .runs
+            .iter()
+            .map(|r| r.profile.as_deref().unwrap_or("none"))
+            .collect();
+        p.sort();
+        p.dedup();
+        if p.is_empty() {
+            "none".into()
+        } else {
+            p.join(",")
+        }
+    }
+
+    /// Whether one baseline served the fine-tunings of every seed (`study.json`).
+    pub fn shared_baseline(&self) -> bool {
+        self.study.as_ref().is_some_and(|s| s.share_baseline)
+    }
+
+    /// Total sweep wall seconds of the runs (every seed), and the runs without a time.
+    pub fn wall_seconds(&self) -> (f64, usize) {
+        let total = self.runs.iter().filter_map(|r| r.sweep_seconds).sum();
+        let missing = self
+            .runs
+            .iter()
+            .filter(|r| r.sweep_seconds.is_none())
+            .count();
+        (total, missing)
+    }
+}
