@@ -73,7 +73,7 @@ fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
         .iter()
         .map(|p| p.file_stem().unwrap().to_string_lossy().into_owned())
         .collect();
-    assert_eq!(names, ["paper", "quick"]);
+    assert_eq!(names, ["paper", "quick", "study"]);
     for name in &names {
         let profile = sweep::find_profile(dir, name).unwrap();
         let plan = sweep::plan(dir, &profile, &[], &[]).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -126,8 +126,8 @@ fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
             assert_eq!(bl.input.size, [64, 64]);
             assert_eq!(bl.model.base, 8);
         }
-        // Both profiles replicate over three seeds, each fine-tuning from its own seed's
-        // baseline; SLURM resources: no GPU for quick, one for paper.
+        // Every profile replicates over three seeds, each fine-tuning from its own seed's
+        // baseline; SLURM resources: one GPU for paper, none for quick and study.
         assert_eq!(profile.seeds.as_deref(), Some(&[0, 1, 2][..]), "{name}");
         let seeds = sweep::Seeds::from_profile(&profile, None).unwrap();
         let replicated = sweep::plan_seeds(dir, &profile, &[], &[], &seeds).unwrap();
@@ -141,10 +141,19 @@ fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
             }
         }
         let spec = calibconv::experiment::slurm::SlurmSpec::resolve(&profile, &[]).unwrap();
-        if name == "quick" {
-            assert_eq!((spec.gres.as_deref(), spec.cpus_per_task), (None, Some(1)));
-        } else {
+        if name == "paper" {
             assert_eq!(spec.gres.as_deref(), Some("gpu:1"));
+        } else {
+            // quick and study run on CPUs.
+            assert_eq!((spec.gres.as_deref(), spec.cpus_per_task), (None, Some(1)));
+        }
+        if name == "study" {
+            // 128 px wide, the small U-Net at depth 3 (see the profile's header).
+            let bl = &plan[0].exp;
+            assert_eq!(
+                (bl.input.size, bl.model.base, bl.model.depth),
+                ([128, 128], 16, 3)
+            );
         }
     }
 }
@@ -197,4 +206,33 @@ fn quick_data_sets_test_on_160_images_of_panoramas_not_used_in_training() {
     assert!(panoramas(&train).is_disjoint(&test_p));
     assert!(panoramas(&val).is_disjoint(&test_p));
     assert!(panoramas(&train).is_disjoint(&panoramas(&val)));
+}
+
+/// The field-of-view series plans with the study profile: standard and calibrated per lens of
+/// data/cameras/kb*.toml, each starting from the study's Pers depth baseline.
+#[test]
+fn the_fov_series_pairs_every_lens_with_both_kernels() {
+    use calibconv::experiment::sweep;
+    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
+    let profile = sweep::find_profile(
+        Path::new("experiments/fov"),
+        "experiments/paper/profiles/study.toml",
+    )
+    .unwrap();
+    let plan = sweep::plan(Path::new("experiments/fov"), &profile, &[], &[]).unwrap();
+    for fov in [120, 150, 180, 210, 240] {
+        for kernel in ["standard", "calibrated"] {
+            let name = format!("fov-depth-ft-kb{fov}-{kernel}");
+            let p = plan
+                .iter()
+                .find(|p| p.exp.name == name)
+                .unwrap_or_else(|| panic!("no {name}"));
+            assert!(
+                matches!(&p.exp.init, Some(InitSpec::Experiment { name, .. }) if name == "paper-depth-bl-pers"),
+                "{name}: not from the study's depth baseline"
+            );
+            assert!(Path::new(&format!("data/cameras/kb{fov}.toml")).is_file());
+        }
+    }
+    assert_eq!(plan.len(), 10);
 }
