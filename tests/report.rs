@@ -50,9 +50,16 @@ fn write_eval(run: &Path, name: &str, kernel: &str, err: impl Fn(usize, usize) -
     let e = evaluate_with(Head::Depth, &source, &opts, |x| Ok(x.narrow(1, 0, 1))).unwrap();
     e.write(
         &run.join("eval").join(name),
-        &json!({"experiment": "x", "evaluation": name, "kernel": kernel}),
+        &json!({"experiment": "x", "evaluation": name, "kernel": kernel,
+                "camera_file": camera_file(name)}),
     )
     .unwrap();
+}
+
+/// The camera file an evaluation `SET-KERNEL` names, as the experiment layer writes it.
+fn camera_file(name: &str) -> String {
+    let set = name.split('-').next().unwrap();
+    format!("{}/data/cameras/{set}.toml", env!("CARGO_MANIFEST_DIR"))
 }
 
 /// One seed's BL and two FT runs on F195: BL calibrated worse than standard, FT calibrated
@@ -259,4 +266,59 @@ fn a_shared_baseline_leaves_c5_without_an_interval() {
         table.contains("| BL (Pers) | F195 | standard | 1 | "),
         "{table}"
     );
+}
+
+#[test]
+fn the_gain_against_the_field_of_view_has_one_point_per_lens() {
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("results");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for (seed, gain) in [(0u64, 0.10), (1, 0.12), (2, 0.08)] {
+        let dir = results.join(format!("seed-{seed}"));
+        write_seed(&dir, seed, gain);
+        // F165 fine-tunings: calibrated better by half the F195 gain.
+        for kernel in ["standard", "calibrated"] {
+            let name = format!("paper-depth-ft-f165-{kernel}");
+            let run = dir.join(&name);
+            std::fs::create_dir_all(&run).unwrap();
+            std::fs::copy(
+                root.join(format!("experiments/paper/depth-ft-f165-{kernel}.toml")),
+                run.join("experiment.toml"),
+            )
+            .unwrap();
+            let g = if kernel == "calibrated" {
+                gain / 2.0
+            } else {
+                0.0
+            };
+            write_eval(&run, &format!("f165-{kernel}"), kernel, move |i, u| {
+                0.2 + 0.02 * i as f64 + 0.01 * u as f64 - g
+            });
+        }
+    }
+    write_report_with(&results, &results, &ReportOptions::default()).unwrap();
+    let rows: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(results.join("fov_gain.json")).unwrap())
+            .unwrap();
+    let rmse: Vec<&serde_json::Value> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["metric"] == "rmse")
+        .collect();
+    // F165 then F195 (by field of view), three seeds each, both gains negative (better).
+    assert_eq!(rmse.len(), 2, "{rows}");
+    assert_eq!(
+        (rmse[0]["fov_deg"].as_f64(), rmse[1]["fov_deg"].as_f64()),
+        (Some(165.0), Some(195.0))
+    );
+    for r in &rmse {
+        assert_eq!(r["n_seeds"], 3);
+        assert!(r["mean"].as_f64().unwrap() < 0.0, "{r}");
+        assert!(r["ci95"][1].as_f64().unwrap() < 0.0, "{r}");
+    }
+    assert!(rmse[1]["mean"].as_f64().unwrap() < rmse[0]["mean"].as_f64().unwrap());
+    assert!(results.join("fov_gain.png").is_file());
+    let md = std::fs::read_to_string(results.join("REPORT.md")).unwrap();
+    assert!(md.contains("## Gain against the field of view"), "{md}");
 }

@@ -6,11 +6,13 @@
 //! - [`results`]: `calibconv report RESULTS`: reads the run directories of every seed into
 //!   [`study::Observations`], writes the tables with intervals over seeds, the paired-difference
 //!   table ([`tables`]), radial plots with bands over seeds, qualitative grids, the verdict
-//!   ([`verdict`]) and `REPORT.md`. [`stats`] holds the pure statistics (Student t, bootstrap).
+//!   ([`verdict`]), the gain against the field of view ([`fov`]) and `REPORT.md`. [`stats`]
+//!   holds the pure statistics (Student t, bootstrap).
 
 pub mod collect;
 pub mod csv;
 pub mod draw;
+pub mod fov;
 pub mod kernels;
 pub mod plots;
 pub mod pointcloud;

@@ -386,6 +386,7 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     ] {
         report += &task_section(&cx, task, columns, title, &mut files)?;
     }
+    report += &fov_section(&cx, &mut files)?;
     if out.join("pointcloud_top.png").is_file() {
         let about = std::fs::read_to_string(out.join("pointcloud.txt")).unwrap_or_default();
         report += &format!(
@@ -408,6 +409,35 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     write_bytes_atomic(&report_file, report.as_bytes())?;
     files.push(report_file);
     Ok(files)
+}
+
+/// The calibrated gain against the field of view ([`super::fov`]), when two or more FT data
+/// sets have both kernels.
+fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
+    let rows = super::fov::fov_gain(cx.study, cx.obs)?;
+    let written = super::fov::write_fov_gain(&rows, cx.out)?;
+    if written.is_empty() {
+        return Ok(String::new());
+    }
+    files.extend(written);
+    let mut md = String::from(
+        "## Gain against the field of view\n\nFT rows, calibrated − standard per seed, mean and \
+         95% Student-t interval over seeds, against the camera's field of view \
+         ([fov_gain.json](fov_gain.json)).\n\n| task | metric | FOV (deg) | data set | n | mean | \
+         95% CI |\n|---|---|---:|---|---:|---:|---|\n",
+    );
+    for r in &rows {
+        let ci = r
+            .ci95
+            .map(|[lo, hi]| format!("[{lo:+.4}, {hi:+.4}]"))
+            .unwrap_or_else(|| "needs >= 2 seeds".into());
+        md += &format!(
+            "| {} | {} | {:.0} | {} | {} | {:+.4} | {ci} |\n",
+            r.task, r.metric, r.fov_deg, r.dataset, r.n_seeds, r.mean
+        );
+    }
+    md += "\n![gain vs field of view](fov_gain.png)\n\n";
+    Ok(md)
 }
 
 /// The runs and their configurations (`REPORT.md`'s end).

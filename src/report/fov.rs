@@ -1,0 +1,248 @@
+//! The calibrated kernels' gain as a function of the field of view (beyond the paper, which has
+//! two lenses): for every fine-tuned (FT) data set evaluated with both standard and calibrated
+//! kernels, the paired difference calibrated − standard per seed, its mean and 95% Student-t
+//! interval over seeds, against the field of view of the data set's camera (`fov_deg` of the
+//! camera file its evaluations name). Written as `fov_gain.json` (rows `{fov_deg, dataset, task,
+//! metric, mean, ci95, n_seeds}`), `fov_gain.png` (depth RMSE, the paper's headline metric, or
+//! the first metric observed) and `fov_gain_TASK_METRIC.png` for every claim metric.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use super::collect::Study;
+use super::plots::{line_band_plot, Curve, PlotSpec};
+use super::stats::MeanCi;
+use super::study::{paired_difference, Block, Observations, Task, CALIBRATED, STANDARD};
+use super::verdict::claim_metrics;
+use crate::camera::{self, CameraModel};
+use crate::error::{Error, Result};
+use crate::io::write_bytes_atomic;
+
+/// One point of the curve.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FovRow {
+    pub fov_deg: f64,
+    /// The table's data-set label (`F195`, `KB120`).
+    pub dataset: String,
+    pub task: String,
+    pub metric: String,
+    /// Mean over seeds of calibrated − standard.
+    pub mean: f64,
+    /// 95% t-interval over seeds; `None` with fewer than two seeds.
+    pub ci95: Option<[f64; 2]>,
+    pub n_seeds: usize,
+}
+
+/// The field of view (degrees) of each FT data set, from the camera file of its evaluations.
+fn fov_by_dataset(study: &Study) -> Result<BTreeMap<(Task, String), f64>> {
+    let mut out = BTreeMap::new();
+    for row in study.rows.iter().filter(|r| r.cell.block == Block::Ft) {
+        let key = (row.cell.task, row.cell.dataset.clone());
+        if out.contains_key(&key) {
+            continue;
+        }
+        let Some(serde_json::Value::String(file)) = row.record.about.other.get("camera_file")
+        else {
+            continue;
+        };
+        let cam = camera::load(file).map_err(|e| {
+            Error::InvalidArgument(format!(
+                "{}: camera_file {file}: {e}",
+                row.dir.join("metrics.json").display()
+            ))
+        })?;
+        out.insert(key, cam.fov().to_degrees());
+    }
+    Ok(out)
+}
+
+/// The rows of the curve, by task, metric and field of view; empty unless at least two FT
+/// data sets of one task have both kernels.
+pub fn fov_gain(study: &Study, obs: &Observations) -> Result<Vec<FovRow>> {
+    let fovs = fov_by_dataset(study)?;
+    let mut rows = Vec::new();
+    for task in [Task::Depth, Task::Segmentation] {
+        let mut task_rows = Vec::new();
+        for metric in claim_metrics(task) {
+            for cell in obs.cells() {
+                if cell.task != task || cell.block != Block::Ft || cell.kernel != CALIBRATED {
+                    continue;
+                }
+                let Some(&fov_deg) = fovs.get(&(task, cell.dataset.clone())) else {
+                    continue;
+                };
+                let d = paired_difference(
+                    &obs.get(&cell, metric),
+                    &obs.get(&cell.with_kernel(STANDARD), metric),
+                );
+                if d.is_empty() {
+                    continue;
+                }
+                let xs: Vec<f64> = d.values().copied().collect();
+                let ci = MeanCi::of(&xs);
+                task_rows.push(FovRow {
+                    fov_deg,
+                    dataset: cell.dataset.clone(),
+                    task: task.name().to_string(),
+                    metric: metric.name().to_string(),
+                    mean: ci.mean,
+                    ci95: ci.interval(),
+                    n_seeds: ci.n,
+                });
+            }
+        }
+        let datasets: std::collections::BTreeSet<&str> =
+            task_rows.iter().map(|r| r.dataset.as_str()).collect();
+        if datasets.len() >= 2 {
+            rows.extend(task_rows);
+        }
+    }
+    rows.sort_by(|a, b| {
+        (a.task.as_str(), a.metric.as_str())
+            .cmp(&(b.task.as_str(), b.metric.as_str()))
+            .then(a.fov_deg.total_cmp(&b.fov_deg))
+    });
+    Ok(rows)
+}
+
+/// Writes `fov_gain.json` and the plots into `out` (nothing when `rows` is empty); returns the
+/// files written.
+pub fn write_fov_gain(rows: &[FovRow], out: &Path) -> Result<Vec<PathBuf>> {
+    if rows.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut files = Vec::new();
+    let json = out.join("fov_gain.json");
+    let text = serde_json::to_string_pretty(rows).expect("fov rows serialise");
+    write_bytes_atomic(&json, text.as_bytes())?;
+    files.push(json);
+    let mut groups: BTreeMap<(&str, &str), Vec<&FovRow>> = BTreeMap::new();
+    for r in rows {
+        groups
+            .entry((r.task.as_str(), r.metric.as_str()))
+            .or_default()
+            .push(r);
+    }
+    let headline = groups
+        .keys()
+        .find(|k| **k == ("depth", "rmse"))
+        .or_else(|| groups.keys().next())
+        .copied();
+    for ((task, metric), points) in &groups {
+        let curve = Curve {
+            label: format!("calibrated − standard ({metric})"),
+            colour: [40, 90, 200],
+            x: points.iter().map(|r| r.fov_deg).collect(),
+            mean: points.iter().map(|r| r.mean).collect(),
+            // The band is the 95% interval's half-width (none with one seed).
+            std: if points.iter().all(|r| r.ci95.is_some()) {
+                points
+                    .iter()
+                    .map(|r| r.ci95.map(|[lo, hi]| (hi - lo) / 2.0).unwrap_or(0.0))
+                    .collect()
+            } else {
+                Vec::new()
+            },
+        };
+        let n = points.iter().map(|r| r.n_seeds).min().unwrap_or(0);
+        let spec = PlotSpec {
+            title: format!("FT {task}: calibrated − standard {metric} vs field of view"),
+            x_label: "field of view (deg)".into(),
+            y_label: if n >= 2 {
+                format!("{metric} difference (mean over {n} seeds, 95% t band)")
+            } else {
+                format!("{metric} difference ({n} seed: no interval)")
+            },
+            ..Default::default()
+        };
+        let file = out.join(format!("fov_gain_{task}_{metric}.png"));
+        line_band_plot(&file, &spec, std::slice::from_ref(&curve))?;
+        files.push(file);
+        if headline == Some((*task, *metric)) {
+            let file = out.join("fov_gain.png");
+            line_band_plot(&file, &spec, std::slice::from_ref(&curve))?;
+            files.push(file);
+        }
+    }
+    Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::metrics::Metric;
+    use crate::report::study::Cell;
+
+    fn obs_with(sets: &[(&str, [f64; 3], [f64; 3])]) -> Observations {
+        let mut obs = Observations::default();
+        for (set, std_v, cal_v) in sets {
+            for s in 0..3 {
+                let c = Cell::new(Task::Depth, Block::Ft, set, STANDARD);
+                obs.insert(&c, Metric::Rmse, s, std_v[s as usize]);
+                obs.insert(
+                    &c.with_kernel(CALIBRATED),
+                    Metric::Rmse,
+                    s,
+                    cal_v[s as usize],
+                );
+            }
+        }
+        obs
+    }
+
+    #[test]
+    fn the_gain_is_the_paired_difference_with_a_t_interval() {
+        let obs = obs_with(&[
+            ("F195", [1.0, 2.0, 3.0], [0.9, 1.8, 2.7]),
+            ("F165", [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]),
+        ]);
+        let study = Study {
+            study: None,
+            replicates: Vec::new(),
+            runs: Vec::new(),
+            rows: Vec::new(),
+        };
+        // Without rows there is no camera file, so no field of view: no curve.
+        assert!(fov_gain(&study, &obs).unwrap().is_empty());
+        // The difference per seed is -0.1, -0.2, -0.3: mean -0.2, sd 0.1, t(0.975, 2) = 4.3027.
+        let cell = Cell::new(Task::Depth, Block::Ft, "F195", CALIBRATED);
+        let d = paired_difference(
+            &obs.get(&cell, Metric::Rmse),
+            &obs.get(&cell.with_kernel(STANDARD), Metric::Rmse),
+        );
+        let ci = MeanCi::of(&d.values().copied().collect::<Vec<_>>());
+        assert!((ci.mean + 0.2).abs() < 1e-12);
+        let h = ci.half_width.unwrap();
+        assert!((h - 4.302653 * 0.1 / 3f64.sqrt()).abs() < 1e-5, "{h}");
+    }
+
+    #[test]
+    fn plots_and_json_are_written_for_two_or_more_fields_of_view() {
+        let rows: Vec<FovRow> = [(165.0, "F165", -0.01), (195.0, "F195", -0.05)]
+            .into_iter()
+            .map(|(fov_deg, set, mean)| FovRow {
+                fov_deg,
+                dataset: set.into(),
+                task: "depth".into(),
+                metric: "rmse".into(),
+                mean,
+                ci95: Some([mean - 0.02, mean + 0.02]),
+                n_seeds: 3,
+            })
+            .collect();
+        let dir = tempfile::tempdir().unwrap();
+        let files = write_fov_gain(&rows, dir.path()).unwrap();
+        for f in ["fov_gain.json", "fov_gain.png", "fov_gain_depth_rmse.png"] {
+            assert!(dir.path().join(f).is_file(), "{f} missing: {files:?}");
+        }
+        let back: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("fov_gain.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(back[1]["fov_deg"], 195.0);
+        assert!((back[1]["ci95"][0].as_f64().unwrap() + 0.07).abs() < 1e-12);
+        assert!(write_fov_gain(&[], dir.path()).unwrap().is_empty());
+    }
+}
