@@ -263,6 +263,52 @@ fn native_matches_aten_on_random_plans() {
         // 1 and 2 channels: the unrolled gathers of the first layers.
         (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
+        // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
+        // items (B * P above a tile), the oneDNN GEMMs (float32, one group; the weight gradient
+        // from 32 output channels), scatter bands within an item (a tall map, small batch) and
+        // tasks of several whole items (small maps).
+        (
+            3,
+            16,
+            32,
+            24,
+            20,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            false,
+            2.0,
+        ),
+        (
+            2,
+            8,
+            8,
+            40,
+            36,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            true,
+            3.0,
+        ),
+        (
+            5,
+            32,
+            16,
+            12,
+            10,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            false,
+            1.5,
+        ),
     ];
     for (i, &(b, ci, co, h, w, k, s, p, d, g, per_item, scale)) in cases.iter().enumerate() {
         for kind in [Kind::Double, Kind::Float] {
@@ -576,4 +622,19 @@ fn native_handles_an_empty_batch() {
     let g = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x, &w], false, false);
     assert_eq!(g[0].size(), [0, 2, 5, 5]);
     assert_eq!(g[1].abs().sum(Kind::Float).double_value(&[]), 0.0);
+}
+
+/// CI runs with the native kernels: without them every native-vs-ATen test above compares the
+/// ATen composition with itself and passes vacuously. A build that cannot have them (no C++17
+/// compiler) says so explicitly with `CALIBCONV_ALLOW_NO_NATIVE=1`.
+#[test]
+fn native_kernels_are_built() {
+    if std::env::var("CALIBCONV_ALLOW_NO_NATIVE").as_deref() == Ok("1") {
+        return;
+    }
+    assert!(
+        native_available(),
+        "the native CPU kernels were not built (see build.rs's warning); set \
+         CALIBCONV_ALLOW_NO_NATIVE=1 to run the tests on the ATen composition alone"
+    );
 }
