@@ -638,3 +638,49 @@ fn native_kernels_are_built() {
          CALIBCONV_ALLOW_NO_NATIVE=1 to run the tests on the ATen composition alone"
     );
 }
+
+/// A first layer: the input (an image) needs no gradient, so the native forward keeps its few-
+/// channel column matrix for the weight gradient instead of gathering it again. Output, weight
+/// and bias gradients still match the ATen composition, shared and per-item offsets, over tiles
+/// that span batch items.
+#[test]
+fn first_layer_without_input_gradient_matches_aten() {
+    tch::manual_seed(5);
+    for (kind, tol) in [(Kind::Double, F64_IMPL_TOL), (Kind::Float, F32_IMPL_TOL)] {
+        for per_item in [false, true] {
+            let opts = (kind, Device::Cpu);
+            let (b, c, h, w) = (3, 3, 30, 26);
+            let off = if per_item {
+                Tensor::randn([b, 18, h, w], opts) * 2.0
+            } else {
+                Tensor::randn([18, h, w], opts) * 2.0
+            };
+            let plan =
+                SamplingPlan::new(&off, [h, w], [3, 3], [1, 1], [1, 1], [1, 1], kind).unwrap();
+            let x = Tensor::randn([b, c, h, w], opts);
+            let probe = Tensor::randn([b, 8, h, w], opts);
+            let run = |backend| {
+                tch::manual_seed(6);
+                let wt = Tensor::randn([8, c, 3, 3], opts).set_requires_grad(true);
+                let bias = Tensor::randn([8], opts).set_requires_grad(true);
+                let out =
+                    deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
+                let loss = (&out * &probe).sum(kind);
+                let g = Tensor::run_backward(&[loss], &[&wt, &bias], false, false);
+                (out.detach(), g[0].shallow_clone(), g[1].shallow_clone())
+            };
+            let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
+            for (name, x, y) in [
+                ("output", &a.0, &b_.0),
+                ("grad weight", &a.1, &b_.1),
+                ("grad bias", &a.2, &b_.2),
+            ] {
+                let rel = max_rel(x, y);
+                assert!(
+                    rel < tol,
+                    "{kind:?} per-item {per_item}: {name} differs by {rel:e}"
+                );
+            }
+        }
+    }
+}

@@ -59,6 +59,10 @@ constexpr int64_t MAX_TILE = 8192;
 // reduction over a tile's pixels was slower than MKL's: 40 vs 69 GFLOP/s at 8 channels, even at
 // 16, 1.5-1.7x faster from 32 on).
 constexpr int64_t DNN_WEIGHT_MIN_COUT = 32;
+// The forward pass keeps its column matrix for the weight gradient when the input needs no
+// gradient (a first layer) and has at most this many channels (the matrix is then K*C <= 36
+// values a pixel, about 9x the input).
+constexpr int64_t KEEP_COLUMNS_MAX_C = 4;
 
 // Rows per tile for `total` rows (output pixels of the whole batch, or of one band) of
 // `row_elems` elements each, with a weight of `weight_elems` elements. Tiles span batch items
@@ -525,7 +529,8 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
 
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
-                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac) {
+                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac,
+                        const at::Tensor& keep) {
   const auto fmt = memory_format(input);
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   const at::Tensor x = channels_last<T>(input);
@@ -550,14 +555,18 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
     return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(dnn ? 0 : tile * g.Cout),
                       std::vector<T>(g.C, T(0))};
   };
+  // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
+  // weight gradient.
+  T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
   parallel_tasks(tiles, init, [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
+    T* tp = kp ? kp + q0 * kc : s.tile.data();
     for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.gather(g, xp, ip, fp, s.zero.data(), b, p0, len, s.tile.data() + off * kc);
+      kern.gather(g, xp, ip, fp, s.zero.data(), b, p0, len, tp + off * kc);
     });
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
-        const Mat<const float> cols{s.tile.data(), n, kc, kc, 1};
+        const Mat<const float> cols{tp, n, kc, kc, 1};
         const at::Tensor y = dnn_linear(cols, w2, bias_c).contiguous();  // [n, C_out]
         write_rows(y.const_data_ptr<float>(), op, cl, g.Cout, g.P, q0, n);
         return;
@@ -565,7 +574,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
     }
     T* yp = s.y.data();  // [n, C_out]
     for (int64_t gi = 0; gi < g.G; ++gi) {
-      const Mat<const T> cols{s.tile.data() + gi * kcg, n, kcg, kc, 1};
+      const Mat<const T> cols{tp + gi * kcg, n, kcg, kc, 1};
       const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
       const Mat<T> c{yp + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
       if (bp) {  // c = bias, then c += cols @ w^T
@@ -582,9 +591,12 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
 // Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
-                            const at::Tensor& index, const at::Tensor& frac) {
+                            const at::Tensor& index, const at::Tensor& frac,
+                            const at::Tensor& kept) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
-  const at::Tensor x = channels_last<T>(input);
+  // The columns the forward pass kept, or the channels-last input to gather them again from.
+  const T* kp = kept.defined() ? kept.const_data_ptr<T>() : nullptr;
+  const at::Tensor x = kp ? input : channels_last<T>(input);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
   const int64_t tile = tile_rows(total, kc, g.Cout * kcg, sizeof(T));
@@ -608,18 +620,21 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const bool dnn =
       std::is_same_v<T, float> && g.G == 1 && g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    std::vector<T> cols(tile * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
+    std::vector<T> cols(kp ? 0 : tile * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t q0 = task * tile, n = std::min(tile, total - q0);
-        for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-          kern.gather(g, xp, ip, fp, zero.data(), b, p0, len, cols.data() + off * kc);
-        });
+        const T* cp = kp ? kp + q0 * kc : cols.data();
+        if (!kp) {
+          for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+            kern.gather(g, xp, ip, fp, zero.data(), b, p0, len, cols.data() + off * kc);
+          });
+        }
         const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
-            const Mat<const float> cols_t{cols.data(), kc, n, 1, kc};
+            const Mat<const float> cols_t{cp, kc, n, 1, kc};
             const Mat<const float> y{yt, n, g.Cout, g.Cout, 1};
             view_of(Mat<float>{accp, g.Cout, kc, kc, 1})
                 .add_(dnn_linear(cols_t, view_of(y.t()), at::Tensor()).t());
@@ -627,7 +642,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           }
         }
         for (int64_t gi = 0; gi < g.G; ++gi) {
-          const Mat<const T> c{cols.data() + gi * kcg, n, kcg, kc, 1};
+          const Mat<const T> c{cp + gi * kcg, n, kcg, kc, 1};
           const Mat<const T> y{yt + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
           const Mat<T> a{accp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
           gemm<T>(y.t(), c, a, true);
@@ -801,9 +816,18 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["groups"] = groups;
     ctx->saved_data["per_item"] = per_item;
     ctx->saved_data["has_bias"] = has_bias;
+    // A first layer (its input, the image, needs no gradient) with few channels: its column
+    // matrix is small (K*C values a pixel) and the weight gradient would gather it again, at a
+    // cost close to the whole convolution's at 3 channels, so it is kept.
+    const bool keep_cols = !input.requires_grad() && weight.requires_grad() &&
+                           g.C <= KEEP_COLUMNS_MAX_C && g.G == 1;
+    at::Tensor keep =
+        keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
+    ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
-      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac);
+      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac,
+                                   keep);
     });
     return out;
   }
@@ -826,7 +850,9 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     at::Tensor gx, gw, gb;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       if (ctx->needs_input_grad(1)) {
-        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor())
+        const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
+        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor(),
+                                        kept)
                  .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
