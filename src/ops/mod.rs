@@ -55,10 +55,12 @@
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
 //! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
 
+mod cache;
 #[cfg(calibconv_native)]
 mod native;
 mod plan;
 
+pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
 pub use plan::{Border, SamplingPlan};
 
 use tch::{Kind, Tensor};
@@ -93,8 +95,11 @@ pub fn deform_conv2d(
     .unwrap_or_else(|e| panic!("deform_conv2d: {e}"))
 }
 
-/// Fallible twin of [`deform_conv2d`]. Builds the sampling plan on every call: layers that run
-/// many times hold a [`SamplingPlan`] and call [`deform_conv2d_planned`].
+/// Fallible twin of [`deform_conv2d`]. The sampling plan comes from the plan cache
+/// ([`tensor_plan`]): a loop that calls this again and again with the same offsets tensor builds
+/// it once (the cache keys it by the tensor's storage, shape, strides and version counter, so an
+/// in-place change of the offsets builds a new one). Layers hold their own [`SamplingPlan`] and
+/// call [`deform_conv2d_planned`].
 #[allow(clippy::too_many_arguments)]
 pub fn f_deform_conv2d(
     input: &Tensor,
@@ -118,7 +123,7 @@ pub fn f_deform_conv2d(
             weight.size()
         ))
     })?;
-    let plan = SamplingPlan::new(
+    let plan = tensor_plan(
         offsets,
         [h, w],
         [kh, kw],
@@ -126,8 +131,8 @@ pub fn f_deform_conv2d(
         padding,
         dilation,
         input.kind(),
-    )?
-    .to_device(input.device());
+        input.device(),
+    )?;
     deform_conv2d_planned(input, &plan, weight, bias, groups)
 }
 

@@ -684,3 +684,46 @@ fn first_layer_without_input_gradient_matches_aten() {
         }
     }
 }
+
+/// The functional op's plan cache: the same offsets tensor reuses its plan (same storage); an
+/// in-place change of the offsets (a new version) gets a new plan, and the result follows it.
+#[test]
+fn functional_plans_are_cached_by_tensor_identity_and_version() {
+    tch::manual_seed(7);
+    let opts = (Kind::Float, Device::Cpu);
+    let mut off = Tensor::randn([18, 6, 7], opts);
+    let plan = |off: &Tensor| {
+        super::tensor_plan(
+            off,
+            [6, 7],
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            Kind::Float,
+            Device::Cpu,
+        )
+        .unwrap()
+    };
+    let (a, b) = (plan(&off), plan(&off));
+    assert!(a.shares_storage_with(&b), "second call must hit the cache");
+    let x = Tensor::randn([2, 4, 6, 7], opts);
+    let w = Tensor::randn([5, 4, 3, 3], opts);
+    let before = deform_conv2d(&x, &off, &w, None, [1, 1], [1, 1], [1, 1], 1);
+    let _ = off.g_add_scalar_(0.5);
+    let c = plan(&off);
+    assert!(
+        !a.shares_storage_with(&c),
+        "an in-place change must build a new plan"
+    );
+    let after = deform_conv2d(&x, &off, &w, None, [1, 1], [1, 1], [1, 1], 1);
+    let fresh = deform_conv2d(&x, &off.copy(), &w, None, [1, 1], [1, 1], [1, 1], 1);
+    assert!(
+        max_rel(&after, &fresh) < 1e-6,
+        "stale plan after an in-place change"
+    );
+    assert!(
+        max_rel(&after, &before) > 1e-3,
+        "the change must show in the result"
+    );
+}
