@@ -154,6 +154,11 @@ struct Paired {
     reference_ms: f64,
     candidate_ms: f64,
     ratio: f64,
+    /// The same from the process's CPU time (all threads, user + system) instead of wall time:
+    /// on a machine loaded beyond its cores a run longer than a scheduler time slice is
+    /// preempted more often than a short one, which inflates wall-time ratios; with one thread
+    /// the CPU-time ratio is the work ratio (with more, it counts OpenMP's spinning too).
+    cpu_ratio: Option<f64>,
 }
 
 #[derive(Debug, Serialize)]
@@ -463,7 +468,7 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
 
 fn print_header(aten: bool) {
     println!(
-        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} | {:>8} {:>8} {:>5}{}",
+        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} {:>5} | {:>8} {:>8} {:>5} {:>5}{}",
         "net",
         "n",
         "B",
@@ -473,9 +478,11 @@ fn print_header(aten: bool) {
         "conv fwd",
         "cal fwd",
         "x",
+        "cpu x",
         "conv f+b",
         "cal f+b",
         "x",
+        "cpu x",
         if aten { " | aten fwd x  f+b x" } else { "" }
     );
 }
@@ -484,7 +491,7 @@ fn print_row(r: &ShapeResult) {
     let c = &r.calibrated;
     let mut line =
         format!(
-        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} | {:>8.2} {:>8.2} {:>5.2}",
+        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>5}",
         r.net,
         r.count,
         r.batch,
@@ -494,9 +501,11 @@ fn print_row(r: &ShapeResult) {
         c.forward.reference_ms,
         c.forward.candidate_ms,
         c.forward.ratio,
+        fmt_opt(c.forward.cpu_ratio, 2),
         c.forward_backward.reference_ms,
         c.forward_backward.candidate_ms,
         c.forward_backward.ratio,
+        fmt_opt(c.forward_backward.cpu_ratio, 2),
     );
     if let Some(a) = &r.aten {
         line.push_str(&format!(
@@ -512,6 +521,14 @@ fn time_ms(f: &mut dyn FnMut()) -> f64 {
     let start = Instant::now();
     f();
     start.elapsed().as_secs_f64() * 1e3
+}
+
+/// Wall and process CPU time of `f` in milliseconds.
+fn time_both_ms(f: &mut dyn FnMut()) -> (f64, Option<f64>) {
+    let cpu0 = cpu_seconds();
+    let wall = time_ms(f);
+    let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| (b - a) * 1e3);
+    (wall, cpu)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -538,30 +555,35 @@ fn paired(
         c();
     }
     let n = candidates.len();
-    let mut ref_ms = Vec::with_capacity(reps);
-    let mut cand_ms = vec![Vec::with_capacity(reps); n];
+    let mut times = vec![Vec::with_capacity(reps); n + 1]; // slot 0: the reference
     for rep in 0..reps {
-        // Slot 0 is the reference; rotate who goes first.
-        let mut times = vec![0.0; n + 1];
+        // Rotate who goes first.
         for k in 0..=n {
             let slot = (k + rep) % (n + 1);
-            times[slot] = if slot == 0 {
-                time_ms(reference)
+            let t = if slot == 0 {
+                time_both_ms(reference)
             } else {
-                time_ms(candidates[slot - 1])
+                time_both_ms(candidates[slot - 1])
             };
-        }
-        ref_ms.push(times[0]);
-        for (i, t) in times[1..].iter().enumerate() {
-            cand_ms[i].push(*t);
+            times[slot].push(t);
         }
     }
-    cand_ms
-        .into_iter()
-        .map(|c| Paired {
-            reference_ms: median(ref_ms.clone()),
-            candidate_ms: median(c.clone()),
-            ratio: median(c.iter().zip(&ref_ms).map(|(c, r)| c / r).collect()),
+    let wall = |v: &[(f64, Option<f64>)]| v.iter().map(|t| t.0).collect::<Vec<_>>();
+    let ref_wall = wall(&times[0]);
+    times[1..]
+        .iter()
+        .map(|c| {
+            let cpu: Option<Vec<f64>> = c
+                .iter()
+                .zip(&times[0])
+                .map(|(c, r)| Some(c.1? / r.1?.max(1e-6)))
+                .collect();
+            Paired {
+                reference_ms: median(ref_wall.clone()),
+                candidate_ms: median(wall(c)),
+                ratio: median(c.iter().zip(&ref_wall).map(|(c, r)| c.0 / r).collect()),
+                cpu_ratio: cpu.map(median),
+            }
         })
         .collect()
 }
@@ -885,7 +907,7 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
     };
     println!(
         "\nU-Net B{} 3x{}x{}, base {}, depth {}: training step conv2d {:.1} ms, calibrated {:.1} \
-         ms ({:.2}x)",
+         ms ({:.2}x; CPU time {}x)",
         r.batch,
         r.input_hw[0],
         r.input_hw[1],
@@ -894,6 +916,7 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
         r.step.reference_ms,
         r.step.candidate_ms,
         r.step.ratio,
+        fmt_opt(r.step.cpu_ratio, 2),
     );
     Ok(r)
 }
