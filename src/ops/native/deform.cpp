@@ -6,11 +6,12 @@
 // - The weight is packed per pass as WP [G, C_out/G, K, C/G] (the tap and channel axes of every
 //   output channel swapped, a cheap local transpose); the backward pass repacks it rather than
 //   keeping a weight-sized buffer alive between the passes.
-// - forward: per tile of T output pixels, gather the column tile [T, K*C] (layout: group, tap,
-//   channel) from a channels-last view of the input with the plan's four corner indices and the
-//   bilinear weights of its fractions (ly, lx), then one GEMM per group,
-//   out[T, C_out/G] = cols_g @ WP_g^T, written in place into the output (NCHW or channels-last,
-//   as the input), bias preloaded.
+// - forward: per tile of T output pixels (rows q = b * P + p of the whole batch), gather the
+//   column tile [T, K*C] (layout: group, tap, channel) from a channels-last view of the input
+//   with the plan's four corner indices and the bilinear weights of its fractions (ly, lx), then
+//   y[T, C_out] = cols @ WP^T + bias (oneDNN for float32 with one group, else one at::mm per
+//   group), copied into the output (NCHW or channels-last, as the input). A first layer (input
+//   without gradient, <= 4 channels) keeps its whole column matrix for the weight gradient.
 // - backward, weight: the column tiles are recomputed (never stored) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
@@ -51,9 +52,11 @@ using torch::autograd::variable_list;
 // TILE_BYTES per thread raises the budget to its share per thread (the GEMM then spends on the
 // tile at least as much as on packing the weight).
 constexpr int64_t TILE_BYTES = 2 << 20;
-// Rows of a tile: at least MIN_TILE (GEMM efficiency: a oneDNN call costs ~15 us, as much as
-// ~3 MFLOP of work), at most MAX_TILE.
-constexpr int64_t MIN_TILE = 1024;
+// Rows of a tile: enough that its GEMM does at least MIN_TILE_FLOP (a oneDNN call costs ~15 us,
+// about 3 MFLOP of work: few channels need thousands of rows, 512 a few dozen), at least
+// MIN_TILE, at most MAX_TILE.
+constexpr int64_t MIN_TILE_FLOP = 8 << 20;
+constexpr int64_t MIN_TILE = 64;
 constexpr int64_t MAX_TILE = 8192;
 // The weight gradient goes through oneDNN from this many output channels on (below it oneDNN's
 // reduction over a tile's pixels was slower than MKL's: 40 vs 69 GFLOP/s at 8 channels, even at
@@ -72,6 +75,7 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
   const int64_t threads = at::get_num_threads();
   const int64_t budget = std::max<int64_t>(TILE_BYTES, weight_elems * elem_bytes / threads);
   int64_t t = budget / std::max<int64_t>(1, row_elems * elem_bytes);
+  t = std::max(t, MIN_TILE_FLOP / std::max<int64_t>(1, 2 * weight_elems));
   t = std::clamp<int64_t>(t - t % 16, MIN_TILE, MAX_TILE);
   t = std::min(t, (total + threads - 1) / threads);
   return std::max<int64_t>(t, 1);
@@ -737,7 +741,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const int64_t threads = at::get_num_threads();
   const int64_t per_task =
       bands > 1 ? 1
-                : std::max<int64_t>(1, std::min<int64_t>(MIN_TILE / std::max<int64_t>(1, g.P),
+                : std::max<int64_t>(1, std::min<int64_t>(BAND_PIXELS / std::max<int64_t>(1, g.P),
                                                          (g.B + threads - 1) / threads));
   const int64_t groups_of_items = (g.B + per_task - 1) / per_task;
   const int64_t tile =
