@@ -22,9 +22,12 @@ struct OffsetsKey {
     frame: InputFrame,
 }
 
-/// A few cameras times a few levels: a linear scan (the camera has no `Hash`: it holds `f64`s).
-fn cache() -> &'static Mutex<Vec<(OffsetsKey, Arc<Offsets>)>> {
-    static CACHE: OnceLock<Mutex<Vec<(OffsetsKey, Arc<Offsets>)>>> = OnceLock::new();
+/// The entries: a few cameras times a few levels, scanned linearly (the camera has no `Hash`:
+/// it holds `f64`s).
+type Entries = Mutex<Vec<(OffsetsKey, Arc<Offsets>)>>;
+
+fn cache() -> &'static Entries {
+    static CACHE: OnceLock<Entries> = OnceLock::new();
     CACHE.get_or_init(Default::default)
 }
 
