@@ -289,6 +289,9 @@ pub enum BenchPart {
     Pyramid,
     /// The U-Net-shaped training step.
     Unet,
+    /// The functional `ops::deform_conv2d` called again and again with one offsets tensor
+    /// (B4, 32 channels, 128x128; its plan comes from the plan cache).
+    Functional,
 }
 
 fn parse_shape(s: &str) -> Result<[i64; 5], String> {

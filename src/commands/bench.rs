@@ -38,7 +38,7 @@ use calibconv::camera::{Camera, CameraModel};
 use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry};
 use calibconv::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, Head, UNet, UNetConfig, UpMode};
-use calibconv::ops::{deform_conv2d_planned_with, Backend, Border, SamplingPlan};
+use calibconv::ops::{deform_conv2d, deform_conv2d_planned_with, Backend, Border, SamplingPlan};
 
 use super::load_camera;
 use crate::cli::{BenchArgs, BenchPart};
@@ -229,6 +229,8 @@ struct Report {
     shapes: Vec<ShapeResult>,
     pyramid: Option<PyramidResult>,
     unet: Option<UnetResult>,
+    /// `ops::deform_conv2d` with one offsets tensor, forward+backward against `conv2d`.
+    functional: Option<Paired>,
 }
 
 /// What the memory child process (`--memory-child`) prints on its last line of stdout: peaks
@@ -307,6 +309,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
     } else {
         None
     };
+    // Part of the default run only when asked for (it repeats a layer of the table).
+    let functional = if args.only.contains(&BenchPart::Functional) {
+        Some(bench_functional(&camera, &args)?)
+    } else {
+        None
+    };
     let load_after = load_average();
     println!("\nload after the timings: {}", fmt_load(load_after));
     if !args.no_memory && (!results.is_empty() || unet.is_some()) {
@@ -331,6 +339,7 @@ peak memory not measured: {e:#}"
         shapes: results,
         pyramid,
         unet,
+        functional,
     };
     if let Some(path) = &args.json {
         write_json(path, &report)?;
@@ -919,6 +928,61 @@ fn bench_unet(camera: &Camera, args: &BenchArgs) -> Result<UnetResult> {
         fmt_opt(r.step.cpu_ratio, 2),
     );
     Ok(r)
+}
+
+/// The functional op as a researcher's own loop calls it: `ops::deform_conv2d` with the same
+/// offsets tensor every step (F195 offsets, B4, 32 -> 32, 128x128), forward+backward against
+/// `conv2d` with the same weights. The plan is built on the first call and then taken from the
+/// plan cache.
+fn bench_functional(camera: &Camera, args: &BenchArgs) -> Result<Paired> {
+    let (b, c, h, w) = (4, 32, 128, 128);
+    let opts = (Kind::Float, Device::Cpu);
+    let offsets = compute_offsets(
+        camera,
+        [h as usize, w as usize],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )?
+    .to_tensor();
+    let x = Tensor::randn([b, c, h, w], opts).set_requires_grad(true);
+    let weight = (Tensor::randn([c, c, 3, 3], opts) * 0.1).set_requires_grad(true);
+    let bias = Tensor::zeros([c], opts).set_requires_grad(true);
+    let probe = Tensor::randn([b, c, h, w], opts);
+    let step = |y: Tensor| {
+        let loss = (y * &probe).sum(Kind::Float);
+        drop(Tensor::run_backward(
+            &[loss],
+            &[&x, &weight, &bias],
+            false,
+            false,
+        ));
+    };
+    let reference = || step(x.conv2d(&weight, Some(&bias), [1, 1], [1, 1], [1, 1], 1));
+    let functional = || {
+        step(deform_conv2d(
+            &x,
+            &offsets,
+            &weight,
+            Some(&bias),
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+        ))
+    };
+    let reps = if args.quick { MIN_REPS } else { MAX_REPS };
+    let p = paired(reps, &mut || reference(), &mut [&mut || functional()])
+        .pop()
+        .expect("one candidate");
+    println!(
+        "\nfunctional ops::deform_conv2d, one offsets tensor, B{b} {c}->{c} {h}x{w}: \
+         forward+backward conv2d {:.1} ms, deform_conv2d {:.1} ms ({:.2}x; CPU time {}x)",
+        p.reference_ms,
+        p.candidate_ms,
+        p.ratio,
+        fmt_opt(p.cpu_ratio, 2)
+    );
+    Ok(p)
 }
 
 /// CPU time of the process (all threads, user + system) in seconds, where the platform has it.
