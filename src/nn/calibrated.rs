@@ -146,7 +146,15 @@ impl CalibratedConv2d {
             let plan = self.plan.to_device(xs.device());
             return deform_conv2d_planned(xs, &plan, &self.ws, self.bs.as_ref(), self.groups);
         }
-        deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
+        // On the CPU the layer works channels-last (its output, hence the batch norm and ReLU
+        // after it and the next layer's input, stay channels-last): no layout conversion per
+        // call except at the network's input.
+        let xs = if xs.device() == Device::Cpu && xs.dim() == 4 {
+            channels_last(xs)
+        } else {
+            xs.shallow_clone()
+        };
+        deform_conv2d_planned(&xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
     }
 
     /// Device of the sampling plan.
@@ -161,4 +169,9 @@ impl Module for CalibratedConv2d {
         self.f_forward(xs)
             .unwrap_or_else(|e| panic!("CalibratedConv2d: {e}"))
     }
+}
+
+/// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).
+fn channels_last(x: &Tensor) -> Tensor {
+    x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
 }
