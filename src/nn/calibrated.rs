@@ -56,6 +56,11 @@ impl Conv2dConfig {
 
 /// A `k x k` deformable convolution with fixed, calibrated offsets.
 ///
+/// On the CPU it works channels-last: an NCHW input is converted once, and the output is
+/// channels-last (same values and shape), so that in a network of these layers the batch norm,
+/// ReLU and pooling after one and the next one's input stay channels-last and nothing converts
+/// per call. Code that needs NCHW memory (`view` on an activation) calls `contiguous()`.
+///
 /// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
 /// The sampling plan is built once per (offsets, geometry, device) and shared (same tensor
 /// storage) by every layer with the same camera, feature-map size and geometry: offsets and
@@ -140,7 +145,7 @@ impl CalibratedConv2d {
     ///
     /// # Shapes
     /// - `xs`: `[B, C_in, H, W]` with `[H, W]` the size the layer was built for
-    /// - output: `[B, C_out, H_out, W_out]`
+    /// - output: `[B, C_out, H_out, W_out]`, channels-last in memory on the CPU
     pub fn f_forward(&self, xs: &Tensor) -> Result<Tensor> {
         if xs.device() != self.plan.device() {
             let plan = self.plan.to_device(xs.device());
