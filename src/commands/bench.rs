@@ -441,13 +441,13 @@ fn memory_child(camera: &Camera, layers: &[Layer], unet: bool, args: &BenchArgs)
         let reference = |x: &Tensor| t.reference(x);
         let native = |x: &Tensor| t.native(x);
         let aten = |x: &Tensor| t.aten(x);
-        t.step(&reference); // warm-up: allocations that persist across steps
-        let r = peak_mib(&mut || t.step(&reference));
-        t.step(&native);
-        let c = peak_mib(&mut || t.step(&native));
+        t.step(&reference, false); // warm-up: allocations that persist across steps
+        let r = peak_mib(&mut || t.step(&reference, false));
+        t.step(&native, true);
+        let c = peak_mib(&mut || t.step(&native, true));
         let a = if args.aten {
-            t.step(&aten);
-            peak_mib(&mut || t.step(&aten))
+            t.step(&aten, true);
+            peak_mib(&mut || t.step(&aten, true))
         } else {
             None
         };
@@ -608,13 +608,27 @@ fn pyramid_frame(camera: &Camera, depth: usize) -> (InputFrame, [usize; 2]) {
     (frame, [h + frame.padding[1], w + frame.padding[0]])
 }
 
-/// A calibrated layer with its `conv2d` twin (same weights), an input and a probe.
+/// A calibrated layer with its `conv2d` twin (same weights), an input and a probe, each in the
+/// layout its network gives it: NCHW for `conv2d`, channels-last for the calibrated layer (whose
+/// outputs are channels-last, see `nn::CalibratedConv2d`) except at a first layer, which reads
+/// the NCHW image in both networks.
 struct LayerTensors {
     vs: nn::VarStore,
     conv: CalibratedConv2d,
     x: Tensor,
     probe: Tensor,
+    /// `x` and `probe` as the calibrated layer sees them.
+    x_cal: Tensor,
+    probe_cal: Tensor,
     input_grad: bool,
+}
+
+/// A channels-last copy of `x` (a new leaf).
+fn channels_last_copy(x: &Tensor) -> Tensor {
+    x.detach()
+        .permute([0, 2, 3, 1])
+        .contiguous()
+        .permute([0, 3, 1, 2])
 }
 
 impl LayerTensors {
@@ -634,11 +648,19 @@ impl LayerTensors {
         )?;
         let x = Tensor::randn([b, c_in, h, w], opts).set_requires_grad(layer.input_grad);
         let probe = Tensor::randn([b, c_out, h, w], opts);
+        let x_cal = if layer.input_grad {
+            channels_last_copy(&x).set_requires_grad(true)
+        } else {
+            x.shallow_clone()
+        };
+        let probe_cal = channels_last_copy(&probe);
         Ok(LayerTensors {
             vs,
             conv,
             x,
             probe,
+            x_cal,
+            probe_cal,
             input_grad: layer.input_grad,
         })
     }
@@ -662,18 +684,27 @@ impl LayerTensors {
     }
 
     /// Forward and backward of `(f(x) * probe).sum()` for the weight, the bias and (unless a
-    /// first layer) the input.
-    fn step(&self, f: &dyn Fn(&Tensor) -> Tensor) {
-        let loss = (f(&self.x) * &self.probe).sum(Kind::Float);
+    /// first layer) the input; `cal`: with the calibrated layer's input and probe.
+    fn step(&self, f: &dyn Fn(&Tensor) -> Tensor, cal: bool) {
+        let (x, probe) = self.inputs(cal);
+        let loss = (f(x) * probe).sum(Kind::Float);
         let mut wrt = vec![&self.conv.ws, self.bias()];
         if self.input_grad {
-            wrt.push(&self.x);
+            wrt.push(x);
         }
         drop(Tensor::run_backward(&[loss], &wrt, false, false));
     }
 
-    fn forward(&self, f: &dyn Fn(&Tensor) -> Tensor) {
-        drop(f(&self.x));
+    fn forward(&self, f: &dyn Fn(&Tensor) -> Tensor, cal: bool) {
+        drop(f(self.inputs(cal).0));
+    }
+
+    fn inputs(&self, cal: bool) -> (&Tensor, &Tensor) {
+        if cal {
+            (&self.x_cal, &self.probe_cal)
+        } else {
+            (&self.x, &self.probe)
+        }
     }
 }
 
@@ -685,8 +716,8 @@ fn bench_shape(camera: &Camera, layer: &Layer, args: &BenchArgs) -> Result<Shape
     let native = |x: &Tensor| t.native(x);
     let aten = |x: &Tensor| t.aten(x);
     // Repetitions from the reference step time.
-    t.step(&reference);
-    let t_ref = time_ms(&mut || t.step(&reference));
+    t.step(&reference, false);
+    let t_ref = time_ms(&mut || t.step(&reference, false));
     let reps = if args.quick {
         MIN_REPS
     } else {
@@ -696,26 +727,28 @@ fn bench_shape(camera: &Camera, layer: &Layer, args: &BenchArgs) -> Result<Shape
         (
             paired(
                 reps,
-                &mut || t.forward(&reference),
-                &mut [&mut || t.forward(&native), &mut || t.forward(&aten)],
+                &mut || t.forward(&reference, false),
+                &mut [&mut || t.forward(&native, true), &mut || {
+                    t.forward(&aten, true)
+                }],
             ),
             paired(
                 reps,
-                &mut || t.step(&reference),
-                &mut [&mut || t.step(&native), &mut || t.step(&aten)],
+                &mut || t.step(&reference, false),
+                &mut [&mut || t.step(&native, true), &mut || t.step(&aten, true)],
             ),
         )
     } else {
         (
             paired(
                 reps,
-                &mut || t.forward(&reference),
-                &mut [&mut || t.forward(&native)],
+                &mut || t.forward(&reference, false),
+                &mut [&mut || t.forward(&native, true)],
             ),
             paired(
                 reps,
-                &mut || t.step(&reference),
-                &mut [&mut || t.step(&native)],
+                &mut || t.step(&reference, false),
+                &mut [&mut || t.step(&native, true)],
             ),
         )
     };
