@@ -26,9 +26,10 @@ pub enum Command {
     /// The main job: offsets for the whole U-Net pyramid of a camera (timed), the kernel figure,
     /// and a calibrated convolution run forward and backward, written to --out.
     Demo(DemoArgs),
-    /// Benchmark the calibrated convolution against conv2d (interleaved, in one process): time,
-    /// ratio and peak memory per layer shape, offsets + plans for the camera's U-Net pyramid,
-    /// and a U-Net-shaped training step.
+    /// Benchmark the calibrated convolution against conv2d (interleaved, in a process configured
+    /// like the trainer): time and ratio per layer shape (`--presets`: every layer of the U-Net
+    /// presets), offsets + plans for the camera's U-Net pyramid, and a U-Net training step; peak
+    /// memory afterwards in a second process.
     Bench(BenchArgs),
     /// Camera files: import a calibration from another tool.
     Camera(CameraArgs),
@@ -270,9 +271,22 @@ pub struct BenchArgs {
     /// Every U-Net level (32..512 channels, 256x256..16x16) at batch 1, 4 and 8 (minutes).
     #[arg(long)]
     pub full: bool,
+    /// Every 3x3 layer of the tiny (64x64, B8), small (128x128, B8) and classic (256x256, B2)
+    /// U-Nets, first layers without input gradient (as in training).
+    #[arg(long)]
+    pub presets: bool,
     /// Also time the ATen composition (the CUDA path and the former CPU path).
     #[arg(long)]
     pub aten: bool,
+    /// libtorch CPU threads (default: libtorch's choice; the quick sweep trains with 1).
+    #[arg(long)]
+    pub threads: Option<i32>,
+    /// Skip the peak-memory pass (a second process).
+    #[arg(long)]
+    pub no_memory: bool,
+    /// Internal: the peak-memory pass, run by `bench` itself in a child process.
+    #[arg(long, hide = true)]
+    pub memory_child: bool,
     /// Layer shapes to run instead of the table, each `B,CIN,COUT,H,W` (repeatable).
     #[arg(long = "shape", value_parser = parse_shape)]
     pub shapes: Vec<[i64; 5]>,
@@ -296,6 +310,9 @@ pub enum BenchPart {
     Pyramid,
     /// The U-Net-shaped training step.
     Unet,
+    /// The functional `ops::deform_conv2d` called again and again with one offsets tensor
+    /// (B4, 32 channels, 128x128; its plan comes from the plan cache).
+    Functional,
 }
 
 fn parse_shape(s: &str) -> Result<[i64; 5], String> {

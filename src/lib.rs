@@ -13,8 +13,9 @@
 //!   feature-map size, the offsets of every kernel tap relative to the regular deformable grid,
 //!   in torchvision's layout, computed in parallel and cached. Tensors begin here.
 //! - [`ops`]: the deformable convolution with fixed offsets, with torchvision `deform_conv2d`
-//!   semantics, from a precomputed sampling plan: native C++ kernels on the CPU (a custom
-//!   autograd function, within ~1.5x of `conv2d`), differentiable ATen ops elsewhere (CUDA).
+//!   semantics, from a precomputed (and cached) sampling plan: native C++ kernels on the CPU (a
+//!   custom autograd function; 1.3-2.4x `conv2d` at 8-256 channels, see the README's
+//!   "Performance"), differentiable ATen ops elsewhere (CUDA, untested on hardware).
 //! - [`nn`]: layers: [`nn::CalibratedConv2d`] (same parameter names and shapes as a standard
 //!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
 //!   network with milesial/Pytorch-UNet's parameter names (so PyTorch weights load by name and

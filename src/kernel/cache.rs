@@ -1,36 +1,69 @@
-//! An in-memory cache of offsets keyed by (camera, input size, geometry, input frame), so a
-//! network builds each layer's offsets once however many layers share them.
+//! The offsets cache: each layer's offsets computed once per (camera, input size, geometry,
+//! input frame), however many layers or networks share them.
+//!
+//! Lifetime: entries live for the process (a network's offsets are small next to its plans, and
+//! a sweep builds the same cameras' networks again and again); [`clear_offsets_cache`] drops
+//! them. The only owner is this module: callers hold `Arc`s to entries, which stay valid after
+//! a clear.
 
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use super::{compute_offsets, InputFrame, LayerGeometry, Offsets};
 use crate::camera::Camera;
 use crate::error::Result;
 
-type Key = (String, [usize; 2], LayerGeometry, InputFrame);
+/// What the offsets of a layer depend on. The camera is compared by value (`PartialEq` on its
+/// parameters), so two cameras share an entry only if all their parameters are equal.
+#[derive(Clone, Debug, PartialEq)]
+struct OffsetsKey {
+    camera: Camera,
+    input_size: [usize; 2],
+    geometry: LayerGeometry,
+    frame: InputFrame,
+}
 
-fn cache() -> &'static Mutex<HashMap<Key, Arc<Offsets>>> {
-    static CACHE: OnceLock<Mutex<HashMap<Key, Arc<Offsets>>>> = OnceLock::new();
+/// The entries: a few cameras times a few levels, scanned linearly (the camera has no `Hash`:
+/// it holds `f64`s).
+type Entries = Mutex<Vec<(OffsetsKey, Arc<Offsets>)>>;
+
+fn cache() -> &'static Entries {
+    static CACHE: OnceLock<Entries> = OnceLock::new();
     CACHE.get_or_init(Default::default)
 }
 
-/// [`compute_offsets`], computed once per key for the life of the process.
-///
-/// The camera part of the key is its `Debug` text, which prints every `f64` exactly, so two
-/// cameras share an entry only if all their parameters are bit-identical.
+fn lookup(key: &OffsetsKey) -> Option<Arc<Offsets>> {
+    let map = cache().lock().expect("offset cache poisoned");
+    map.iter().find(|(k, _)| k == key).map(|(_, v)| v.clone())
+}
+
+/// [`compute_offsets`], computed once per key for the life of the process (or until
+/// [`clear_offsets_cache`]).
 pub fn cached_offsets(
     camera: &Camera,
     input_size: [usize; 2],
     geometry: &LayerGeometry,
     frame: &InputFrame,
 ) -> Result<Arc<Offsets>> {
-    let key = (format!("{camera:?}"), input_size, *geometry, *frame);
-    if let Some(hit) = cache().lock().expect("offset cache poisoned").get(&key) {
-        return Ok(hit.clone());
+    let key = OffsetsKey {
+        camera: camera.clone(),
+        input_size,
+        geometry: *geometry,
+        frame: *frame,
+    };
+    if let Some(hit) = lookup(&key) {
+        return Ok(hit);
     }
     // Computed outside the lock: other layers keep going meanwhile.
     let offsets = Arc::new(compute_offsets(camera, input_size, geometry, frame)?);
     let mut map = cache().lock().expect("offset cache poisoned");
-    Ok(map.entry(key).or_insert(offsets).clone())
+    if let Some((_, v)) = map.iter().find(|(k, _)| *k == key) {
+        return Ok(v.clone());
+    }
+    map.push((key, offsets.clone()));
+    Ok(offsets)
+}
+
+/// Drops every cached entry (`Arc`s held elsewhere stay valid).
+pub fn clear_offsets_cache() {
+    cache().lock().expect("offset cache poisoned").clear();
 }

@@ -35,7 +35,7 @@
 
 mod cache;
 
-pub use cache::cached_offsets;
+pub use cache::{cached_offsets, clear_offsets_cache};
 
 use rayon::prelude::*;
 

@@ -1,7 +1,6 @@
 //! [`CalibratedConv2d`]: a deformable convolution whose offsets come from the camera.
 
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::Arc;
 
 use tch::nn::{self, Module};
 use tch::{Device, Kind, Tensor};
@@ -9,7 +8,7 @@ use tch::{Device, Kind, Tensor};
 use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
-use crate::ops::{deform_conv2d_planned, Border, SamplingPlan};
+use crate::ops::{deform_conv2d_planned, layer_plan, Border, SamplingPlan};
 
 /// Geometry and bias of a convolution (pairs are `[y, x]`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -57,9 +56,16 @@ impl Conv2dConfig {
 
 /// A `k x k` deformable convolution with fixed, calibrated offsets.
 ///
+/// On the CPU it works channels-last: an NCHW input is converted once, and the output is
+/// channels-last (same values and shape), so that in a network of these layers the batch norm,
+/// ReLU and pooling after one and the next one's input stay channels-last and nothing converts
+/// per call. Code that needs NCHW memory (`view` on an activation) calls `contiguous()`.
+///
 /// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
-/// The sampling plan is built once per (offsets, device) and shared (same tensor storage) by
-/// every layer with the same camera, feature-map size and geometry.
+/// The sampling plan is built once per (offsets, geometry, device) and shared (same tensor
+/// storage) by every layer with the same camera, feature-map size and geometry: offsets and
+/// plans come from the process-wide caches [`crate::kernel::cached_offsets`] and
+/// [`crate::ops::layer_plan`].
 #[derive(Debug)]
 pub struct CalibratedConv2d {
     pub ws: Tensor,
@@ -67,13 +73,6 @@ pub struct CalibratedConv2d {
     pub offsets: Arc<Offsets>,
     plan: SamplingPlan,
     groups: i64,
-}
-
-type PlanKey = (usize, [i64; 6], String);
-
-fn plan_cache() -> &'static Mutex<HashMap<PlanKey, SamplingPlan>> {
-    static CACHE: OnceLock<Mutex<HashMap<PlanKey, SamplingPlan>>> = OnceLock::new();
-    CACHE.get_or_init(Default::default)
 }
 
 impl CalibratedConv2d {
@@ -109,49 +108,21 @@ impl CalibratedConv2d {
             dilation: to_usize(cfg.dilation),
         };
         let offsets = cached_offsets(camera, to_usize(input_size), &geometry, frame)?;
-        let device = vs.device();
-        let key = (
-            Arc::as_ptr(&offsets) as usize,
-            [
-                cfg.stride[0],
-                cfg.stride[1],
-                padding[0],
-                padding[1],
-                cfg.dilation[0],
-                cfg.dilation[1],
-            ],
-            format!("{device:?}"),
-        );
-        let cached = plan_cache()
-            .lock()
-            .expect("plan cache poisoned")
-            .get(&key)
-            .map(SamplingPlan::shallow_clone);
-        let plan = match cached {
-            Some(plan) => plan,
-            None => {
-                // A panorama's kernels continue across its left/right edge.
-                let border = if camera.wraps_horizontally() {
-                    Border::WrapX
-                } else {
-                    Border::Zeros
-                };
-                let plan = SamplingPlan::from_offsets(
-                    &offsets,
-                    cfg.stride,
-                    padding,
-                    cfg.dilation,
-                    Kind::Float,
-                    border,
-                )?
-                .to_device(device);
-                plan_cache()
-                    .lock()
-                    .expect("plan cache poisoned")
-                    .insert(key, plan.shallow_clone());
-                plan
-            }
+        // A panorama's kernels continue across its left/right edge.
+        let border = if camera.wraps_horizontally() {
+            Border::WrapX
+        } else {
+            Border::Zeros
         };
+        let plan = layer_plan(
+            &offsets,
+            cfg.stride,
+            padding,
+            cfg.dilation,
+            Kind::Float,
+            border,
+            vs.device(),
+        )?;
         // Same names, shapes and initialisation as tch's nn::conv2d.
         let tch_cfg = cfg.to_tch(k);
         let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
@@ -174,13 +145,21 @@ impl CalibratedConv2d {
     ///
     /// # Shapes
     /// - `xs`: `[B, C_in, H, W]` with `[H, W]` the size the layer was built for
-    /// - output: `[B, C_out, H_out, W_out]`
+    /// - output: `[B, C_out, H_out, W_out]`, channels-last in memory on the CPU
     pub fn f_forward(&self, xs: &Tensor) -> Result<Tensor> {
         if xs.device() != self.plan.device() {
             let plan = self.plan.to_device(xs.device());
             return deform_conv2d_planned(xs, &plan, &self.ws, self.bs.as_ref(), self.groups);
         }
-        deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
+        // On the CPU the layer works channels-last (its output, hence the batch norm and ReLU
+        // after it and the next layer's input, stay channels-last): no layout conversion per
+        // call except at the network's input.
+        let xs = if xs.device() == Device::Cpu && xs.dim() == 4 {
+            channels_last(xs)
+        } else {
+            xs.shallow_clone()
+        };
+        deform_conv2d_planned(&xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
     }
 
     /// Device of the sampling plan.
@@ -195,4 +174,9 @@ impl Module for CalibratedConv2d {
         self.f_forward(xs)
             .unwrap_or_else(|e| panic!("CalibratedConv2d: {e}"))
     }
+}
+
+/// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).
+fn channels_last(x: &Tensor) -> Tensor {
+    x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
 }

@@ -16,25 +16,34 @@
 //! - **Native CPU kernels** (`native/deform.cpp`, compiled by `build.rs` against libtorch; the
 //!   default for CPU tensors): a `torch::autograd::Function` with hand-written kernels.
 //!   - *Forward*: the input is read channels-last (converted once per call, blocked; a
-//!     channels-last input is used in place). Per tile of output pixels a column tile
-//!     `[T, K*C]` (group, tap, channel) is gathered in cache, each element
-//!     `w0 a0 + w1 a1 + w2 a2 + w3 a3` over contiguous channel vectors (vectorised, compiled for
-//!     AVX-512 / AVX2 / baseline and picked at load time), then one GEMM per group against the
-//!     weight packed as `[G, C_out/G, K, C/G]` writes the output tile in place, bias preloaded.
-//!     Tiles run in parallel (`at::parallel_for`, handed out dynamically); the column matrix is
-//!     never materialised, so memory is that of `conv2d`. The output is NCHW, or channels-last
-//!     for a channels-last input (as `conv2d`).
-//!   - *Weight gradient*: column tiles are recomputed (not stored) and `gy^T @ cols` is
-//!     accumulated per thread chunk (fixed chunks, so the result is the same on every run for a
-//!     given thread count), then summed and laid out as the weight.
+//!     channels-last input is used in place). Per tile of output pixels (tiles run over the
+//!     flattened `(item, pixel)` rows, so the small maps of a U-Net batch into GEMMs of >= 1024
+//!     rows instead of one small GEMM per item) a column tile `[T, K*C]` (group, tap, channel)
+//!     is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over contiguous channel
+//!     vectors; the gather is compiled for 1-4, 8, 16, 32 and 64 channels as whole-vector
+//!     operations and in general, each for AVX-512 / AVX2 / baseline, picked at load time. Then
+//!     one GEMM per group against the weight packed as `[G, C_out/G, K, C/G]`: for float32 and
+//!     one group through oneDNN (`at::mkldnn_convolution` with a 1x1 kernel, the library
+//!     `conv2d` itself uses; libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's
+//!     speed at these shapes), else `at::mm`; the result is written into the output (NCHW, or
+//!     channels-last for a channels-last input, as `conv2d`). Tiles run in parallel
+//!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
+//!     except for a first layer: an input without gradient and <= 4 channels (an image) keeps
+//!     its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which would otherwise
+//!     gather them again at a cost close to the whole convolution's.
+//!   - *Weight gradient*: column tiles are recomputed (or the kept ones read) and
+//!     `gy^T @ cols` is accumulated per thread chunk (fixed chunks, so the result is the same on
+//!     every run for a given thread count), then summed and laid out as the weight; oneDNN from
+//!     32 output channels on (below, its reduction over pixels was slower than MKL's).
 //!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
 //!     to its four corners of a channels-last buffer. Tiles run in bands of output rows in two
-//!     phases (even bands, then odd bands), with the smallest band height for which the input
-//!     rows read by two bands of the same phase are disjoint (from the plan's row ranges): a
-//!     scatter without atomics or races whose summation order does not depend on the number of
-//!     threads. (A transposed plan that turns this into a gather was tried and dropped: for the
-//!     1080x960 pyramid it took longer to build than offsets and plans together and held 400
-//!     MiB more.)
+//!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
+//!     16 bands per batch up) for which the input rows read by two bands of the same phase are
+//!     disjoint (from the plan's row ranges); with one band per item a task takes whole items.
+//!     A scatter without atomics or races whose summation order does not depend on the number
+//!     of threads. (A transposed plan that turns this into a gather was tried and dropped: for
+//!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
+//!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
@@ -45,7 +54,8 @@
 //! # Numerics
 //! Both compute torchvision's bilinear deformable convolution; they differ from each other (and
 //! from torchvision) only in rounding: summation order (per-tile GEMMs, per-chunk weight
-//! gradients, the scatter order), fused multiply-adds in the gathers, and, for float32 plans,
+//! gradients, the scatter order, oneDNN's or MKL's GEMM blocking in float32), fused multiply-adds
+//! in the gathers, and, for float32 plans,
 //! corner weights formed in float32 from float32 fractions (relative differences ~1e-7). Tests
 //! hold the native path to the ATen one at 1e-12 (float64) on random plans with out-of-range and
 //! far-reaching samples, to torchvision's fixtures at 1e-4 (float32) / 1e-6 (float64), and to
@@ -54,11 +64,18 @@
 //!
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
 //! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
+//!
+//! # Plan cache
+//! [`deform_conv2d`] takes its plan from [`tensor_plan`] (the same offsets tensor, unchanged,
+//! is planned once); layers take theirs from [`layer_plan`]. Both live in one cache (module
+//! `cache`, its docs give the keys and lifetimes); [`clear_plan_caches`] empties it.
 
+mod cache;
 #[cfg(calibconv_native)]
 mod native;
 mod plan;
 
+pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
 pub use plan::{Border, SamplingPlan};
 
 use tch::{Kind, Tensor};
@@ -93,8 +110,11 @@ pub fn deform_conv2d(
     .unwrap_or_else(|e| panic!("deform_conv2d: {e}"))
 }
 
-/// Fallible twin of [`deform_conv2d`]. Builds the sampling plan on every call: layers that run
-/// many times hold a [`SamplingPlan`] and call [`deform_conv2d_planned`].
+/// Fallible twin of [`deform_conv2d`]. The sampling plan comes from the plan cache
+/// ([`tensor_plan`]): a loop that calls this again and again with the same offsets tensor builds
+/// it once (the cache keys it by the tensor's storage, shape, strides and version counter, so an
+/// in-place change of the offsets builds a new one). Layers hold their own [`SamplingPlan`] and
+/// call [`deform_conv2d_planned`].
 #[allow(clippy::too_many_arguments)]
 pub fn f_deform_conv2d(
     input: &Tensor,
@@ -118,7 +138,7 @@ pub fn f_deform_conv2d(
             weight.size()
         ))
     })?;
-    let plan = SamplingPlan::new(
+    let plan = tensor_plan(
         offsets,
         [h, w],
         [kh, kw],
@@ -126,8 +146,8 @@ pub fn f_deform_conv2d(
         padding,
         dilation,
         input.kind(),
-    )?
-    .to_device(input.device());
+        input.device(),
+    )?;
     deform_conv2d_planned(input, &plan, weight, bias, groups)
 }
 

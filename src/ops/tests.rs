@@ -263,6 +263,52 @@ fn native_matches_aten_on_random_plans() {
         // 1 and 2 channels: the unrolled gathers of the first layers.
         (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
+        // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
+        // items (B * P above a tile), the oneDNN GEMMs (float32, one group; the weight gradient
+        // from 32 output channels), scatter bands within an item (a tall map, small batch) and
+        // tasks of several whole items (small maps).
+        (
+            3,
+            16,
+            32,
+            24,
+            20,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            false,
+            2.0,
+        ),
+        (
+            2,
+            8,
+            8,
+            40,
+            36,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            true,
+            3.0,
+        ),
+        (
+            5,
+            32,
+            16,
+            12,
+            10,
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            1,
+            false,
+            1.5,
+        ),
     ];
     for (i, &(b, ci, co, h, w, k, s, p, d, g, per_item, scale)) in cases.iter().enumerate() {
         for kind in [Kind::Double, Kind::Float] {
@@ -576,4 +622,108 @@ fn native_handles_an_empty_batch() {
     let g = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x, &w], false, false);
     assert_eq!(g[0].size(), [0, 2, 5, 5]);
     assert_eq!(g[1].abs().sum(Kind::Float).double_value(&[]), 0.0);
+}
+
+/// CI runs with the native kernels: without them every native-vs-ATen test above compares the
+/// ATen composition with itself and passes vacuously. A build that cannot have them (no C++17
+/// compiler) says so explicitly with `CALIBCONV_ALLOW_NO_NATIVE=1`.
+#[test]
+fn native_kernels_are_built() {
+    if std::env::var("CALIBCONV_ALLOW_NO_NATIVE").as_deref() == Ok("1") {
+        return;
+    }
+    assert!(
+        native_available(),
+        "the native CPU kernels were not built (see build.rs's warning); set \
+         CALIBCONV_ALLOW_NO_NATIVE=1 to run the tests on the ATen composition alone"
+    );
+}
+
+/// A first layer: the input (an image) needs no gradient, so the native forward keeps its few-
+/// channel column matrix for the weight gradient instead of gathering it again. Output, weight
+/// and bias gradients still match the ATen composition, shared and per-item offsets, over tiles
+/// that span batch items.
+#[test]
+fn first_layer_without_input_gradient_matches_aten() {
+    tch::manual_seed(5);
+    for (kind, tol) in [(Kind::Double, F64_IMPL_TOL), (Kind::Float, F32_IMPL_TOL)] {
+        for per_item in [false, true] {
+            let opts = (kind, Device::Cpu);
+            let (b, c, h, w) = (3, 3, 30, 26);
+            let off = if per_item {
+                Tensor::randn([b, 18, h, w], opts) * 2.0
+            } else {
+                Tensor::randn([18, h, w], opts) * 2.0
+            };
+            let plan =
+                SamplingPlan::new(&off, [h, w], [3, 3], [1, 1], [1, 1], [1, 1], kind).unwrap();
+            let x = Tensor::randn([b, c, h, w], opts);
+            let probe = Tensor::randn([b, 8, h, w], opts);
+            let run = |backend| {
+                tch::manual_seed(6);
+                let wt = Tensor::randn([8, c, 3, 3], opts).set_requires_grad(true);
+                let bias = Tensor::randn([8], opts).set_requires_grad(true);
+                let out =
+                    deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
+                let loss = (&out * &probe).sum(kind);
+                let g = Tensor::run_backward(&[loss], &[&wt, &bias], false, false);
+                (out.detach(), g[0].shallow_clone(), g[1].shallow_clone())
+            };
+            let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
+            for (name, x, y) in [
+                ("output", &a.0, &b_.0),
+                ("grad weight", &a.1, &b_.1),
+                ("grad bias", &a.2, &b_.2),
+            ] {
+                let rel = max_rel(x, y);
+                assert!(
+                    rel < tol,
+                    "{kind:?} per-item {per_item}: {name} differs by {rel:e}"
+                );
+            }
+        }
+    }
+}
+
+/// The functional op's plan cache: the same offsets tensor reuses its plan (same storage); an
+/// in-place change of the offsets (a new version) gets a new plan, and the result follows it.
+#[test]
+fn functional_plans_are_cached_by_tensor_identity_and_version() {
+    tch::manual_seed(7);
+    let opts = (Kind::Float, Device::Cpu);
+    let mut off = Tensor::randn([18, 6, 7], opts);
+    let plan = |off: &Tensor| {
+        super::tensor_plan(
+            off,
+            [6, 7],
+            [3, 3],
+            [1, 1],
+            [1, 1],
+            [1, 1],
+            Kind::Float,
+            Device::Cpu,
+        )
+        .unwrap()
+    };
+    let (a, b) = (plan(&off), plan(&off));
+    assert!(a.shares_storage_with(&b), "second call must hit the cache");
+    let x = Tensor::randn([2, 4, 6, 7], opts);
+    let w = Tensor::randn([5, 4, 3, 3], opts);
+    let before = deform_conv2d(&x, &off, &w, None, [1, 1], [1, 1], [1, 1], 1);
+    let _ = off.g_add_scalar_(0.5);
+    let c = plan(&off);
+    assert!(
+        !a.shares_storage_with(&c),
+        "an in-place change must build a new plan"
+    );
+    let after = deform_conv2d(&x, &off, &w, None, [1, 1], [1, 1], [1, 1], 1);
+    let fresh = deform_conv2d(&x, &off.copy(), &w, None, [1, 1], [1, 1], [1, 1], 1);
+    assert!(
+        max_rel(&after, &fresh) < 1e-6,
+        "stale plan after an in-place change"
+    );
+    assert!(
+        max_rel(&after, &before) > 1e-3,
+        "the change must show in the result"
+    );
 }

@@ -6,11 +6,12 @@
 // - The weight is packed per pass as WP [G, C_out/G, K, C/G] (the tap and channel axes of every
 //   output channel swapped, a cheap local transpose); the backward pass repacks it rather than
 //   keeping a weight-sized buffer alive between the passes.
-// - forward: per tile of T output pixels, gather the column tile [T, K*C] (layout: group, tap,
-//   channel) from a channels-last view of the input with the plan's four corner indices and the
-//   bilinear weights of its fractions (ly, lx), then one GEMM per group,
-//   out[T, C_out/G] = cols_g @ WP_g^T, written in place into the output (NCHW or channels-last,
-//   as the input), bias preloaded.
+// - forward: per tile of T output pixels (rows q = b * P + p of the whole batch), gather the
+//   column tile [T, K*C] (layout: group, tap, channel) from a channels-last view of the input
+//   with the plan's four corner indices and the bilinear weights of its fractions (ly, lx), then
+//   y[T, C_out] = cols @ WP^T + bias (oneDNN for float32 with one group, else one at::mm per
+//   group), copied into the output (NCHW or channels-last, as the input). A first layer (input
+//   without gradient, <= 4 channels) keeps its whole column matrix for the weight gradient.
 // - backward, weight: the column tiles are recomputed (never stored) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
@@ -25,6 +26,7 @@
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/mkldnn_convolution.h>
 #include <torch/csrc/autograd/custom_function.h>
 
 #include <algorithm>
@@ -50,26 +52,38 @@ using torch::autograd::variable_list;
 // TILE_BYTES per thread raises the budget to its share per thread (the GEMM then spends on the
 // tile at least as much as on packing the weight).
 constexpr int64_t TILE_BYTES = 2 << 20;
-// Rows of a tile: at least MIN_TILE (GEMM efficiency), at most MAX_TILE.
-constexpr int64_t MIN_TILE = 128;
-constexpr int64_t MAX_TILE = 4096;
+// Rows of a tile: enough that its GEMM does at least MIN_TILE_FLOP (a oneDNN call costs ~15 us,
+// about 3 MFLOP of work: few channels need thousands of rows, 512 a few dozen), at least
+// MIN_TILE, at most MAX_TILE.
+constexpr int64_t MIN_TILE_FLOP = 8 << 20;
+constexpr int64_t MIN_TILE = 64;
+constexpr int64_t MAX_TILE = 8192;
+// The weight gradient goes through oneDNN from this many output channels on (below it oneDNN's
+// reduction over a tile's pixels was slower than MKL's: 40 vs 69 GFLOP/s at 8 channels, even at
+// 16, 1.5-1.7x faster from 32 on).
+constexpr int64_t DNN_WEIGHT_MIN_COUT = 32;
+// The forward pass keeps its column matrix for the weight gradient when the input needs no
+// gradient (a first layer) and has at most this many channels (the matrix is then K*C <= 36
+// values a pixel, about 9x the input).
+constexpr int64_t KEEP_COLUMNS_MAX_C = 4;
 
-// Rows per tile for `rows` rows per batch item of `row_elems` elements each, with a weight of
-// `weight_elems` elements. Tiles never span items; small problems get one tile per thread
-// (every tile repacks the weight, so splitting further only adds packing).
-int64_t tile_rows(int64_t batch, int64_t rows, int64_t row_elems, int64_t weight_elems,
-                  int64_t elem_bytes) {
+// Rows per tile for `total` rows (output pixels of the whole batch, or of one band) of
+// `row_elems` elements each, with a weight of `weight_elems` elements. Tiles span batch items
+// (the small maps of a U-Net have a few hundred pixels an item: one GEMM per item would be all
+// call overhead); small problems get one tile per thread.
+int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_t elem_bytes) {
   const int64_t threads = at::get_num_threads();
   const int64_t budget = std::max<int64_t>(TILE_BYTES, weight_elems * elem_bytes / threads);
   int64_t t = budget / std::max<int64_t>(1, row_elems * elem_bytes);
+  t = std::max(t, MIN_TILE_FLOP / std::max<int64_t>(1, 2 * weight_elems));
   t = std::clamp<int64_t>(t - t % 16, MIN_TILE, MAX_TILE);
-  t = std::min(t, (batch * rows + threads - 1) / threads);
-  return std::clamp<int64_t>(t, 1, std::max<int64_t>(1, rows));
+  t = std::min(t, (total + threads - 1) / threads);
+  return std::max<int64_t>(t, 1);
 }
 
 // ---------------------------------------------------------------------------------------------
-// Inner loops, written once per element type (not as templates) so that they can be compiled for
-// several instruction sets and picked at load time (GCC/Clang function multiversioning).
+// Instruction sets: the inner loops (gather, scatter) are compiled for several and picked at
+// load time (GCC function multiversioning, see CALIBCONV_TILE_KERNELS below).
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define CALIBCONV_CLONES \
@@ -78,62 +92,13 @@ int64_t tile_rows(int64_t batch, int64_t rows, int64_t row_elems, int64_t weight
 #define CALIBCONV_CLONES
 #endif
 
-// dst[i] = w0 a0[i] + w1 a1[i] + w2 a2[i] + w3 a3[i]
-#define CALIBCONV_BLEND4(T, NAME)                                                          \
-  CALIBCONV_CLONES void NAME(T* __restrict dst, const T* __restrict a0,                    \
-                             const T* __restrict a1, const T* __restrict a2,               \
-                             const T* __restrict a3, T w0, T w1, T w2, T w3, int64_t n) {  \
-    for (int64_t i = 0; i < n; ++i) {                                                      \
-      dst[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];                          \
-    }                                                                                      \
-  }
-CALIBCONV_BLEND4(float, blend4_f32)
-CALIBCONV_BLEND4(double, blend4_f64)
-
-// dst[i] += w src[i]
-#define CALIBCONV_AXPY(T, NAME)                                                              \
-  CALIBCONV_CLONES void NAME(T* __restrict dst, const T* __restrict src, T w, int64_t n) { \
-    for (int64_t i = 0; i < n; ++i) {                                                        \
-      dst[i] += w * src[i];                                                                  \
-    }                                                                                        \
-  }
-CALIBCONV_AXPY(float, axpy_f32)
-CALIBCONV_AXPY(double, axpy_f64)
-
-// Below this many channels the loops run inline: the multiversioned functions are reached
-// through an indirect call, which costs more than a few multiply-adds (the first layer has 3).
-constexpr int64_t INLINE_BELOW = 16;
-
-inline void blend4(float* d, const float* a0, const float* a1, const float* a2, const float* a3,
-                   float w0, float w1, float w2, float w3, int64_t n) {
-  if (n < INLINE_BELOW) {
-    for (int64_t i = 0; i < n; ++i) d[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
-  } else {
-    blend4_f32(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
-  }
-}
-inline void blend4(double* d, const double* a0, const double* a1, const double* a2,
-                   const double* a3, double w0, double w1, double w2, double w3, int64_t n) {
-  if (n < INLINE_BELOW) {
-    for (int64_t i = 0; i < n; ++i) d[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
-  } else {
-    blend4_f64(d, a0, a1, a2, a3, w0, w1, w2, w3, n);
-  }
-}
-inline void axpy(float* d, const float* s, float w, int64_t n) {
-  if (n < INLINE_BELOW) {
-    for (int64_t i = 0; i < n; ++i) d[i] += w * s[i];
-  } else {
-    axpy_f32(d, s, w, n);
-  }
-}
-inline void axpy(double* d, const double* s, double w, int64_t n) {
-  if (n < INLINE_BELOW) {
-    for (int64_t i = 0; i < n; ++i) d[i] += w * s[i];
-  } else {
-    axpy_f64(d, s, w, n);
-  }
-}
+#if defined(__GNUC__)
+#define CALIBCONV_ALWAYS_INLINE __attribute__((always_inline))
+#define CALIBCONV_IVDEP _Pragma("GCC ivdep")
+#else
+#define CALIBCONV_ALWAYS_INLINE
+#define CALIBCONV_IVDEP
+#endif
 
 // ---------------------------------------------------------------------------------------------
 // GEMM on raw strided matrices through ATen (which calls the BLAS libtorch was built with; it
@@ -164,6 +129,30 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
   } else {
     at::mm_out(tc, view_of(a), view_of(b));
   }
+}
+
+// float32 GEMMs of one group (G = 1) go through oneDNN, as a 1x1 convolution
+// (at::mkldnn_convolution), when libtorch has it: libtorch's MKL runs its AVX2 code path on AMD
+// CPUs and, at the skinny shapes of few channels, reaches 80-110 GFLOP/s where oneDNN's JIT
+// kernels (the ones conv2d uses) reach 140-240 (one thread, tile shapes of 16-128 channels, AMD
+// EPYC Zen 5). Float64 (which oneDNN does not have) and grouped convolutions use at::mm.
+bool dnn_available() {
+  static const bool ok = at::hasMKLDNN();
+  return ok;
+}
+
+// y = a @ w^T for a [m, kd] (any strides) and w [n, kd] (any strides), through a 1x1 oneDNN
+// convolution of the image [1, kd, 1, m] (a's rows are its pixels); bias [n] or undefined.
+// Returns y as an [m, n] view of a new tensor (its strides are oneDNN's choice).
+at::Tensor dnn_linear(const Mat<const float>& a, const at::Tensor& w, const at::Tensor& bias) {
+  auto opts = at::TensorOptions().dtype(at::kFloat);
+  const at::Tensor img = at::from_blob(const_cast<float*>(a.p), {1, a.cols, 1, a.rows},
+                                       {a.rows * a.cols, a.cs, a.rows * a.cols, a.rs}, opts);
+  const at::Tensor w4 = w.contiguous().view({w.size(0), w.size(1), 1, 1});
+  const std::optional<at::Tensor> b =
+      bias.defined() ? std::optional<at::Tensor>(bias) : std::nullopt;
+  const at::Tensor y = at::mkldnn_convolution(img, w4, b, {0, 0}, {1, 1}, {1, 1}, 1);
+  return y.select(0, 0).select(1, 0).t();
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -213,11 +202,32 @@ void parallel_tasks(int64_t n, const Init& init, const F& f) {
   });
 }
 
-// Per-thread buffers: a tile and a zero vector for out-of-range corners.
+// Per-thread buffers: a column tile [T, K*C], an output-sized tile [T, C_out] and a zero
+// vector for out-of-range corners.
 template <typename T>
 struct Scratch {
-  std::vector<T> tile, zero;
+  std::vector<T> tile, y, zero;
 };
+
+// Calls f(b, p0, len, offset) for the pieces of the flattened rows [q0, q0 + n) (q = b * P + p)
+// that lie in one batch item each; offset is the piece's first row within the tile.
+template <typename F>
+void for_items(int64_t P, int64_t q0, int64_t n, const F& f) {
+  for (int64_t q = q0; q < q0 + n;) {
+    const int64_t b = q / P, p0 = q % P, len = std::min(P - p0, q0 + n - q);
+    f(b, p0, len, q - q0);
+    q += len;
+  }
+}
+
+// The rows [q0, q0 + n) of a [B, C, P] tensor (channels-last if cl, else NCHW) as a row-major
+// [n, C] matrix: a view for channels-last, else a blocked transpose into buf.
+template <typename T>
+const T* rows_of(const T* y, bool cl, int64_t C, int64_t P, int64_t q0, int64_t n, T* buf);
+
+// The reverse: writes the row-major [n, C] matrix src into rows [q0, q0 + n) of dst.
+template <typename T>
+void write_rows(const T* src, T* dst, bool cl, int64_t C, int64_t P, int64_t q0, int64_t n);
 
 // Output matrix of group gi for output pixels [p0, p0 + n) of item b: [n, C_out/G], in the
 // output's layout (channels-last rows, or NCHW columns).
@@ -227,100 +237,206 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
 }
 
-// The bilinear weights of the four corners of a sample with fractional position (ly, lx):
-// (1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx, as torchvision (corners outside the input read the
-// plan's zero row, so their weight does not matter).
-template <typename T>
-struct Weights {
-  T w[4];
-  explicit Weights(const T* frac) {
-    const T ly = frac[0], lx = frac[1], hy = 1 - ly, hx = 1 - lx;
-    w[0] = hy * hx;
-    w[1] = hy * lx;
-    w[2] = ly * hx;
-    w[3] = ly * lx;
-  }
-  T operator[](int c) const { return w[c]; }
+// Vectors of N elements of T (GCC/Clang vector extensions, lowered to the widest registers the
+// clone's instruction set has): for channel counts whose byte size is a power of two, the gather
+// and scatter of one corner are written as whole-vector operations, because GCC's
+// auto-vectoriser leaves these short fixed loops scalar (it cannot prove the tile and the
+// buffer apart after unrolling them).
+template <typename T, int N, typename = void>
+struct VecOf {
+  static constexpr bool ok = false;
 };
+#if defined(__GNUC__)
+template <typename T, int N>
+struct VecOf<T, N, std::enable_if_t<(N >= 4 && (N & (N - 1)) == 0)>> {
+  static constexpr bool ok = true;
+  typedef T type __attribute__((vector_size(N * sizeof(T))));
+};
+#endif
+// (Always inlined, internal: -Wpsabi's note about passing wide vectors by value does not apply.)
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"
+#endif
+template <typename V, typename T>
+CALIBCONV_ALWAYS_INLINE inline V load(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof(V));
+  return v;
+}
+template <typename V, typename T>
+CALIBCONV_ALWAYS_INLINE inline void store(T* p, const V& v) {
+  std::memcpy(p, &v, sizeof(V));
+}
 
 // Gathers the column tile of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
 // (layout: group, tap, channel within the group) from the channels-last input x. NC > 0 fixes
-// the channel count at compile time (one group): the first layer has 3 channels, where the
-// per-sample work is all overhead unless the channel loop is unrolled.
+// the channel count at compile time (one group): at 3-32 channels the per-sample work is a few
+// vector operations, so the channel loop must be unrolled and vectorised for the instruction
+// set (the callers below are multiversioned; this body is inlined into every clone).
 template <typename T, int NC>
-void gather_columns_impl(const Geo& g, const T* x, const int32_t* index, const T* frac,
-                         const T* zero, int64_t b, int64_t p0, int64_t n, T* cols) {
+CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x,
+                                                        const int32_t* index, const T* frac,
+                                                        const T* zero, int64_t b, int64_t p0,
+                                                        int64_t n, T* cols) {
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1);  // per-item plans index a stacked table
   const int64_t C = NC > 0 ? NC : g.C, Cg = NC > 0 ? NC : g.Cg, G = NC > 0 ? 1 : g.G;
-  const T* xb = x + b * g.HW * C;
-  const int64_t row = g.K * C;
+  const int64_t HW = g.HW, K = g.K;
+  const T* xb = x + b * HW * C;
+  const int64_t row = K * C;
+  const int64_t s_begin = (item * g.P + p0) * K;
   for (int64_t t = 0; t < n; ++t) {
-    const int64_t s0 = (item * g.P + p0 + t) * g.K;
-    for (int64_t k = 0; k < g.K; ++k) {
-      const int32_t* ix = index + (s0 + k) * 4;
-      const Weights<T> w(frac + (s0 + k) * 2);
-      const T* a[4];
-      for (int c = 0; c < 4; ++c) {
-        const int64_t rel = ix[c] - shift;
-        a[c] = rel == g.HW ? zero : xb + rel * C;
-      }
-      T* dst = cols + t * row + k * Cg;
+    for (int64_t k = 0; k < K; ++k) {
+      const int64_t s = s_begin + t * K + k;
+      const int32_t* ix = index + s * 4;
+      const T ly = frac[2 * s], lx = frac[2 * s + 1], hy = 1 - ly, hx = 1 - lx;
+      const T w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
+      const int64_t r0 = ix[0] - shift, r1 = ix[1] - shift, r2 = ix[2] - shift,
+                    r3 = ix[3] - shift;
+      const T* __restrict a0 = r0 == HW ? zero : xb + r0 * C;
+      const T* __restrict a1 = r1 == HW ? zero : xb + r1 * C;
+      const T* __restrict a2 = r2 == HW ? zero : xb + r2 * C;
+      const T* __restrict a3 = r3 == HW ? zero : xb + r3 * C;
+      T* __restrict dst = cols + t * row + k * Cg;
       if constexpr (NC > 0) {
-        for (int i = 0; i < NC; ++i) {
-          dst[i] = w[0] * a[0][i] + w[1] * a[1][i] + w[2] * a[2][i] + w[3] * a[3][i];
+        if constexpr (VecOf<T, NC>::ok) {
+          using V = typename VecOf<T, NC>::type;
+          store(dst, w0 * load<V>(a0) + w1 * load<V>(a1) + w2 * load<V>(a2) + w3 * load<V>(a3));
+        } else {
+          for (int i = 0; i < NC; ++i) {
+            dst[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
+          }
         }
       } else {
         for (int64_t gi = 0; gi < G; ++gi) {
           const int64_t o = gi * Cg;
-          blend4(dst + gi * g.K * Cg, a[0] + o, a[1] + o, a[2] + o, a[3] + o, w[0], w[1], w[2],
-                 w[3], Cg);
+          T* __restrict d = dst + gi * K * Cg;
+          CALIBCONV_IVDEP
+          for (int64_t i = 0; i < Cg; ++i) {
+            d[i] = w0 * a0[o + i] + w1 * a1[o + i] + w2 * a2[o + i] + w3 * a3[o + i];
+          }
         }
       }
     }
-  }
-}
-
-template <typename T>
-void gather_columns(const Geo& g, const T* x, const int32_t* index, const T* frac, const T* zero,
-                    int64_t b, int64_t p0, int64_t n, T* cols) {
-  const auto run = [&](auto nc) {
-    gather_columns_impl<T, decltype(nc)::value>(g, x, index, frac, zero, b, p0, n, cols);
-  };
-  switch (g.G == 1 ? g.C : 0) {
-    case 1: return run(std::integral_constant<int, 1>());
-    case 2: return run(std::integral_constant<int, 2>());
-    case 3: return run(std::integral_constant<int, 3>());
-    case 4: return run(std::integral_constant<int, 4>());
-    default: return run(std::integral_constant<int, 0>());
   }
 }
 
 // Adds the column-gradient tile gcols [n, K*C] (layout as the columns) of output pixels
 // [p0, p0 + n) of batch item b to the corners they sampled, in the channels-last buffer gx.
-template <typename T>
-void scatter_columns(const Geo& g, T* gx, const int32_t* index, const T* frac, int64_t b,
-                     int64_t p0, int64_t n, const T* gcols) {
+// NC as in gather_columns_body.
+template <typename T, int NC>
+CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gx,
+                                                         const int32_t* index, const T* frac,
+                                                         int64_t b, int64_t p0, int64_t n,
+                                                         const T* gcols) {
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1);
-  T* gxb = gx + b * g.HW * g.C;
-  const int64_t row = g.K * g.C;
+  const int64_t C = NC > 0 ? NC : g.C, Cg = NC > 0 ? NC : g.Cg, G = NC > 0 ? 1 : g.G;
+  const int64_t HW = g.HW, K = g.K;
+  T* gxb = gx + b * HW * C;
+  const int64_t row = K * C;
+  const int64_t s_begin = (item * g.P + p0) * K;
   for (int64_t t = 0; t < n; ++t) {
-    const int64_t s0 = (item * g.P + p0 + t) * g.K;
-    for (int64_t k = 0; k < g.K; ++k) {
-      const int32_t* ix = index + (s0 + k) * 4;
-      const Weights<T> w(frac + (s0 + k) * 2);
-      const T* src = gcols + t * row + k * g.Cg;
-      for (int c = 0; c < 4; ++c) {
-        const int64_t rel = ix[c] - shift;
-        if (rel == g.HW || w[c] == T(0)) continue;
-        T* dst = gxb + rel * g.C;
-        for (int64_t gi = 0; gi < g.G; ++gi) {
-          axpy(dst + gi * g.Cg, src + gi * g.K * g.Cg, w[c], g.Cg);
+    for (int64_t k = 0; k < K; ++k) {
+      const int64_t s = s_begin + t * K + k;
+      const int32_t* ix = index + s * 4;
+      const T ly = frac[2 * s], lx = frac[2 * s + 1], hy = 1 - ly, hx = 1 - lx;
+      const T w[4] = {hy * hx, hy * lx, ly * hx, ly * lx};
+      const T* __restrict src = gcols + t * row + k * Cg;
+      if constexpr (NC > 0) {
+        for (int c = 0; c < 4; ++c) {
+          const int64_t rel = ix[c] - shift;
+          if (rel == HW || w[c] == T(0)) continue;
+          T* __restrict dst = gxb + rel * C;
+          const T wc = w[c];
+          if constexpr (VecOf<T, NC>::ok) {
+            using V = typename VecOf<T, NC>::type;
+            store(dst, load<V>(dst) + wc * load<V>(src));
+          } else {
+            for (int i = 0; i < NC; ++i) dst[i] += wc * src[i];
+          }
+        }
+      } else {
+        for (int c = 0; c < 4; ++c) {
+          const int64_t rel = ix[c] - shift;
+          if (rel == HW || w[c] == T(0)) continue;
+          T* __restrict dst = gxb + rel * C;
+          const T wc = w[c];
+          for (int64_t gi = 0; gi < G; ++gi) {
+            T* __restrict d = dst + gi * Cg;
+            const T* __restrict q = src + gi * K * Cg;
+            CALIBCONV_IVDEP
+            for (int64_t i = 0; i < Cg; ++i) d[i] += wc * q[i];
+          }
         }
       }
     }
   }
+}
+
+// The multiversioned entry points, one per (element type, fixed channel count): NC = 0 is the
+// general case (any channels, any groups).
+#define CALIBCONV_TILE_KERNELS(T, NC)                                                          \
+  CALIBCONV_CLONES void gather_##T##_##NC(const Geo& g, const T* x, const int32_t* index,      \
+                                          const T* frac, const T* zero, int64_t b, int64_t p0, \
+                                          int64_t n, T* cols) {                                \
+    gather_columns_body<T, NC>(g, x, index, frac, zero, b, p0, n, cols);                       \
+  }                                                                                            \
+  CALIBCONV_CLONES void scatter_##T##_##NC(const Geo& g, T* gx, const int32_t* index,          \
+                                           const T* frac, int64_t b, int64_t p0, int64_t n,    \
+                                           const T* gcols) {                                   \
+    scatter_columns_body<T, NC>(g, gx, index, frac, b, p0, n, gcols);                          \
+  }
+#define CALIBCONV_TILE_KERNELS_ALL(T) \
+  CALIBCONV_TILE_KERNELS(T, 0)        \
+  CALIBCONV_TILE_KERNELS(T, 1)        \
+  CALIBCONV_TILE_KERNELS(T, 2)        \
+  CALIBCONV_TILE_KERNELS(T, 3)        \
+  CALIBCONV_TILE_KERNELS(T, 4)        \
+  CALIBCONV_TILE_KERNELS(T, 8)        \
+  CALIBCONV_TILE_KERNELS(T, 16)       \
+  CALIBCONV_TILE_KERNELS(T, 32)       \
+  CALIBCONV_TILE_KERNELS(T, 64)
+CALIBCONV_TILE_KERNELS_ALL(float)
+CALIBCONV_TILE_KERNELS_ALL(double)
+
+// The kernels of one element type, picked by channel count (one group) once per call.
+template <typename T>
+struct TileKernels {
+  using Gather = void (*)(const Geo&, const T*, const int32_t*, const T*, const T*, int64_t,
+                          int64_t, int64_t, T*);
+  using Scatter = void (*)(const Geo&, T*, const int32_t*, const T*, int64_t, int64_t, int64_t,
+                           const T*);
+  Gather gather;
+  Scatter scatter;
+};
+
+#define CALIBCONV_PICK(T, NC) \
+  case NC:                    \
+    return {gather_##T##_##NC, scatter_##T##_##NC};
+#define CALIBCONV_PICK_ALL(T)                                 \
+  switch (g.G == 1 ? g.C : 0) {                               \
+    CALIBCONV_PICK(T, 1)                                      \
+    CALIBCONV_PICK(T, 2)                                      \
+    CALIBCONV_PICK(T, 3)                                      \
+    CALIBCONV_PICK(T, 4)                                      \
+    CALIBCONV_PICK(T, 8)                                      \
+    CALIBCONV_PICK(T, 16)                                     \
+    CALIBCONV_PICK(T, 32)                                     \
+    CALIBCONV_PICK(T, 64)                                     \
+    default:                                                  \
+      return {gather_##T##_0, scatter_##T##_0};               \
+  }
+
+template <typename T>
+TileKernels<T> tile_kernels(const Geo& g);
+template <>
+TileKernels<float> tile_kernels<float>(const Geo& g) {
+  CALIBCONV_PICK_ALL(float)
+}
+template <>
+TileKernels<double> tile_kernels<double>(const Geo& g) {
+  CALIBCONV_PICK_ALL(double)
 }
 
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
@@ -346,6 +462,26 @@ void convert_pixels(const T* __restrict src, T* __restrict dst, int64_t C, int64
       }
     }
   }
+}
+
+template <typename T>
+const T* rows_of(const T* y, bool cl, int64_t C, int64_t P, int64_t q0, int64_t n, T* buf) {
+  if (cl) return y + q0 * C;
+  for_items(P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+    convert_pixels(y + b * C * P, buf + (off - p0) * C, C, P, p0, len, true);
+  });
+  return buf;
+}
+
+template <typename T>
+void write_rows(const T* src, T* dst, bool cl, int64_t C, int64_t P, int64_t q0, int64_t n) {
+  if (cl) {
+    std::memcpy(dst + q0 * C, src, n * C * sizeof(T));
+    return;
+  }
+  for_items(P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+    convert_pixels(src + (off - p0) * C, dst + b * C * P, C, P, p0, len, false);
+  });
 }
 
 // Copies x [B, C, H, W] (NCHW-contiguous if `to_cl`, else channels-last-contiguous) into dst of
@@ -397,7 +533,8 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
 
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
-                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac) {
+                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac,
+                        const at::Tensor& keep) {
   const auto fmt = memory_format(input);
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   const at::Tensor x = channels_last<T>(input);
@@ -410,27 +547,47 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const T* fp = frac.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
-  const int64_t tile = tile_rows(g.B, g.P, kc, g.Cout * kcg, sizeof(T));
-  const int64_t tiles = (g.P + tile - 1) / tile;
-  auto init = [&] { return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(g.C, T(0))}; };
-  parallel_tasks(g.B * tiles, init, [&](int64_t task, Scratch<T>& s) {
-    const int64_t b = task / tiles, p0 = (task % tiles) * tile;
-    const int64_t n = std::min(tile, g.P - p0);
-    gather_columns<T>(g, xp, ip, fp, s.zero.data(), b, p0, n, s.tile.data());
+  // Tiles of flattened rows q = b * P + p; per-item plans keep their tiles within one item only
+  // in the sense that the gather takes each piece's own samples (for_items).
+  const int64_t total = g.B * g.P;
+  const int64_t tile = tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const int64_t tiles = (total + tile - 1) / tile;
+  const TileKernels<T> kern = tile_kernels<T>(g);
+  const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const at::Tensor w2 = wp.view({g.Cout, kcg});  // used with G = 1 only
+  auto init = [&] {
+    return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(dnn ? 0 : tile * g.Cout),
+                      std::vector<T>(g.C, T(0))};
+  };
+  // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
+  // weight gradient.
+  T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
+  parallel_tasks(tiles, init, [&](int64_t task, Scratch<T>& s) {
+    const int64_t q0 = task * tile, n = std::min(tile, total - q0);
+    T* tp = kp ? kp + q0 * kc : s.tile.data();
+    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+      kern.gather(g, xp, ip, fp, s.zero.data(), b, p0, len, tp + off * kc);
+    });
+    if constexpr (std::is_same_v<T, float>) {
+      if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
+        const Mat<const float> cols{tp, n, kc, kc, 1};
+        const at::Tensor y = dnn_linear(cols, w2, bias_c).contiguous();  // [n, C_out]
+        write_rows(y.const_data_ptr<float>(), op, cl, g.Cout, g.P, q0, n);
+        return;
+      }
+    }
+    T* yp = s.y.data();  // [n, C_out]
     for (int64_t gi = 0; gi < g.G; ++gi) {
-      const Mat<const T> cols{s.tile.data() + gi * kcg, n, kcg, kc, 1};
+      const Mat<const T> cols{tp + gi * kcg, n, kcg, kc, 1};
       const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
-      const Mat<T> c = out_block(g, op, cl, b, gi, p0, n);
+      const Mat<T> c{yp + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
       if (bp) {  // c = bias, then c += cols @ w^T
         const T* bg = bp + gi * g.Coutg;
-        if (cl) {
-          for (int64_t i = 0; i < n; ++i) std::copy(bg, bg + g.Coutg, c.p + i * c.rs);
-        } else {
-          for (int64_t j = 0; j < g.Coutg; ++j) std::fill(c.p + j * c.cs, c.p + j * c.cs + n, bg[j]);
-        }
+        for (int64_t i = 0; i < n; ++i) std::copy(bg, bg + g.Coutg, c.p + i * c.rs);
       }
       gemm<T>(cols, w.t(), c, bp != nullptr);
     }
+    write_rows(yp, op, cl, g.Cout, g.P, q0, n);
   });
   return out;
 }
@@ -438,13 +595,16 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
 // Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
-                            const at::Tensor& index, const at::Tensor& frac) {
+                            const at::Tensor& index, const at::Tensor& frac,
+                            const at::Tensor& kept) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
-  const at::Tensor x = channels_last<T>(input);
+  // The columns the forward pass kept, or the channels-last input to gather them again from.
+  const T* kp = kept.defined() ? kept.const_data_ptr<T>() : nullptr;
+  const at::Tensor x = kp ? input : channels_last<T>(input);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
-  const int64_t tile = tile_rows(g.B, g.P, kc, g.Cout * kcg, sizeof(T));
-  const int64_t tiles = (g.P + tile - 1) / tile;
-  const int64_t tasks = g.B * tiles;
+  const int64_t total = g.B * g.P;
+  const int64_t tile = tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const int64_t tasks = (total + tile - 1) / tile;
   // One accumulator per chunk of tasks; chunks are fixed (not handed out dynamically) so that the
   // summation order, hence the result, is the same on every run with the same thread count.
   const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tasks));
@@ -460,17 +620,34 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const T* gp = gy.const_data_ptr<T>();
   const int32_t* ip = index.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
+  const TileKernels<T> kern = tile_kernels<T>(g);
+  const bool dnn =
+      std::is_same_v<T, float> && g.G == 1 && g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    std::vector<T> cols(tile * kc), zero(g.C, T(0));
+    std::vector<T> cols(kp ? 0 : tile * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
-        const int64_t b = task / tiles, p0 = (task % tiles) * tile;
-        const int64_t n = std::min(tile, g.P - p0);
-        gather_columns<T>(g, xp, ip, fp, zero.data(), b, p0, n, cols.data());
+        const int64_t q0 = task * tile, n = std::min(tile, total - q0);
+        const T* cp = kp ? kp + q0 * kc : cols.data();
+        if (!kp) {
+          for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+            kern.gather(g, xp, ip, fp, zero.data(), b, p0, len, cols.data() + off * kc);
+          });
+        }
+        const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
+        if constexpr (std::is_same_v<T, float>) {
+          if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
+            const Mat<const float> cols_t{cp, kc, n, 1, kc};
+            const Mat<const float> y{yt, n, g.Cout, g.Cout, 1};
+            view_of(Mat<float>{accp, g.Cout, kc, kc, 1})
+                .add_(dnn_linear(cols_t, view_of(y.t()), at::Tensor()).t());
+            continue;
+          }
+        }
         for (int64_t gi = 0; gi < g.G; ++gi) {
-          const Mat<const T> c{cols.data() + gi * kcg, n, kcg, kc, 1};
-          const Mat<const T> y = out_block(g, const_cast<T*>(gp), cl, b, gi, p0, n).as_const();
+          const Mat<const T> c{cp + gi * kcg, n, kcg, kc, 1};
+          const Mat<const T> y{yt + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
           const Mat<T> a{accp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
           gemm<T>(y.t(), c, a, true);
         }
@@ -496,20 +673,23 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   return gw.view({g.Cout, g.Cg, g.K});
 }
 
-// Output pixels a scatter band should hold at least (its GEMMs repack the weight), unless that
-// leaves fewer than MIN_BANDS bands per item (two per phase) to run in parallel.
-constexpr int64_t BAND_PIXELS = 256;
-constexpr int64_t MIN_BANDS = 4;
+// Bands of the scatter: at least BAND_PIXELS output pixels (each band's tiles are GEMMs that
+// cost a fixed overhead per call), and enough bands that the batch has MIN_BAND_TASKS of them
+// (about eight per phase to hand out to the threads; a batch of 8 gets two bands per item).
+constexpr int64_t BAND_PIXELS = 1024;
+constexpr int64_t MIN_BAND_TASKS = 16;
 
 // Bands of output rows for the scatter: a band height R such that, within each of the two
 // phases (even bands, odd bands), the input rows touched by different bands are disjoint, for
 // every plan item. rows holds [items, H_out, 2] (lowest, highest input row read by an output
-// row; lowest > highest when it reads none). R starts at the size preferred for the GEMMs and
-// doubles until the bands are disjoint; it depends on the shapes and the plan only, never on the
-// thread count, so neither does the summation order. Returns R (H_out: one band).
+// row; lowest > highest when it reads none). R starts at the size preferred above and doubles
+// until the bands are disjoint; it depends on the shapes and the plan only, never on the thread
+// count, so neither does the summation order. Returns R (H_out: one band).
 int64_t band_rows(const Geo& g, const int32_t* rows) {
   const int64_t items = g.per_item ? g.B : 1;
-  const int64_t preferred = std::min((BAND_PIXELS + g.Wo - 1) / g.Wo, g.Ho / MIN_BANDS);
+  const int64_t bands_wanted = std::max<int64_t>(1, (MIN_BAND_TASKS + g.B - 1) / std::max<int64_t>(1, g.B));
+  const int64_t preferred =
+      std::max((BAND_PIXELS + g.Wo - 1) / g.Wo, (g.Ho + bands_wanted - 1) / bands_wanted);
   for (int64_t r = std::max<int64_t>(1, preferred); r < g.Ho; r *= 2) {
     const int64_t bands = (g.Ho + r - 1) / r;
     bool ok = true;
@@ -553,23 +733,66 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t r = band_rows(g, rows.const_data_ptr<int32_t>());
   const int64_t bands = (g.Ho + r - 1) / r;
-  const int64_t band_pixels = r * g.Wo;
-  const int64_t tile = tile_rows(g.B, std::min(band_pixels, g.P), kc, g.Cout * kcg, sizeof(T));
-  auto init = [&] { return Scratch<T>{std::vector<T>(tile * kc), {}}; };
+  const int64_t band_pixels = std::min(g.P, r * g.Wo);
+  // A task is one band of one item or, with one band per item, whole items (as many as fill a
+  // tile, leaving a task per thread): tasks never share an item's band, so the scatter has no
+  // race, and every input pixel receives its contributions in output-pixel order whatever the
+  // grouping (the grouping may depend on the thread count, the result does not).
+  const int64_t threads = at::get_num_threads();
+  const int64_t per_task =
+      bands > 1 ? 1
+                : std::max<int64_t>(1, std::min<int64_t>(BAND_PIXELS / std::max<int64_t>(1, g.P),
+                                                         (g.B + threads - 1) / threads));
+  const int64_t groups_of_items = (g.B + per_task - 1) / per_task;
+  const int64_t tile =
+      std::min(tile_rows(g.B * g.P, kc, g.Cout * kcg, sizeof(T)), per_task * band_pixels);
+  const TileKernels<T> kern = tile_kernels<T>(g);
+  const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
+  auto init = [&] {
+    return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
+  };
   for (int64_t phase = 0; phase < 2; ++phase) {
     const int64_t phase_bands = (bands - phase + 1) / 2;
-    parallel_tasks(g.B * phase_bands, init, [&](int64_t task, Scratch<T>& s) {
-      const int64_t b = task / phase_bands, band = phase + 2 * (task % phase_bands);
-      const int64_t end = std::min(g.P, (band + 1) * band_pixels);
-      for (int64_t p0 = band * band_pixels; p0 < end; p0 += tile) {
-        const int64_t n = std::min(tile, end - p0);
+    parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, Scratch<T>& s) {
+      const int64_t items = task / phase_bands, band = phase + 2 * (task % phase_bands);
+      // Rows [q_begin, q_end) of the flattened (item, pixel) rows.
+      int64_t q_begin, q_end;
+      if (bands > 1) {
+        q_begin = items * g.P + band * band_pixels;
+        q_end = items * g.P + std::min(g.P, (band + 1) * band_pixels);
+      } else {
+        q_begin = items * per_task * g.P;
+        q_end = std::min(g.B, (items + 1) * per_task) * g.P;
+      }
+      for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
+        const int64_t n = std::min(tile, q_end - q0);
+        const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
+        const T* src = s.tile.data();  // grad_cols [n, K*C]
+        if constexpr (std::is_same_v<T, float>) {
+          if (dnn) {  // grad_cols = gy @ W, scattered from oneDNN's result (or the tile)
+            const at::Tensor gc = dnn_linear(Mat<const float>{yt, n, g.Cout, g.Cout, 1}, wt,
+                                             at::Tensor());
+            if (gc.is_contiguous()) {
+              src = gc.const_data_ptr<float>();
+            } else {
+              view_of(Mat<float>{s.tile.data(), n, kc, kc, 1}).copy_(gc);
+            }
+            for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+              kern.scatter(g, xp, ip, fp, b, p0, len, src + off * kc);
+            });
+            continue;
+          }
+        }
         for (int64_t gi = 0; gi < g.G; ++gi) {
-          const Mat<const T> y = out_block(g, const_cast<T*>(gp), cl_y, b, gi, p0, n).as_const();
+          const Mat<const T> y{yt + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
           const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
           const Mat<T> c{s.tile.data() + gi * kcg, n, kcg, kc, 1};
           gemm<T>(y, w, c, false);
         }
-        scatter_columns<T>(g, xp, ip, fp, b, p0, n, s.tile.data());
+        for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+          kern.scatter(g, xp, ip, fp, b, p0, len, src + off * kc);
+        });
       }
     });
   }
@@ -597,9 +820,18 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["groups"] = groups;
     ctx->saved_data["per_item"] = per_item;
     ctx->saved_data["has_bias"] = has_bias;
+    // A first layer (its input, the image, needs no gradient) with few channels: its column
+    // matrix is small (K*C values a pixel) and the weight gradient would gather it again, at a
+    // cost close to the whole convolution's at 3 channels, so it is kept.
+    const bool keep_cols = !input.requires_grad() && weight.requires_grad() &&
+                           g.C <= KEEP_COLUMNS_MAX_C && g.G == 1;
+    at::Tensor keep =
+        keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
+    ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
-      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac);
+      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac,
+                                   keep);
     });
     return out;
   }
@@ -622,7 +854,9 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     at::Tensor gx, gw, gb;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       if (ctx->needs_input_grad(1)) {
-        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor())
+        const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
+        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor(),
+                                        kept)
                  .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
