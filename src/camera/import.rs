@@ -29,8 +29,8 @@
 //! JSON numbers are read exactly (serde_json's `float_roundtrip`), YAML numbers by Rust's own
 //! float parser, so coefficients reach the camera file bit for bit.
 //!
-//! Every imported camera goes through the camera-file checks ([`super::parse`] of its
-//! [`super::to_toml`] text), so it is exactly what the written file will read back as.
+//! Every imported camera is built by its model's validating constructor, which the camera-file
+//! reader calls too, so it is exactly what the written file will read back as.
 
 use std::path::Path;
 
@@ -38,8 +38,8 @@ use serde_json::Value;
 
 use super::geometry::angle_to_axis;
 use super::{
-    file, Camera, CameraModel, DoubleSphere, ExtendedUnified, KannalaBrandt, Pinhole,
-    PinholeRadTan, Scaramuzza, Unified,
+    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
+    Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
 
@@ -224,64 +224,64 @@ struct Parsed {
     notes: Vec<String>,
 }
 
-/// The camera for `fov_deg` (ignored by the pinhole models).
-fn build(model: &Model, [width, height]: [usize; 2], fov_deg: f64) -> Camera {
-    match model.clone() {
-        Model::KannalaBrandt { f, k } => Camera::KannalaBrandt(KannalaBrandt::new(
-            f[0], f[1], f[2], f[3], k, width, height, fov_deg,
-        )),
-        Model::Pinhole { f } => Camera::Pinhole(Pinhole {
-            fx: f[0],
-            fy: f[1],
-            cx: f[2],
-            cy: f[3],
-            width,
-            height,
-        }),
-        Model::RadTan { f, k, p } => Camera::PinholeRadTan(PinholeRadTan::new(
-            f[0], f[1], f[2], f[3], k, p, width, height,
-        )),
-        Model::DoubleSphere { f, xi, alpha } => Camera::DoubleSphere(DoubleSphere {
-            fx: f[0],
-            fy: f[1],
-            cx: f[2],
-            cy: f[3],
-            xi,
-            alpha,
-            width,
-            height,
-            fov_deg,
-        }),
-        Model::Unified { f, alpha } => Camera::Unified(Unified {
-            fx: f[0],
-            fy: f[1],
-            cx: f[2],
-            cy: f[3],
-            alpha,
-            width,
-            height,
-            fov_deg,
-        }),
-        Model::ExtendedUnified { f, alpha, beta } => Camera::ExtendedUnified(ExtendedUnified {
-            fx: f[0],
-            fy: f[1],
-            cx: f[2],
-            cy: f[3],
-            alpha,
-            beta,
-            width,
-            height,
-            fov_deg,
-        }),
+/// The camera for `fov_deg` (ignored by the pinhole models), through the models' validating
+/// constructors: exactly what the written camera file will read back as.
+fn build(model: &Model, size: [usize; 2], fov_deg: f64) -> std::result::Result<Camera, Invalid> {
+    let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
+    Ok(match model.clone() {
+        Model::KannalaBrandt { f, k } => {
+            Camera::KannalaBrandt(KannalaBrandt::new(intrinsics(f), k, fov_deg)?)
+        }
+        Model::Pinhole { f } => Camera::Pinhole(Pinhole::new(intrinsics(f))?),
+        Model::RadTan { f, k, p } => {
+            Camera::PinholeRadTan(PinholeRadTan::new(intrinsics(f), k, p)?)
+        }
+        Model::DoubleSphere { f, xi, alpha } => {
+            Camera::DoubleSphere(DoubleSphere::new(intrinsics(f), xi, alpha, fov_deg)?)
+        }
+        Model::Unified { f, alpha } => {
+            Camera::Unified(Unified::new(intrinsics(f), alpha, fov_deg)?)
+        }
+        Model::ExtendedUnified { f, alpha, beta } => {
+            Camera::ExtendedUnified(ExtendedUnified::new(intrinsics(f), alpha, beta, fov_deg)?)
+        }
         Model::Scaramuzza {
             poly,
             inv_poly,
             centre,
             cde,
-        } => Camera::Scaramuzza(Scaramuzza::new(
-            poly, inv_poly, centre[0], centre[1], cde, width, height, fov_deg,
+        } => Camera::Scaramuzza(Scaramuzza::new(poly, inv_poly, centre, cde, size, fov_deg)?),
+    })
+}
+
+/// A fisheye camera without the checks, to probe the model's domain before `fov_deg` is chosen
+/// (the domain does not depend on it); `None` for the pinhole models, which derive theirs.
+fn probe(model: &Model, size: [usize; 2]) -> Option<Camera> {
+    let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
+    let fov_deg = 180.0;
+    Some(match model.clone() {
+        Model::Pinhole { .. } | Model::RadTan { .. } => return None,
+        Model::KannalaBrandt { f, k } => {
+            Camera::KannalaBrandt(KannalaBrandt::unchecked(intrinsics(f), k, fov_deg))
+        }
+        Model::DoubleSphere { f, xi, alpha } => {
+            Camera::DoubleSphere(DoubleSphere::unchecked(intrinsics(f), xi, alpha, fov_deg))
+        }
+        Model::Unified { f, alpha } => {
+            Camera::Unified(Unified::unchecked(intrinsics(f), alpha, fov_deg))
+        }
+        Model::ExtendedUnified { f, alpha, beta } => Camera::ExtendedUnified(
+            ExtendedUnified::unchecked(intrinsics(f), alpha, beta, fov_deg),
+        ),
+        Model::Scaramuzza {
+            poly,
+            inv_poly,
+            centre,
+            cde,
+        } => Camera::Scaramuzza(Scaramuzza::unchecked(
+            poly, inv_poly, centre, cde, size, fov_deg,
         )),
-    }
+    })
 }
 
 /// Rounds the width-derived field of view down to 1e-3 deg (readable, and never past an edge).
@@ -320,8 +320,9 @@ fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Import
             f
         }
         (FovSource::ImageWidth, _) => {
-            // The domain does not depend on fov_deg: any value builds the camera to probe it.
-            let probe = build(&model, size, 180.0);
+            let Some(probe) = probe(&model, size) else {
+                unreachable!("pinhole models derive their field of view")
+            };
             let [w, _] = size;
             let cy = principal_row(&probe);
             let mut total = 0.0;
@@ -349,9 +350,7 @@ fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Import
         }
         _ => 180.0, // unused by pinhole models
     };
-    let camera = build(&model, size, fov_deg);
-    // Exactly what the written file will read back as, with the camera-file checks.
-    let camera = file::parse(&file::to_toml(&camera, &[], None, None), path)?;
+    let camera = build(&model, size, fov_deg).map_err(|e| e.in_file(path))?;
     Ok(Imported {
         camera,
         source,

@@ -19,19 +19,24 @@ mod equirectangular;
 mod extended_unified;
 mod geometry;
 pub mod import;
+mod intrinsics;
 mod kannala_brandt;
 mod pinhole;
 mod pinhole_radtan;
 mod scaramuzza;
+mod schema;
+mod solve;
 mod unified;
 
 pub use double_sphere::DoubleSphere;
 pub use equirectangular::Equirectangular;
 pub use extended_unified::ExtendedUnified;
+pub use intrinsics::Intrinsics;
 pub use kannala_brandt::KannalaBrandt;
 pub use pinhole::Pinhole;
 pub use pinhole_radtan::PinholeRadTan;
 pub use scaramuzza::Scaramuzza;
+pub use schema::Invalid;
 pub use unified::Unified;
 
 use std::path::Path;
@@ -162,16 +167,10 @@ macro_rules! dispatch {
 impl Camera {
     /// The model's name in camera files (`model = "..."`).
     pub fn model_name(&self) -> &'static str {
-        match self {
-            Camera::KannalaBrandt(_) => "kannala-brandt",
-            Camera::Pinhole(_) => "pinhole",
-            Camera::PinholeRadTan(_) => "pinhole-radtan",
-            Camera::DoubleSphere(_) => "double-sphere",
-            Camera::Unified(_) => "unified",
-            Camera::ExtendedUnified(_) => "extended-unified",
-            Camera::Scaramuzza(_) => "scaramuzza",
-            Camera::Equirectangular(_) => "equirectangular",
+        fn name<M: schema::CameraFile>(_: &M) -> &'static str {
+            M::MODEL
         }
+        dispatch!(self, m => name(m))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] (each model's
