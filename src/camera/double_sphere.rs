@@ -35,8 +35,8 @@
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, check_unit_interval, raw_camera_file,
-    write_fields, CameraFile, Checked, Invalid,
+    check_finite, check_fov, check_fov_in_domain, check_unit_interval, checked, raw_camera_file,
+    CameraFile, Checked, Invalid,
 };
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -56,14 +56,7 @@ deref_intrinsics!(DoubleSphere);
 
 raw_camera_file! {
     /// A Double Sphere camera file as written.
-    struct Raw {
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
+    fisheye struct Raw {
         xi: f64,
         alpha: f64,
     }
@@ -72,21 +65,24 @@ raw_camera_file! {
 impl CameraFile for DoubleSphere {
     const MODEL: &'static str = "double-sphere";
     type Raw = Raw;
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        let intrinsics = Intrinsics::from_parts([r.fx, r.fy, r.cx, r.cy], [r.width, r.height]);
-        DoubleSphere::new(intrinsics, r.xi, r.alpha, r.fov_deg)
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let mut fields = vec![("fov_deg", self.fov_deg)];
+        fields.extend(self.intrinsics.fields());
+        fields.extend([("xi", self.xi), ("alpha", self.alpha)]);
+        fields
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.fields());
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        DoubleSphere::new(r.intrinsics(), r.xi, r.alpha, r.fov_deg)
     }
 }
 
 impl DoubleSphere {
     /// A checked camera (see [`DoubleSphere::validate`]).
     pub fn new(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(intrinsics, xi, alpha, fov_deg);
-        cam.validate()?;
-        Ok(cam)
+        checked(
+            Self::unchecked(intrinsics, xi, alpha, fov_deg),
+            Self::validate,
+        )
     }
 
     /// The camera without the checks: for probing the model's domain before its field of view
@@ -98,14 +94,6 @@ impl DoubleSphere {
             alpha,
             fov_deg,
         }
-    }
-
-    /// The float fields as named in camera files, in file order.
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("xi", self.xi), ("alpha", self.alpha)]);
-        fields
     }
 
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,

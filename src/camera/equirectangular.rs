@@ -34,7 +34,7 @@ use super::geometry::finite3;
 /// `(cv + 0.5) / fv` is `pi / 2` only up to the rounding of `fv = height / pi` (an ulp or two), and
 /// the pole rows must unproject; latitudes within the slack are clamped to the pole.
 const POLE_SLACK: f64 = 1e-12;
-use super::schema::{check_size, raw_camera_file, write_fields, CameraFile, Checked, Invalid};
+use super::schema::{check_size, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{Camera, CameraModel, KernelFrame, PixelConvention};
 
 /// An equirectangular panorama camera.
@@ -72,17 +72,15 @@ impl CameraFile for Equirectangular {
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
         Equirectangular::new(r.width, r.height)
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, [self.width, self.height], &[]);
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        Vec::new()
     }
 }
 
 impl Equirectangular {
     /// A full-sphere panorama of `width x height` pixels (module docs), both `> 0`.
     pub fn new(width: usize, height: usize) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(width, height);
-        cam.validate()?;
-        Ok(cam)
+        checked(Self::unchecked(width, height), Self::validate)
     }
 
     /// `width, height > 0`.

@@ -31,8 +31,8 @@
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, check_unit_interval, raw_camera_file,
-    write_fields, CameraFile, Checked, Invalid,
+    check_finite, check_fov, check_fov_in_domain, check_unit_interval, checked, raw_camera_file,
+    CameraFile, Checked, Invalid,
 };
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -52,14 +52,7 @@ deref_intrinsics!(ExtendedUnified);
 
 raw_camera_file! {
     /// An Extended Unified Camera Model file as written.
-    struct Raw {
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
+    fisheye struct Raw {
         alpha: f64,
         beta: f64,
     }
@@ -68,12 +61,14 @@ raw_camera_file! {
 impl CameraFile for ExtendedUnified {
     const MODEL: &'static str = "extended-unified";
     type Raw = Raw;
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        let intrinsics = Intrinsics::from_parts([r.fx, r.fy, r.cx, r.cy], [r.width, r.height]);
-        ExtendedUnified::new(intrinsics, r.alpha, r.beta, r.fov_deg)
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let mut fields = vec![("fov_deg", self.fov_deg)];
+        fields.extend(self.intrinsics.fields());
+        fields.extend([("alpha", self.alpha), ("beta", self.beta)]);
+        fields
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.fields());
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        ExtendedUnified::new(r.intrinsics(), r.alpha, r.beta, r.fov_deg)
     }
 }
 
@@ -85,9 +80,10 @@ impl ExtendedUnified {
         beta: f64,
         fov_deg: f64,
     ) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(intrinsics, alpha, beta, fov_deg);
-        cam.validate()?;
-        Ok(cam)
+        checked(
+            Self::unchecked(intrinsics, alpha, beta, fov_deg),
+            Self::validate,
+        )
     }
 
     /// The camera without the checks: for probing the model's domain before its field of view
@@ -99,14 +95,6 @@ impl ExtendedUnified {
             beta,
             fov_deg,
         }
-    }
-
-    /// The float fields as named in camera files, in file order.
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("alpha", self.alpha), ("beta", self.beta)]);
-        fields
     }
 
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,

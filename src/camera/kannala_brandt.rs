@@ -23,7 +23,7 @@ use std::f64::consts::PI;
 
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, raw_camera_file, write_fields, CameraFile, Checked, Invalid,
+    check_finite, check_fov, checked, raw_camera_file, CameraFile, Checked, Invalid,
 };
 use super::solve::{increasing_root, last_ok};
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
@@ -65,14 +65,7 @@ impl PartialEq for KannalaBrandt {
 
 raw_camera_file! {
     /// A Kannala-Brandt camera file as written.
-    struct Raw {
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
+    fisheye struct Raw {
         k1: f64,
         k2: f64,
         k3: f64,
@@ -83,12 +76,15 @@ raw_camera_file! {
 impl CameraFile for KannalaBrandt {
     const MODEL: &'static str = "kannala-brandt";
     type Raw = Raw;
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        let intrinsics = Intrinsics::from_parts([r.fx, r.fy, r.cx, r.cy], [r.width, r.height]);
-        KannalaBrandt::new(intrinsics, [r.k1, r.k2, r.k3, r.k4], r.fov_deg)
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let [k1, k2, k3, k4] = self.k;
+        let mut fields = vec![("fov_deg", self.fov_deg)];
+        fields.extend(self.intrinsics.fields());
+        fields.extend([("k1", k1), ("k2", k2), ("k3", k3), ("k4", k4)]);
+        fields
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.fields());
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        KannalaBrandt::new(r.intrinsics(), [r.k1, r.k2, r.k3, r.k4], r.fov_deg)
     }
 }
 
@@ -96,9 +92,7 @@ impl KannalaBrandt {
     /// A checked camera (see [`KannalaBrandt::validate`]); computes `theta_max` (see
     /// [`KannalaBrandt::theta_max`]).
     pub fn new(intrinsics: Intrinsics, k: [f64; 4], fov_deg: f64) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(intrinsics, k, fov_deg);
-        cam.validate()?;
-        Ok(cam)
+        checked(Self::unchecked(intrinsics, k, fov_deg), Self::validate)
     }
 
     /// The camera without the checks: for rescaling a checked camera and for probing a model's
@@ -112,15 +106,6 @@ impl KannalaBrandt {
         };
         cam.theta_max = cam.find_theta_max();
         cam
-    }
-
-    /// The float fields as named in camera files, in file order.
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let [k1, k2, k3, k4] = self.k;
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("k1", k1), ("k2", k2), ("k3", k3), ("k4", k4)]);
-        fields
     }
 
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`, and

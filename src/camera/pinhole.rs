@@ -8,7 +8,7 @@
 //! camera-frame `[x, y, z]` with z forward; angles in radians.
 
 use super::intrinsics::deref_intrinsics;
-use super::schema::{check_finite, raw_camera_file, write_fields, CameraFile, Checked, Invalid};
+use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// A pinhole camera without distortion: its intrinsics (read as `cam.fx`, through `Deref`).
@@ -21,41 +21,29 @@ deref_intrinsics!(Pinhole);
 
 raw_camera_file! {
     /// A pinhole camera file as written (its field of view is derived, not stored).
-    struct Raw {
-        width: usize,
-        height: usize,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-    }
+    pinhole struct Raw {}
 }
 
 impl CameraFile for Pinhole {
     const MODEL: &'static str = "pinhole";
     type Raw = Raw;
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        Pinhole::new(Intrinsics::from_parts(
-            [r.fx, r.fy, r.cx, r.cy],
-            [r.width, r.height],
-        ))
+        Pinhole::new(r.intrinsics())
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.intrinsics.fields());
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        self.intrinsics.fields().to_vec()
     }
 }
 
 impl Pinhole {
     /// A checked camera (see [`Pinhole::validate`]).
     pub fn new(intrinsics: Intrinsics) -> Result<Self, Invalid> {
-        let cam = Pinhole { intrinsics };
-        cam.validate()?;
-        Ok(cam)
+        checked(Pinhole { intrinsics }, Self::validate)
     }
 
     /// Every float finite and the intrinsics' checks ([`Intrinsics::validate`]).
     pub fn validate(&self) -> Checked {
-        check_finite(self.intrinsics.fields())?;
+        check_finite(self.fields())?;
         self.intrinsics.validate()
     }
 

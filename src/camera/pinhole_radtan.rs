@@ -28,7 +28,7 @@
 
 use super::geometry::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
-use super::schema::{check_finite, raw_camera_file, write_fields, CameraFile, Checked, Invalid};
+use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -84,13 +84,7 @@ impl PartialEq for PinholeRadTan {
 
 raw_camera_file! {
     /// A pinhole camera with OpenCV radial-tangential distortion, as written.
-    struct Raw {
-        width: usize,
-        height: usize,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
+    pinhole struct Raw {
         k1: f64,
         k2: f64,
         p1: f64,
@@ -102,12 +96,14 @@ raw_camera_file! {
 impl CameraFile for PinholeRadTan {
     const MODEL: &'static str = "pinhole-radtan";
     type Raw = Raw;
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        let intrinsics = Intrinsics::from_parts([r.fx, r.fy, r.cx, r.cy], [r.width, r.height]);
-        PinholeRadTan::new(intrinsics, [r.k1, r.k2, r.k3], [r.p1, r.p2])
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let ([k1, k2, k3], [p1, p2]) = (self.k, self.p);
+        let mut fields = self.intrinsics.fields().to_vec();
+        fields.extend([("k1", k1), ("k2", k2), ("p1", p1), ("p2", p2), ("k3", k3)]);
+        fields
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.fields());
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        PinholeRadTan::new(r.intrinsics(), [r.k1, r.k2, r.k3], [r.p1, r.p2])
     }
 }
 
@@ -115,9 +111,7 @@ impl PinholeRadTan {
     /// A checked camera (see [`PinholeRadTan::validate`]) with `k = [k1, k2, k3]`,
     /// `p = [p1, p2]`; computes `r_max` and the field of view.
     pub fn new(intrinsics: Intrinsics, k: [f64; 3], p: [f64; 2]) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(intrinsics, k, p);
-        cam.validate()?;
-        Ok(cam)
+        checked(Self::unchecked(intrinsics, k, p), Self::validate)
     }
 
     /// The camera without the checks; computes `r_max` and the field of view. If an image edge
@@ -148,14 +142,6 @@ impl PinholeRadTan {
             _ => 2.0 * (width as f64 / (2.0 * fx)).atan(),
         };
         cam
-    }
-
-    /// The float fields as named in camera files, in file order (OpenCV's `k1 k2 p1 p2 k3`).
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let ([k1, k2, k3], [p1, p2]) = (self.k, self.p);
-        let mut fields = self.intrinsics.fields().to_vec();
-        fields.extend([("k1", k1), ("k2", k2), ("p1", p1), ("p2", p2), ("k3", k3)]);
-        fields
     }
 
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), and every pixel of the

@@ -35,7 +35,7 @@ use std::f64::consts::{FRAC_PI_2, PI};
 
 use super::geometry::{finite3, normalize};
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, check_size, float_list, raw_camera_file,
+    check_finite, check_fov, check_fov_in_domain, check_size, checked, float_list, raw_camera_file,
     write_fields, CameraFile, Checked, Invalid,
 };
 use super::solve::{increasing_root, last_ok};
@@ -122,8 +122,15 @@ impl CameraFile for Scaramuzza {
         let (cde, size) = ([r.c, r.d, r.e], [r.width, r.height]);
         Scaramuzza::new(r.poly, r.inv_poly, [r.cx, r.cy], cde, size, r.fov_deg)
     }
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let fields = [("fov_deg", self.fov_deg), ("cx", self.cx), ("cy", self.cy)];
+        let mut fields = fields.to_vec();
+        fields.extend([("c", self.c), ("d", self.d), ("e", self.e)]);
+        fields
+    }
+    /// The float fields, then `poly` and (when given) `inv_poly`.
     fn write_fields(&self, out: &mut String) {
-        write_fields(out, [self.width, self.height], &self.fields());
+        write_fields(out, self.size(), &self.fields());
         out.push_str(&format!("poly = {}\n", float_list(&self.poly)));
         if !self.inv_poly.is_empty() {
             out.push_str(&format!("inv_poly = {}\n", float_list(&self.inv_poly)));
@@ -142,9 +149,10 @@ impl Scaramuzza {
         size: [usize; 2],
         fov_deg: f64,
     ) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(poly, inv_poly, centre, cde, size, fov_deg);
-        cam.validate()?;
-        Ok(cam)
+        checked(
+            Self::unchecked(poly, inv_poly, centre, cde, size, fov_deg),
+            Self::validate,
+        )
     }
 
     /// The camera without the checks (for rescaling a checked camera and probing the domain).
@@ -171,14 +179,6 @@ impl Scaramuzza {
         };
         cam.rho_max = cam.find_rho_max();
         cam
-    }
-
-    /// The float fields as named in camera files, in file order (the polynomials aside).
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let fields = [("fov_deg", self.fov_deg), ("cx", self.cx), ("cy", self.cy)];
-        let mut fields = fields.to_vec();
-        fields.extend([("c", self.c), ("d", self.d), ("e", self.e)]);
-        fields
     }
 
     /// Every float finite, at most [`MAX_POLY_LEN`] coefficients, `a0 < 0`, `c - d e > 0`,

@@ -7,6 +7,7 @@
 
 use std::path::Path;
 
+use super::CameraModel;
 use crate::error::Error;
 
 /// A camera parameter outside what its model accepts: the field (as named in camera files) and
@@ -43,22 +44,63 @@ pub type Checked = std::result::Result<(), Invalid>;
 
 /// A camera model as a camera file: its `model =` name, its `Raw` fields and how they become a
 /// checked camera, and the named float fields it writes (in file order).
-pub(crate) trait CameraFile: Sized {
+pub(crate) trait CameraFile: CameraModel + Sized {
     /// The value of `model` in camera files.
     const MODEL: &'static str;
     /// The file as written (serde, `deny_unknown_fields`).
     type Raw: serde::de::DeserializeOwned;
     /// The checked camera of a file (the model's validating constructor).
-    fn from_raw(raw: Self::Raw) -> std::result::Result<Self, Invalid>;
+    fn from_raw(raw: Self::Raw) -> Result<Self, Invalid>;
+    /// The float fields as named in camera files, in file order (lists such as a polynomial
+    /// aside): what the model's `validate` checks for finiteness and [`super::to_toml`] writes.
+    fn fields(&self) -> Vec<(&'static str, f64)>;
     /// `width`, `height`, then the model's fields, one `key = value` line each, in file order.
-    fn write_fields(&self, out: &mut String);
+    fn write_fields(&self, out: &mut String) {
+        write_fields(out, self.size(), &self.fields());
+    }
+}
+
+/// `cam` if `validate` accepts it: the body of every model's `new`.
+pub(crate) fn checked<T>(cam: T, validate: fn(&T) -> Checked) -> Result<T, Invalid> {
+    validate(&cam)?;
+    Ok(cam)
 }
 
 /// Declares a camera file's `Raw` struct: the model's own fields plus the header keys every file
 /// may carry (`model`, read by the dispatch in `super::file`; `name` and `description`,
 /// documentation only), with `deny_unknown_fields` so that a misspelt key is an error naming it.
+/// `pinhole struct` starts with `width height fx fy cx cy`, `fisheye struct` with
+/// `width height fov_deg fx fy cx cy`; both give the struct an `intrinsics()` method.
 macro_rules! raw_camera_file {
-    ($(#[$meta:meta])* struct $name:ident { $($(#[$fmeta:meta])* $field:ident : $ty:ty),* $(,)? }) => {
+    ($(#[$meta:meta])* fisheye struct $name:ident { $($body:tt)* }) => {
+        $crate::camera::schema::raw_camera_file! {
+            @intrinsics $(#[$meta])* struct $name {
+                width: usize, height: usize, fov_deg: f64, fx: f64, fy: f64, cx: f64, cy: f64,
+                $($body)*
+            }
+        }
+    };
+    ($(#[$meta:meta])* pinhole struct $name:ident { $($body:tt)* }) => {
+        $crate::camera::schema::raw_camera_file! {
+            @intrinsics $(#[$meta])* struct $name {
+                width: usize, height: usize, fx: f64, fy: f64, cx: f64, cy: f64,
+                $($body)*
+            }
+        }
+    };
+    (@intrinsics $(#[$meta:meta])* struct $name:ident { $($body:tt)* }) => {
+        $crate::camera::schema::raw_camera_file! { $(#[$meta])* struct $name { $($body)* } }
+        impl $name {
+            /// The file's `fx fy cx cy width height`.
+            fn intrinsics(&self) -> $crate::camera::Intrinsics {
+                let f = [self.fx, self.fy, self.cx, self.cy];
+                $crate::camera::Intrinsics::from_parts(f, [self.width, self.height])
+            }
+        }
+    };
+    ($(#[$meta:meta])* struct $name:ident {
+        $($(#[$fmeta:meta])* $field:ident : $ty:ty),* $(,)?
+    }) => {
         $(#[$meta])*
         #[derive(serde::Deserialize)]
         #[serde(deny_unknown_fields)]

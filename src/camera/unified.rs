@@ -33,8 +33,8 @@
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, raw_camera_file, write_fields, CameraFile,
-    Checked, Invalid,
+    check_finite, check_fov, check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked,
+    Invalid,
 };
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -52,14 +52,7 @@ deref_intrinsics!(Unified);
 
 raw_camera_file! {
     /// A Unified Camera Model file as written.
-    struct Raw {
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
+    fisheye struct Raw {
         alpha: f64,
     }
 }
@@ -67,21 +60,21 @@ raw_camera_file! {
 impl CameraFile for Unified {
     const MODEL: &'static str = "unified";
     type Raw = Raw;
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        let intrinsics = Intrinsics::from_parts([r.fx, r.fy, r.cx, r.cy], [r.width, r.height]);
-        Unified::new(intrinsics, r.alpha, r.fov_deg)
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let mut fields = vec![("fov_deg", self.fov_deg)];
+        fields.extend(self.intrinsics.fields());
+        fields.extend([("alpha", self.alpha)]);
+        fields
     }
-    fn write_fields(&self, out: &mut String) {
-        write_fields(out, self.size(), &self.fields());
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        Unified::new(r.intrinsics(), r.alpha, r.fov_deg)
     }
 }
 
 impl Unified {
     /// A checked camera (see [`Unified::validate`]).
     pub fn new(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        let cam = Self::unchecked(intrinsics, alpha, fov_deg);
-        cam.validate()?;
-        Ok(cam)
+        checked(Self::unchecked(intrinsics, alpha, fov_deg), Self::validate)
     }
 
     /// The camera without the checks: for probing the model's domain before its field of view
@@ -92,14 +85,6 @@ impl Unified {
             alpha,
             fov_deg,
         }
-    }
-
-    /// The float fields as named in camera files, in file order.
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("alpha", self.alpha)]);
-        fields
     }
 
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
