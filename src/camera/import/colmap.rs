@@ -56,9 +56,26 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
             })
         })
         .collect::<Result<Vec<f64>>>()?;
+    let model = model(name, &params, *line, path)?;
+    Ok(Parsed {
+        model,
+        size,
+        source: format!("colmap camera {id} ({name})"),
+        notes: vec![
+            "cx, cy: COLMAP's minus 0.5 px (COLMAP puts the top-left pixel centre at (0.5, 0.5), \
+             this file at (0, 0))"
+                .to_string(),
+        ],
+    })
+}
+
+/// The model of a camera line: `name` (COLMAP's `MODEL`) with its `PARAMS`, on line `line`; the
+/// principal point moved by [`COLMAP_PIXEL_CENTRE`].
+fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> {
+    let field = |what: &str| format!("line {line}: {what}");
     let count = |n: usize, names: &str| {
         expect_len(
-            &params,
+            params,
             n,
             path,
             &field("PARAMS"),
@@ -66,7 +83,7 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
         )
     };
     let c = COLMAP_PIXEL_CENTRE;
-    let model = match name {
+    Ok(match name {
         "SIMPLE_PINHOLE" => {
             count(3, "f, cx, cy")?;
             Model::Pinhole {
@@ -138,15 +155,5 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
                 ),
             ))
         }
-    };
-    Ok(Parsed {
-        model,
-        size,
-        source: format!("colmap camera {id} ({name})"),
-        notes: vec![
-            "cx, cy: COLMAP's minus 0.5 px (COLMAP puts the top-left pixel centre at (0.5, 0.5), \
-             this file at (0, 0))"
-                .to_string(),
-        ],
     })
 }

@@ -88,61 +88,9 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
         )
     })?;
     let d = matrix(d_value, path, d_key)?;
-    let size = if let (Some(w), Some(h)) = (tree.get("image_width"), tree.get("image_height")) {
-        [
-            dimension(w, path, "image_width")?,
-            dimension(h, path, "image_height")?,
-        ]
-    } else if let Some((key, v)) = first_key(&tree, &["image_size", "imageSize", "resolution"]) {
-        let values = matrix(v, path, key)?;
-        expect_len(&values, 2, path, key, "[width, height]")?;
-        let pair = Value::from(values);
-        size_pair(&pair, path, key)?
-    } else {
-        return Err(camera_error(
-            path,
-            "image_width",
-            "no image size (looked for image_width + image_height, image_size, imageSize, \
-             resolution)"
-                .to_string(),
-        ));
-    };
+    let size = image_size(&tree, path)?;
     // Which model: the command line, then the file, then the number of coefficients.
-    let from_file = if let Some(v) = tree.get("fisheye_model") {
-        // OpenCV's camera_calibration sample writes `fisheye_model: 0 | 1`.
-        match v {
-            Value::Bool(b) => Some(*b),
-            other => Some(number(other, path, "fisheye_model")? != 0.0),
-        }
-        .map(|fisheye| {
-            if fisheye {
-                OpenCvModel::Fisheye
-            } else {
-                OpenCvModel::Standard
-            }
-        })
-    } else if let Some((key, v)) = first_key(&tree, &["distortion_model", "model"]) {
-        match v.as_str().unwrap_or_default() {
-            "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
-                Some(OpenCvModel::Fisheye)
-            }
-            "plumb_bob" | "radtan" | "radial-tangential" | "standard" | "pinhole" => {
-                Some(OpenCvModel::Standard)
-            }
-            other => {
-                return Err(camera_error(
-                    path,
-                    key,
-                    format!(
-                        "OpenCV model `{other}` is not supported (supported: fisheye, \
-                         equidistant, plumb_bob, radtan)"
-                    ),
-                ))
-            }
-        }
-    } else {
-        None
-    };
+    let from_file = declared_model(&tree, path)?;
     let model = match options.opencv_model.or(from_file) {
         Some(m) => m,
         None if d.len() == 4 => {
@@ -210,5 +158,71 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
         size,
         source: format!("opencv ({name} model)"),
         notes,
+    })
+}
+
+/// `image_width` + `image_height`, or a two-element `image_size` / `imageSize` / `resolution`.
+fn image_size(tree: &Value, path: &Path) -> Result<[usize; 2]> {
+    Ok(
+        if let (Some(w), Some(h)) = (tree.get("image_width"), tree.get("image_height")) {
+            [
+                dimension(w, path, "image_width")?,
+                dimension(h, path, "image_height")?,
+            ]
+        } else if let Some((key, v)) = first_key(&tree, &["image_size", "imageSize", "resolution"])
+        {
+            let values = matrix(v, path, key)?;
+            expect_len(&values, 2, path, key, "[width, height]")?;
+            let pair = Value::from(values);
+            size_pair(&pair, path, key)?
+        } else {
+            return Err(camera_error(
+                path,
+                "image_width",
+                "no image size (looked for image_width + image_height, image_size, imageSize, \
+             resolution)"
+                    .to_string(),
+            ));
+        },
+    )
+}
+
+/// The model the file declares (`fisheye_model: 0 | 1`, or `distortion_model` / `model` by
+/// name), if it does.
+fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
+    Ok(if let Some(v) = tree.get("fisheye_model") {
+        // OpenCV's camera_calibration sample writes `fisheye_model: 0 | 1`.
+        match v {
+            Value::Bool(b) => Some(*b),
+            other => Some(number(other, path, "fisheye_model")? != 0.0),
+        }
+        .map(|fisheye| {
+            if fisheye {
+                OpenCvModel::Fisheye
+            } else {
+                OpenCvModel::Standard
+            }
+        })
+    } else if let Some((key, v)) = first_key(&tree, &["distortion_model", "model"]) {
+        match v.as_str().unwrap_or_default() {
+            "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
+                Some(OpenCvModel::Fisheye)
+            }
+            "plumb_bob" | "radtan" | "radial-tangential" | "standard" | "pinhole" => {
+                Some(OpenCvModel::Standard)
+            }
+            other => {
+                return Err(camera_error(
+                    path,
+                    key,
+                    format!(
+                        "OpenCV model `{other}` is not supported (supported: fisheye, \
+                         equidistant, plumb_bob, radtan)"
+                    ),
+                ))
+            }
+        }
+    } else {
+        None
     })
 }
