@@ -169,8 +169,7 @@ fn image_size(tree: &Value, path: &Path) -> Result<[usize; 2]> {
                 dimension(w, path, "image_width")?,
                 dimension(h, path, "image_height")?,
             ]
-        } else if let Some((key, v)) = first_key(&tree, &["image_size", "imageSize", "resolution"])
-        {
+        } else if let Some((key, v)) = first_key(tree, &["image_size", "imageSize", "resolution"]) {
             let values = matrix(v, path, key)?;
             expect_len(&values, 2, path, key, "[width, height]")?;
             let pair = Value::from(values);
@@ -203,7 +202,7 @@ fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
                 OpenCvModel::Standard
             }
         })
-    } else if let Some((key, v)) = first_key(&tree, &["distortion_model", "model"]) {
+    } else if let Some((key, v)) = first_key(tree, &["distortion_model", "model"]) {
         match v.as_str().unwrap_or_default() {
             "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
                 Some(OpenCvModel::Fisheye)
