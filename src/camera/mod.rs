@@ -13,6 +13,13 @@
 //! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Scaramuzza`]
 //! (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model whose kernels wrap
 //! horizontally). [`import`] reads the calibration files of other tools.
+//!
+//! A model's file also owns its camera-file schema: its `Raw` fields, its `validate()` (which its
+//! `new` calls, so every camera in the program is checked) and its fields for [`to_toml`]. What
+//! the models share is written once: [`Intrinsics`] (`fx fy cx cy width height`: checks, size,
+//! rescaling), `schema` (the [`Invalid`] error, the checks, the header keys every file carries),
+//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only dispatches on
+//! `model =`. A new model is one file plus its line in [`Camera`], the dispatch macro and `file`.
 
 mod double_sphere;
 mod equirectangular;
