@@ -52,17 +52,48 @@ use super::{
 };
 use crate::error::{Error, Result};
 
-/// The values of `model` this module reads.
-pub const MODELS: [&str; 8] = [
-    KannalaBrandt::MODEL,
-    Pinhole::MODEL,
-    PinholeRadTan::MODEL,
-    DoubleSphere::MODEL,
-    Unified::MODEL,
-    ExtendedUnified::MODEL,
-    Scaramuzza::MODEL,
-    Equirectangular::MODEL,
+/// A camera file's reader: its text and the path that names it in errors.
+type Reader = fn(&str, &Path) -> Result<Camera>;
+
+/// Every model with its reader: the one line a new model adds here.
+const READERS: [(&str, Reader); 8] = [
+    (KannalaBrandt::MODEL, |t, p| {
+        read(t, p).map(Camera::KannalaBrandt)
+    }),
+    (Pinhole::MODEL, |t, p| read(t, p).map(Camera::Pinhole)),
+    (PinholeRadTan::MODEL, |t, p| {
+        read(t, p).map(Camera::PinholeRadTan)
+    }),
+    (DoubleSphere::MODEL, |t, p| {
+        read(t, p).map(Camera::DoubleSphere)
+    }),
+    (Unified::MODEL, |t, p| read(t, p).map(Camera::Unified)),
+    (ExtendedUnified::MODEL, |t, p| {
+        read(t, p).map(Camera::ExtendedUnified)
+    }),
+    (Scaramuzza::MODEL, |t, p| read(t, p).map(Camera::Scaramuzza)),
+    (Equirectangular::MODEL, |t, p| {
+        read(t, p).map(Camera::Equirectangular)
+    }),
 ];
+
+/// The values of `model` this module reads.
+pub const MODELS: [&str; READERS.len()] = {
+    let mut names = [""; READERS.len()];
+    let mut i = 0;
+    while i < names.len() {
+        names[i] = READERS[i].0;
+        i += 1;
+    }
+    names
+};
+
+/// The model's `Raw` (deserialised from the text, not a table, so that errors point at the
+/// line), then its validating constructor.
+fn read<M: CameraFile>(text: &str, path: &Path) -> Result<M> {
+    let raw: M::Raw = toml::from_str(text).map_err(|e| toml_error(path, e))?;
+    M::from_raw(raw).map_err(|e| e.in_file(path))
+}
 
 /// Reads and parses the camera file at `path`.
 pub(super) fn load(path: &Path) -> Result<Camera> {
@@ -95,24 +126,11 @@ pub fn parse(text: &str, path: &Path) -> Result<Camera> {
             ))
         }
     };
-    /// The model's `Raw` (deserialised from the text, not the table, so that errors point at
-    /// the line), then its validating constructor.
-    fn read<M: CameraFile>(text: &str, path: &Path) -> Result<M> {
-        let raw: M::Raw = toml::from_str(text).map_err(|e| toml_error(path, e))?;
-        M::from_raw(raw).map_err(|e| e.in_file(path))
-    }
-    match model {
-        KannalaBrandt::MODEL => read(text, path).map(Camera::KannalaBrandt),
-        Pinhole::MODEL => read(text, path).map(Camera::Pinhole),
-        PinholeRadTan::MODEL => read(text, path).map(Camera::PinholeRadTan),
-        DoubleSphere::MODEL => read(text, path).map(Camera::DoubleSphere),
-        Unified::MODEL => read(text, path).map(Camera::Unified),
-        ExtendedUnified::MODEL => read(text, path).map(Camera::ExtendedUnified),
-        Scaramuzza::MODEL => read(text, path).map(Camera::Scaramuzza),
-        Equirectangular::MODEL => read(text, path).map(Camera::Equirectangular),
-        other => Err(camera_error(
+    match READERS.iter().find(|(name, _)| *name == model) {
+        Some((_, reader)) => reader(text, path),
+        None => Err(camera_error(
             path,
-            format!("unknown model `{other}`; expected one of {}", known()),
+            format!("unknown model `{model}`; expected one of {}", known()),
         )),
     }
 }

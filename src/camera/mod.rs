@@ -19,7 +19,8 @@
 //! the models share is written once: [`Intrinsics`] (`fx fy cx cy width height`: checks, size,
 //! rescaling), `schema` (the [`Invalid`] error, the checks, the header keys every file carries),
 //! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only dispatches on
-//! `model =`. A new model is one file plus its line in [`Camera`], the dispatch macro and `file`.
+//! `model =`. A new model is its file, plus here its `mod` / `pub use`, its [`Camera`] variant and
+//! its `dispatch!` arm, and its line in `file`'s reader table.
 
 mod double_sphere;
 mod equirectangular;
