@@ -184,39 +184,8 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
+    use crate::camera::tests::{angle, kb, radtan};
     use crate::camera::{load, CameraModel, Intrinsics, PixelConvention};
-
-    /// A checked Kannala-Brandt camera from positional parameters.
-    #[allow(clippy::too_many_arguments)]
-    fn kb(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 4],
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-    ) -> KannalaBrandt {
-        let intrinsics = Intrinsics::from_parts([fx, fy, cx, cy], [width, height]);
-        KannalaBrandt::new(intrinsics, k, fov_deg).unwrap()
-    }
-
-    /// A checked radial-tangential camera from positional parameters.
-    #[allow(clippy::too_many_arguments)]
-    fn radtan(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 3],
-        p: [f64; 2],
-        width: usize,
-        height: usize,
-    ) -> PinholeRadTan {
-        let intrinsics = Intrinsics::from_parts([fx, fy, cx, cy], [width, height]);
-        PinholeRadTan::new(intrinsics, k, p).unwrap()
-    }
 
     /// Pixel round trips: the iterative inverses (Kannala-Brandt, radial-tangential, Scaramuzza)
     /// stop at quadratically shrinking steps below 1e-10 px or less, the closed forms are exact,
@@ -255,16 +224,6 @@ mod tests {
             Error::Camera { field, .. } => field,
             other => panic!("expected Error::Camera, got {other:?}"),
         }
-    }
-
-    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-        let cross = [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ];
-        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
     }
 
     #[test]

@@ -295,25 +295,7 @@ impl CameraModel for KannalaBrandt {
 mod tests {
     use super::*;
     use crate::camera::solve::MAX_ITER;
-
-    /// A camera from positional parameters, unchecked (some tests need a folding polynomial).
-    #[allow(clippy::too_many_arguments)]
-    fn kb(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 4],
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-    ) -> KannalaBrandt {
-        KannalaBrandt::unchecked(
-            Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
-            k,
-            fov_deg,
-        )
-    }
+    use crate::camera::tests::{angle, kb};
 
     /// Round trips are exact up to a few ulps of theta times fx (~1e-13 px); 1e-9 px leaves
     /// margin for sin/cos/atan2 rounding without hiding a real error (the Newton EPS is 1e-12 rad).
@@ -360,16 +342,6 @@ mod tests {
             800,
             90.0,
         )
-    }
-
-    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-        let cross = [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ];
-        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        (cross[0].hypot(cross[1]).hypot(cross[2])).atan2(dot)
     }
 
     #[test]

@@ -357,25 +357,7 @@ impl CameraModel for PinholeRadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A camera from positional parameters, unchecked.
-    #[allow(clippy::too_many_arguments)]
-    fn radtan(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 3],
-        p: [f64; 2],
-        width: usize,
-        height: usize,
-    ) -> PinholeRadTan {
-        PinholeRadTan::unchecked(
-            Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
-            k,
-            p,
-        )
-    }
+    use crate::camera::tests::radtan;
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.

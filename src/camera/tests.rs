@@ -22,7 +22,8 @@ const EQUIV_ANGLE_TOL: f64 = 1e-10;
 /// Pixel agreement of projections computed by different formulas: round-off times ~1e3 px.
 const EQUIV_PX_TOL: f64 = 1e-9;
 
-fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+/// The angle between two rays, radians (`atan2(|a x b|, a . b)`, accurate at small angles).
+pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     let cross = [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -30,6 +31,45 @@ fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     ];
     let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
+}
+
+/// A Kannala-Brandt camera from positional parameters, unchecked (some tests need a folding
+/// polynomial).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn kb(
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    k: [f64; 4],
+    width: usize,
+    height: usize,
+    fov_deg: f64,
+) -> KannalaBrandt {
+    KannalaBrandt::unchecked(
+        Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
+        k,
+        fov_deg,
+    )
+}
+
+/// A radial-tangential camera from positional parameters, unchecked.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn radtan(
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    k: [f64; 3],
+    p: [f64; 2],
+    width: usize,
+    height: usize,
+) -> PinholeRadTan {
+    PinholeRadTan::unchecked(
+        Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
+        k,
+        p,
+    )
 }
 
 fn unified(alpha: f64) -> Unified {
