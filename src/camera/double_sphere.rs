@@ -35,8 +35,8 @@
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, check_unit_interval, checked, raw_camera_file,
-    CameraFile, Checked, Invalid,
+    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
+    Invalid,
 };
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -66,10 +66,8 @@ impl CameraFile for DoubleSphere {
     const MODEL: &'static str = "double-sphere";
     type Raw = Raw;
     fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("xi", self.xi), ("alpha", self.alpha)]);
-        fields
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("xi", self.xi), ("alpha", self.alpha)])
     }
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
         DoubleSphere::new(r.intrinsics(), r.xi, r.alpha, r.fov_deg)
@@ -99,9 +97,8 @@ impl DoubleSphere {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
-        check_finite(self.fields())?;
-        self.intrinsics.validate()?;
-        check_fov(self.fov_deg)?;
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
         if !(self.xi > -1.0 && self.xi <= 1.0) {
             return Err(Invalid::new(
                 "xi",

@@ -31,8 +31,8 @@
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, check_unit_interval, checked, raw_camera_file,
-    CameraFile, Checked, Invalid,
+    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
+    Invalid,
 };
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -62,10 +62,8 @@ impl CameraFile for ExtendedUnified {
     const MODEL: &'static str = "extended-unified";
     type Raw = Raw;
     fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("alpha", self.alpha), ("beta", self.beta)]);
-        fields
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("alpha", self.alpha), ("beta", self.beta)])
     }
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
         ExtendedUnified::new(r.intrinsics(), r.alpha, r.beta, r.fov_deg)
@@ -100,9 +98,8 @@ impl ExtendedUnified {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
-        check_finite(self.fields())?;
-        self.intrinsics.validate()?;
-        check_fov(self.fov_deg)?;
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
         check_unit_interval("alpha", self.alpha)?;
         if self.beta <= 0.0 {
             return Err(Invalid::new(
@@ -112,6 +109,7 @@ impl ExtendedUnified {
         }
         check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha, beta")
     }
+
     /// Largest angle to the optical axis that projects, in radians (exclusive):
     /// `pi - atan2(sqrt(1 - w^2), w sqrt(beta))`.
     pub fn theta_max(&self) -> f64 {

@@ -2,7 +2,7 @@
 //! (Kannala-Brandt, pinhole, radial-tangential, double sphere, unified, extended unified): their
 //! fields, checks, size and rescaling are written once here.
 
-use super::schema::{check_size, Checked, Invalid};
+use super::schema::{check_finite, check_fov, check_size, Checked, Invalid};
 use super::PixelConvention;
 
 /// Focal lengths, principal point and image size, in pixels (top-left pixel centre at 0).
@@ -57,6 +57,26 @@ impl Intrinsics {
             }
         }
         check_size(self.width, self.height)
+    }
+
+    /// A fisheye model's float fields in file order: `fov_deg`, `fx fy cx cy`, then `params`.
+    pub(crate) fn with_fov(
+        &self,
+        fov_deg: f64,
+        params: &[(&'static str, f64)],
+    ) -> Vec<(&'static str, f64)> {
+        let mut fields = vec![("fov_deg", fov_deg)];
+        fields.extend(self.fields());
+        fields.extend_from_slice(params);
+        fields
+    }
+
+    /// The checks every fisheye model starts with: its `fields` finite (in file order), then
+    /// [`Intrinsics::validate`], then `0 < fov_deg < 360`.
+    pub(crate) fn validate_fisheye(&self, fields: &[(&str, f64)], fov_deg: f64) -> Checked {
+        check_finite(fields.iter().copied())?;
+        self.validate()?;
+        check_fov(fov_deg)
     }
 
     /// Image size `[width, height]` in pixels.

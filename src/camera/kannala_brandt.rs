@@ -22,9 +22,7 @@
 use std::f64::consts::PI;
 
 use super::intrinsics::deref_intrinsics;
-use super::schema::{
-    check_finite, check_fov, checked, raw_camera_file, CameraFile, Checked, Invalid,
-};
+use super::schema::{checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::{increasing_root, last_ok};
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
@@ -78,10 +76,8 @@ impl CameraFile for KannalaBrandt {
     type Raw = Raw;
     fn fields(&self) -> Vec<(&'static str, f64)> {
         let [k1, k2, k3, k4] = self.k;
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("k1", k1), ("k2", k2), ("k3", k3), ("k4", k4)]);
-        fields
+        let params = [("k1", k1), ("k2", k2), ("k3", k3), ("k4", k4)];
+        self.intrinsics.with_fov(self.fov_deg, &params)
     }
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
         KannalaBrandt::new(r.intrinsics(), [r.k1, r.k2, r.k3, r.k4], r.fov_deg)
@@ -111,9 +107,8 @@ impl KannalaBrandt {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`, and
     /// a polynomial that increases on `[0, fov_deg / 2]`; the error names the field.
     pub fn validate(&self) -> Checked {
-        check_finite(self.fields())?;
-        self.intrinsics.validate()?;
-        check_fov(self.fov_deg)?;
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
         let half_fov = self.fov_deg / 2.0;
         if !self.is_monotonic_to(half_fov.to_radians()) {
             return Err(Invalid::new(

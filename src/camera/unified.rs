@@ -32,10 +32,7 @@
 
 use super::geometry::{finite3, normalize, unified_w};
 use super::intrinsics::deref_intrinsics;
-use super::schema::{
-    check_finite, check_fov, check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked,
-    Invalid,
-};
+use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// A Unified Camera Model camera (Usenko's `alpha` form). Plain parameters, nothing cached.
@@ -61,10 +58,8 @@ impl CameraFile for Unified {
     const MODEL: &'static str = "unified";
     type Raw = Raw;
     fn fields(&self) -> Vec<(&'static str, f64)> {
-        let mut fields = vec![("fov_deg", self.fov_deg)];
-        fields.extend(self.intrinsics.fields());
-        fields.extend([("alpha", self.alpha)]);
-        fields
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("alpha", self.alpha)])
     }
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
         Unified::new(r.intrinsics(), r.alpha, r.fov_deg)
@@ -90,9 +85,8 @@ impl Unified {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1)`, and `fov_deg / 2` below [`Unified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
-        check_finite(self.fields())?;
-        self.intrinsics.validate()?;
-        check_fov(self.fov_deg)?;
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
         if !(self.alpha >= 0.0 && self.alpha < 1.0) {
             return Err(Invalid::new(
                 "alpha",
@@ -104,6 +98,7 @@ impl Unified {
         }
         check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha")
     }
+
     /// Largest angle to the optical axis that projects, in radians: `acos(-w)` (exclusive).
     pub fn theta_max(&self) -> f64 {
         (-unified_w(self.alpha)).clamp(-1.0, 1.0).acos()
