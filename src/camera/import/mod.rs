@@ -300,8 +300,8 @@ fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Import
         source,
         mut notes,
     } = parsed;
-    let pinhole = matches!(model, Model::Pinhole { .. } | Model::RadTan { .. });
-    let fov = if pinhole {
+    let probe = probe(&model, size);
+    let fov = if probe.is_none() {
         if options.fov_deg.is_some() {
             return Err(format_error(
                 path,
@@ -317,36 +317,15 @@ fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Import
     } else {
         FovSource::ImageWidth
     };
-    let fov_deg = match (fov, options.fov_deg) {
-        (FovSource::Given, Some(f)) => {
+    let fov_deg = match (fov, options.fov_deg, &probe) {
+        (FovSource::Given, Some(f), _) => {
             notes.push(format!(
                 "fov_deg: {f} deg, given on the command line (--fov-deg)"
             ));
             f
         }
-        (FovSource::ImageWidth, _) => {
-            let Some(probe) = probe(&model, size) else {
-                unreachable!("pinhole models derive their field of view")
-            };
-            let [w, _] = size;
-            let cy = principal_row(&probe);
-            let mut total = 0.0;
-            for u in [-0.5, w as f64 - 0.5] {
-                let ray = probe.unproject([u, cy]).ok_or_else(|| {
-                    camera_error(
-                        path,
-                        "fov_deg",
-                        format!(
-                            "the image edge ({u}, {cy}) lies outside the {} model's domain, so \
-                             the field of view cannot be taken from the image width: pass \
-                             --fov-deg",
-                            probe.model_name()
-                        ),
-                    )
-                })?;
-                total += angle_to_axis(ray).to_degrees();
-            }
-            let fov = (total * FOV_DECIMALS).floor() / FOV_DECIMALS;
+        (FovSource::ImageWidth, _, Some(probe)) => {
+            let fov = width_fov(probe, path)?;
             notes.push(format!(
                 "fov_deg: {fov} deg, the angle the image width spans on the principal row (the \
                  source does not give it; import with --fov-deg to set the lens's own)"
@@ -364,7 +343,30 @@ fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Import
     })
 }
 
-/// The principal row of a camera built by [`build`].
+/// The angle the image width spans on the principal row of `probe` (module docs), rounded down
+/// to 1e-3 deg; an error naming `fov_deg` if an image edge lies outside the model's domain.
+fn width_fov(probe: &Camera, path: &Path) -> Result<f64> {
+    let [w, _] = probe.size();
+    let cy = principal_row(probe);
+    let mut total = 0.0;
+    for u in [-0.5, w as f64 - 0.5] {
+        let ray = probe.unproject([u, cy]).ok_or_else(|| {
+            camera_error(
+                path,
+                "fov_deg",
+                format!(
+                    "the image edge ({u}, {cy}) lies outside the {} model's domain, so the field \
+                     of view cannot be taken from the image width: pass --fov-deg",
+                    probe.model_name()
+                ),
+            )
+        })?;
+        total += angle_to_axis(ray).to_degrees();
+    }
+    Ok((total * FOV_DECIMALS).floor() / FOV_DECIMALS)
+}
+
+/// The principal row of a camera built by [`build`] or [`probe`].
 fn principal_row(camera: &Camera) -> f64 {
     match camera {
         Camera::KannalaBrandt(m) => m.cy,
