@@ -27,6 +27,9 @@ pub enum Error {
     /// parse as that tool writes it.
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
+    /// A camera built in code (not read from a file) has an invalid parameter.
+    #[error(transparent)]
+    InvalidCamera(#[from] crate::camera::Invalid),
     /// A function argument is outside what the operation supports.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),

@@ -8,7 +8,8 @@
 //!
 //! - [`camera`]: camera models in plain `f64` Rust (Kannala-Brandt, pinhole, radial-tangential,
 //!   double sphere, (extended) unified, Scaramuzza, equirectangular) behind one trait, read from
-//!   TOML files in `data/cameras/` or imported from other tools' calibrations. No tensors.
+//!   TOML files in `data/cameras/` or imported from other tools' calibrations. Each model's file
+//!   owns its camera-file schema and checks; constructors validate. No tensors.
 //! - [`kernel`]: the paper's "fisheye calibrated kernel" (Section 3.2): for a layer geometry and
 //!   feature-map size, the offsets of every kernel tap relative to the regular deformable grid,
 //!   in torchvision's layout, computed in parallel and cached. Tensors begin here.

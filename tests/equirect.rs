@@ -170,7 +170,7 @@ fn wrap_x_with_zero_offsets_is_a_convolution_of_the_circularly_padded_input() {
 fn calibrated_conv_on_a_panorama_commutes_with_turning_it() {
     let _guard = tch::no_grad_guard();
     tch::manual_seed(11);
-    let cam = Camera::Equirectangular(Equirectangular::new(128, 64));
+    let cam = Camera::Equirectangular(Equirectangular::new(128, 64).unwrap());
     let vs = VarStore::new(Device::Cpu);
     let size = [16i64, 32];
     let conv = CalibratedConv2d::new(

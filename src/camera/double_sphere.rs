@@ -33,32 +33,81 @@
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
 use super::geometry::{finite3, normalize, unified_w};
-use super::{Camera, CameraModel, PixelConvention};
+use super::intrinsics::deref_intrinsics;
+use super::schema::{
+    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
+    Invalid,
+};
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// A Double Sphere camera. All fields are plain parameters (nothing derived is cached).
 #[derive(Clone, Debug, PartialEq)]
 pub struct DoubleSphere {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
+    intrinsics: Intrinsics,
     /// Distance between the two sphere centres (unit-sphere radii).
     pub xi: f64,
     /// Weight of the second projection step (0: pinhole step, 0.5: stereographic-like).
     pub alpha: f64,
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
     /// Full field of view of the lens, in degrees (as declared by the calibration).
     pub fov_deg: f64,
 }
 
+deref_intrinsics!(DoubleSphere);
+
+raw_camera_file! {
+    /// A Double Sphere camera file as written.
+    fisheye struct Raw {
+        xi: f64,
+        alpha: f64,
+    }
+}
+
+impl CameraFile for DoubleSphere {
+    const MODEL: &'static str = "double-sphere";
+    type Raw = Raw;
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("xi", self.xi), ("alpha", self.alpha)])
+    }
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        DoubleSphere::new(r.intrinsics(), r.xi, r.alpha, r.fov_deg)
+    }
+}
+
 impl DoubleSphere {
+    /// A checked camera (see [`DoubleSphere::validate`]).
+    pub fn new(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
+        checked(
+            Self::unchecked(intrinsics, xi, alpha, fov_deg),
+            Self::validate,
+        )
+    }
+
+    /// The camera without the checks: for probing the model's domain before its field of view
+    /// is known.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Self {
+        DoubleSphere {
+            intrinsics,
+            xi,
+            alpha,
+            fov_deg,
+        }
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
+    /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
+    pub fn validate(&self) -> Checked {
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
+        if !(self.xi > -1.0 && self.xi <= 1.0) {
+            return Err(Invalid::new(
+                "xi",
+                format!("must be in (-1, 1], found {}", self.xi),
+            ));
+        }
+        check_unit_interval("alpha", self.alpha)?;
+        check_fov_in_domain(self.fov_deg, self.theta_max(), "xi, alpha")
+    }
     /// `w2 = (w1 + xi) / sqrt(2 w1 xi + xi^2 + 1)` of Eq. 43: rays project iff `z > -w2 |ray|`.
     pub fn w2(&self) -> f64 {
         let w1 = unified_w(self.alpha);
@@ -143,7 +192,7 @@ impl CameraModel for DoubleSphere {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
 
     /// `fov_deg` in radians.
@@ -151,17 +200,10 @@ impl CameraModel for DoubleSphere {
         self.fov_deg.to_radians()
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`; `xi`, `alpha` and `fov_deg` unchanged (they act on unit rays).
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `xi` and `alpha` and `fov_deg` unchanged.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
         Camera::DoubleSphere(DoubleSphere {
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: convention.scale_centre(self.cx, sx),
-            cy: convention.scale_centre(self.cy, sy),
-            width: (self.width as f64 * sx).round() as usize,
-            height: (self.height as f64 * sy).round() as usize,
+            intrinsics: self.intrinsics.rescaled(scale, convention),
             ..self.clone()
         })
     }
@@ -178,14 +220,16 @@ mod tests {
     /// Rounded values of the kind Basalt reports for a TUM-VI 512x512 fisheye (illustrative).
     fn cam() -> DoubleSphere {
         DoubleSphere {
-            fx: 158.28,
-            fy: 158.27,
-            cx: 254.96,
-            cy: 256.88,
+            intrinsics: Intrinsics {
+                fx: 158.28,
+                fy: 158.27,
+                cx: 254.96,
+                cy: 256.88,
+                width: 512,
+                height: 512,
+            },
             xi: -0.172,
             alpha: 0.593,
-            width: 512,
-            height: 512,
             fov_deg: 190.0,
         }
     }

@@ -34,6 +34,7 @@ use super::geometry::finite3;
 /// `(cv + 0.5) / fv` is `pi / 2` only up to the rounding of `fv = height / pi` (an ulp or two), and
 /// the pole rows must unproject; latitudes within the slack are clamped to the pole.
 const POLE_SLACK: f64 = 1e-12;
+use super::schema::{check_size, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{Camera, CameraModel, KernelFrame, PixelConvention};
 
 /// An equirectangular panorama camera.
@@ -57,9 +58,37 @@ pub struct Equirectangular {
     pub cv: f64,
 }
 
+raw_camera_file! {
+    /// An equirectangular panorama file as written: only the size.
+    struct Raw {
+        width: usize,
+        height: usize,
+    }
+}
+
+impl CameraFile for Equirectangular {
+    const MODEL: &'static str = "equirectangular";
+    type Raw = Raw;
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        Equirectangular::new(r.width, r.height)
+    }
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        Vec::new()
+    }
+}
+
 impl Equirectangular {
-    /// A full-sphere panorama of `width x height` pixels (module docs).
-    pub fn new(width: usize, height: usize) -> Self {
+    /// A full-sphere panorama of `width x height` pixels (module docs), both `> 0`.
+    pub fn new(width: usize, height: usize) -> Result<Self, Invalid> {
+        checked(Self::unchecked(width, height), Self::validate)
+    }
+
+    /// `width, height > 0`.
+    pub fn validate(&self) -> Checked {
+        check_size(self.width, self.height)
+    }
+
+    fn unchecked(width: usize, height: usize) -> Self {
         Equirectangular {
             width,
             height,
@@ -180,7 +209,7 @@ mod tests {
 
     #[test]
     fn grid_edges_centre_and_poles() {
-        let c = Equirectangular::new(1024, 512);
+        let c = Equirectangular::new(1024, 512).unwrap();
         // Centre: forward.
         assert_eq!(c.unproject([511.5, 255.5]), Some([0.0, -0.0, 1.0]));
         assert_eq!(c.project([0.0, 0.0, 2.0]), Some([511.5, 255.5]));
@@ -222,7 +251,7 @@ mod tests {
             (64, 32),
             (7, 3),
         ] {
-            let native = Equirectangular::new(w, h);
+            let native = Equirectangular::new(w, h).unwrap();
             let Camera::Equirectangular(half) =
                 native.rescaled([0.5, 0.5], PixelConvention::HalfPixel)
             else {
@@ -245,7 +274,7 @@ mod tests {
 
     #[test]
     fn column_centres_are_at_documented_longitudes() {
-        let c = Equirectangular::new(360, 180);
+        let c = Equirectangular::new(360, 180).unwrap();
         for j in [0usize, 1, 179, 359] {
             let ray = c.unproject([j as f64, 89.5]).unwrap();
             let want = (j as f64 + 0.5) * 2.0 * PI / 360.0 - PI;

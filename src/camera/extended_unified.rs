@@ -29,32 +29,87 @@
 //! top-left pixel centre at `(0, 0)`; radians.
 
 use super::geometry::{finite3, normalize, unified_w};
-use super::{Camera, CameraModel, PixelConvention};
+use super::intrinsics::deref_intrinsics;
+use super::schema::{
+    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
+    Invalid,
+};
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExtendedUnified {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
+    intrinsics: Intrinsics,
     /// Projection parameter in `[0, 1]`.
     pub alpha: f64,
     /// Ellipsoid parameter, `> 0` (1: the unit sphere of the unified model).
     pub beta: f64,
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
     /// Full field of view of the lens, in degrees (as declared by the calibration).
     pub fov_deg: f64,
 }
 
+deref_intrinsics!(ExtendedUnified);
+
+raw_camera_file! {
+    /// An Extended Unified Camera Model file as written.
+    fisheye struct Raw {
+        alpha: f64,
+        beta: f64,
+    }
+}
+
+impl CameraFile for ExtendedUnified {
+    const MODEL: &'static str = "extended-unified";
+    type Raw = Raw;
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("alpha", self.alpha), ("beta", self.beta)])
+    }
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        ExtendedUnified::new(r.intrinsics(), r.alpha, r.beta, r.fov_deg)
+    }
+}
+
 impl ExtendedUnified {
+    /// A checked camera (see [`ExtendedUnified::validate`]).
+    pub fn new(
+        intrinsics: Intrinsics,
+        alpha: f64,
+        beta: f64,
+        fov_deg: f64,
+    ) -> Result<Self, Invalid> {
+        checked(
+            Self::unchecked(intrinsics, alpha, beta, fov_deg),
+            Self::validate,
+        )
+    }
+
+    /// The camera without the checks: for probing the model's domain before its field of view
+    /// is known.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, beta: f64, fov_deg: f64) -> Self {
+        ExtendedUnified {
+            intrinsics,
+            alpha,
+            beta,
+            fov_deg,
+        }
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
+    /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
+    pub fn validate(&self) -> Checked {
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
+        check_unit_interval("alpha", self.alpha)?;
+        if self.beta <= 0.0 {
+            return Err(Invalid::new(
+                "beta",
+                format!("must be > 0, found {}", self.beta),
+            ));
+        }
+        check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha, beta")
+    }
+
     /// Largest angle to the optical axis that projects, in radians (exclusive):
     /// `pi - atan2(sqrt(1 - w^2), w sqrt(beta))`.
     pub fn theta_max(&self) -> f64 {
@@ -129,7 +184,7 @@ impl CameraModel for ExtendedUnified {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
 
     /// `fov_deg` in radians.
@@ -137,17 +192,10 @@ impl CameraModel for ExtendedUnified {
         self.fov_deg.to_radians()
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`; `alpha`, `beta` and `fov_deg` unchanged.
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `alpha` and `beta` and `fov_deg` unchanged.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
         Camera::ExtendedUnified(ExtendedUnified {
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: convention.scale_centre(self.cx, sx),
-            cy: convention.scale_centre(self.cy, sy),
-            width: (self.width as f64 * sx).round() as usize,
-            height: (self.height as f64 * sy).round() as usize,
+            intrinsics: self.intrinsics.rescaled(scale, convention),
             ..self.clone()
         })
     }
@@ -164,14 +212,16 @@ mod tests {
 
     fn cam(alpha: f64, beta: f64) -> ExtendedUnified {
         ExtendedUnified {
-            fx: 300.0,
-            fy: 298.0,
-            cx: 320.5,
-            cy: 240.25,
+            intrinsics: Intrinsics {
+                fx: 300.0,
+                fy: 298.0,
+                cx: 320.5,
+                cy: 240.25,
+                width: 640,
+                height: 480,
+            },
             alpha,
             beta,
-            width: 640,
-            height: 480,
             fov_deg: 180.0,
         }
     }

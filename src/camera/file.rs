@@ -31,8 +31,9 @@
 //! | `scaramuzza` | `fov_deg cx cy c d e poly`, optional `inv_poly` (OCamCalib; `cx` is the column) |
 //! | `equirectangular` | none |
 //!
-//! Reading goes text -> `toml::Table` (for `model`) -> `Raw*` (serde, `deny_unknown_fields`, so a
-//! misspelt key is an error naming it) -> checked model. Checks: every float finite, `fx, fy > 0`,
+//! Reading goes text -> `toml::Table` (for `model`) -> the model's `Raw` (serde,
+//! `deny_unknown_fields`, so a misspelt key is an error naming it; each model file declares its
+//! own) -> the model's validating constructor. Checks: every float finite, `fx, fy > 0`,
 //! `width, height > 0`, `0 < fov_deg < 360`; Kannala-Brandt: a polynomial that increases on
 //! `[0, fov_deg / 2]`; radial-tangential: every pixel of the image border unprojects (the
 //! distortion does not fold inside the image); double sphere: `xi in (-1, 1]`, `alpha in [0, 1]`;
@@ -44,32 +45,55 @@
 
 use std::path::Path;
 
-use serde::Deserialize;
-
+use super::schema::CameraFile;
 use super::{
-    Camera, CameraModel, DoubleSphere, Equirectangular, ExtendedUnified, KannalaBrandt, Pinhole,
-    PinholeRadTan, Scaramuzza, Unified,
+    Camera, DoubleSphere, Equirectangular, ExtendedUnified, KannalaBrandt, Pinhole, PinholeRadTan,
+    Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
 
-/// The values of `model` this module reads.
-pub const MODELS: [&str; 8] = [
-    "kannala-brandt",
-    "pinhole",
-    "pinhole-radtan",
-    "double-sphere",
-    "unified",
-    "extended-unified",
-    "scaramuzza",
-    "equirectangular",
+/// A camera file's reader: its text and the path that names it in errors.
+type Reader = fn(&str, &Path) -> Result<Camera>;
+
+/// Every model with its reader: the one line a new model adds here.
+const READERS: [(&str, Reader); 8] = [
+    (KannalaBrandt::MODEL, |t, p| {
+        read(t, p).map(Camera::KannalaBrandt)
+    }),
+    (Pinhole::MODEL, |t, p| read(t, p).map(Camera::Pinhole)),
+    (PinholeRadTan::MODEL, |t, p| {
+        read(t, p).map(Camera::PinholeRadTan)
+    }),
+    (DoubleSphere::MODEL, |t, p| {
+        read(t, p).map(Camera::DoubleSphere)
+    }),
+    (Unified::MODEL, |t, p| read(t, p).map(Camera::Unified)),
+    (ExtendedUnified::MODEL, |t, p| {
+        read(t, p).map(Camera::ExtendedUnified)
+    }),
+    (Scaramuzza::MODEL, |t, p| read(t, p).map(Camera::Scaramuzza)),
+    (Equirectangular::MODEL, |t, p| {
+        read(t, p).map(Camera::Equirectangular)
+    }),
 ];
 
-/// Longest polynomial accepted for the Scaramuzza model (OCamCalib's `MAX_POL_LENGTH` is 64).
-const MAX_POLY_LEN: usize = 64;
+/// The values of `model` this module reads.
+pub const MODELS: [&str; READERS.len()] = {
+    let mut names = [""; READERS.len()];
+    let mut i = 0;
+    while i < names.len() {
+        names[i] = READERS[i].0;
+        i += 1;
+    }
+    names
+};
 
-/// Pixels checked along each edge of a radial-tangential image for invertibility (plus the
-/// corners): a fold narrower than 1/256 of an edge between two checked pixels is not realistic.
-const BORDER_SAMPLES: usize = 256;
+/// The model's `Raw` (deserialised from the text, not a table, so that errors point at the
+/// line), then its validating constructor.
+fn read<M: CameraFile>(text: &str, path: &Path) -> Result<M> {
+    let raw: M::Raw = toml::from_str(text).map_err(|e| toml_error(path, e))?;
+    M::from_raw(raw).map_err(|e| e.in_file(path))
+}
 
 /// Reads and parses the camera file at `path`.
 pub(super) fn load(path: &Path) -> Result<Camera> {
@@ -91,7 +115,6 @@ pub fn parse(text: &str, path: &Path) -> Result<Camera> {
         None => {
             return Err(camera_error(
                 path,
-                "model",
                 format!("missing; expected one of {}", known()),
             ))
         }
@@ -99,52 +122,23 @@ pub fn parse(text: &str, path: &Path) -> Result<Camera> {
         Some(other) => {
             return Err(camera_error(
                 path,
-                "model",
                 format!("expected a string, one of {}, found {other}", known()),
             ))
         }
     };
-    // Deserialise from the text, not the table, so that errors point at the line.
-    fn raw<T: serde::de::DeserializeOwned>(text: &str, path: &Path) -> Result<T> {
-        toml::from_str(text).map_err(|e| toml_error(path, e))
-    }
-    match model {
-        "kannala-brandt" => raw::<RawKannalaBrandt>(text, path)?
-            .resolve(path)
-            .map(Camera::KannalaBrandt),
-        "pinhole" => raw::<RawPinhole>(text, path)?
-            .resolve(path)
-            .map(Camera::Pinhole),
-        "pinhole-radtan" => raw::<RawPinholeRadTan>(text, path)?
-            .resolve(path)
-            .map(Camera::PinholeRadTan),
-        "double-sphere" => raw::<RawDoubleSphere>(text, path)?
-            .resolve(path)
-            .map(Camera::DoubleSphere),
-        "unified" => raw::<RawUnified>(text, path)?
-            .resolve(path)
-            .map(Camera::Unified),
-        "extended-unified" => raw::<RawExtendedUnified>(text, path)?
-            .resolve(path)
-            .map(Camera::ExtendedUnified),
-        "scaramuzza" => raw::<RawScaramuzza>(text, path)?
-            .resolve(path)
-            .map(Camera::Scaramuzza),
-        "equirectangular" => raw::<RawEquirectangular>(text, path)?
-            .resolve(path)
-            .map(Camera::Equirectangular),
-        other => Err(camera_error(
+    match READERS.iter().find(|(name, _)| *name == model) {
+        Some((_, reader)) => reader(text, path),
+        None => Err(camera_error(
             path,
-            "model",
-            format!("unknown model `{other}`; expected one of {}", known()),
+            format!("unknown model `{model}`; expected one of {}", known()),
         )),
     }
 }
 
 /// The text of a camera file for `camera`: `header` lines as `#` comments, then `name` and
-/// `description` when given, then `model` and every field of the model by name. Floats are
-/// written as the shortest text that reads back to the same `f64`, so [`parse`] returns
-/// `camera` again.
+/// `description` when given, then `model` and every field of the model by name (each model's
+/// `CameraFile::write_fields`). Floats are written as the shortest text that reads back to the
+/// same `f64`, so [`parse`] returns `camera` again.
 pub fn to_toml(
     camera: &Camera,
     header: &[String],
@@ -163,569 +157,15 @@ pub fn to_toml(
         out.push_str(&format!("description = {}\n", quote(description)));
     }
     out.push_str(&format!("model = {}\n", quote(camera.model_name())));
-    let [width, height] = camera.size();
-    out.push_str(&format!("width = {width}\nheight = {height}\n"));
-    let mut floats: Vec<(&str, f64)> = Vec::new();
-    match camera {
-        Camera::KannalaBrandt(m) => {
-            floats.extend([("fov_deg", m.fov_deg), ("fx", m.fx), ("fy", m.fy)]);
-            floats.extend([("cx", m.cx), ("cy", m.cy)]);
-            floats.extend([
-                ("k1", m.k[0]),
-                ("k2", m.k[1]),
-                ("k3", m.k[2]),
-                ("k4", m.k[3]),
-            ]);
-        }
-        Camera::Pinhole(m) => {
-            floats.extend([("fx", m.fx), ("fy", m.fy), ("cx", m.cx), ("cy", m.cy)]);
-        }
-        Camera::PinholeRadTan(m) => {
-            floats.extend([("fx", m.fx), ("fy", m.fy), ("cx", m.cx), ("cy", m.cy)]);
-            floats.extend([
-                ("k1", m.k[0]),
-                ("k2", m.k[1]),
-                ("p1", m.p[0]),
-                ("p2", m.p[1]),
-            ]);
-            floats.push(("k3", m.k[2]));
-        }
-        Camera::DoubleSphere(m) => {
-            floats.extend([("fov_deg", m.fov_deg), ("fx", m.fx), ("fy", m.fy)]);
-            floats.extend([("cx", m.cx), ("cy", m.cy), ("xi", m.xi), ("alpha", m.alpha)]);
-        }
-        Camera::Unified(m) => {
-            floats.extend([("fov_deg", m.fov_deg), ("fx", m.fx), ("fy", m.fy)]);
-            floats.extend([("cx", m.cx), ("cy", m.cy), ("alpha", m.alpha)]);
-        }
-        Camera::ExtendedUnified(m) => {
-            floats.extend([("fov_deg", m.fov_deg), ("fx", m.fx), ("fy", m.fy)]);
-            floats.extend([
-                ("cx", m.cx),
-                ("cy", m.cy),
-                ("alpha", m.alpha),
-                ("beta", m.beta),
-            ]);
-        }
-        Camera::Scaramuzza(m) => {
-            floats.extend([("fov_deg", m.fov_deg), ("cx", m.cx), ("cy", m.cy)]);
-            floats.extend([("c", m.c), ("d", m.d), ("e", m.e)]);
-        }
-        Camera::Equirectangular(_) => {}
-    }
-    for (key, value) in floats {
-        out.push_str(&format!("{key} = {}\n", float(value)));
-    }
-    if let Camera::Scaramuzza(m) = camera {
-        out.push_str(&format!("poly = {}\n", float_list(&m.poly)));
-        if !m.inv_poly.is_empty() {
-            out.push_str(&format!("inv_poly = {}\n", float_list(&m.inv_poly)));
-        }
-    }
+    dispatch!(camera, m => m.write_fields(&mut out));
     out
 }
 
-/// `{:?}` prints the shortest text that reads back to the same `f64` (`1.0`, `1e-5`, `-0.25`),
-/// always a valid TOML float for finite values.
-fn float(v: f64) -> String {
-    format!("{v:?}")
-}
-
-fn float_list(values: &[f64]) -> String {
-    let items: Vec<String> = values.iter().map(|v| float(*v)).collect();
-    format!("[{}]", items.join(", "))
-}
-
-/// A Kannala-Brandt camera file as written.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawKannalaBrandt {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fov_deg: f64,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    k1: f64,
-    k2: f64,
-    k3: f64,
-    k4: f64,
-}
-
-impl RawKannalaBrandt {
-    fn resolve(self, path: &Path) -> Result<KannalaBrandt> {
-        check_finite(
-            path,
-            &[
-                ("fov_deg", self.fov_deg),
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("k1", self.k1),
-                ("k2", self.k2),
-                ("k3", self.k3),
-                ("k4", self.k4),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        check_fov(path, self.fov_deg)?;
-        let cam = KannalaBrandt::new(
-            self.fx,
-            self.fy,
-            self.cx,
-            self.cy,
-            [self.k1, self.k2, self.k3, self.k4],
-            self.width,
-            self.height,
-            self.fov_deg,
-        );
-        let half_fov = self.fov_deg / 2.0;
-        if !cam.is_monotonic_to(half_fov.to_radians()) {
-            return Err(camera_error(
-                path,
-                "k1..k4",
-                format!(
-                    "d(theta) stops increasing at theta = {:.3} deg, before fov_deg/2 = {:.3} deg",
-                    cam.theta_max().to_degrees(),
-                    half_fov
-                ),
-            ));
-        }
-        Ok(cam)
-    }
-}
-
-/// A pinhole camera file as written (its field of view is derived, not stored).
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawPinhole {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-}
-
-impl RawPinhole {
-    fn resolve(self, path: &Path) -> Result<Pinhole> {
-        check_finite(
-            path,
-            &[
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        Ok(Pinhole {
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            width: self.width,
-            height: self.height,
-        })
-    }
-}
-
-/// A pinhole camera with OpenCV radial-tangential distortion, as written.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawPinholeRadTan {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    k1: f64,
-    k2: f64,
-    p1: f64,
-    p2: f64,
-    k3: f64,
-}
-
-impl RawPinholeRadTan {
-    fn resolve(self, path: &Path) -> Result<PinholeRadTan> {
-        check_finite(
-            path,
-            &[
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("k1", self.k1),
-                ("k2", self.k2),
-                ("p1", self.p1),
-                ("p2", self.p2),
-                ("k3", self.k3),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        let cam = PinholeRadTan::new(
-            self.fx,
-            self.fy,
-            self.cx,
-            self.cy,
-            [self.k1, self.k2, self.k3],
-            [self.p1, self.p2],
-            self.width,
-            self.height,
-        );
-        // The outer pixel edges, BORDER_SAMPLES + 1 points per side (corners included).
-        let (w, h) = (self.width as f64, self.height as f64);
-        let border = (0..=BORDER_SAMPLES).flat_map(|i| {
-            let t = i as f64 / BORDER_SAMPLES as f64;
-            let (u, v) = (-0.5 + t * w, -0.5 + t * h);
-            [[u, -0.5], [u, h - 0.5], [-0.5, v], [w - 0.5, v]]
-        });
-        for px in border {
-            if cam.unproject(px).is_none() {
-                return Err(camera_error(
-                    path,
-                    "k1, k2, p1, p2, k3",
-                    format!(
-                        "the distortion folds inside the image: pixel ({}, {}) has no inverse \
-                         (the radial part stops increasing at r = {:.4} on the z = 1 plane)",
-                        px[0],
-                        px[1],
-                        cam.r_max()
-                    ),
-                ));
-            }
-        }
-        Ok(cam)
-    }
-}
-
-/// A Double Sphere camera file as written.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawDoubleSphere {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fov_deg: f64,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    xi: f64,
-    alpha: f64,
-}
-
-impl RawDoubleSphere {
-    fn resolve(self, path: &Path) -> Result<DoubleSphere> {
-        check_finite(
-            path,
-            &[
-                ("fov_deg", self.fov_deg),
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("xi", self.xi),
-                ("alpha", self.alpha),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        check_fov(path, self.fov_deg)?;
-        if !(self.xi > -1.0 && self.xi <= 1.0) {
-            return Err(camera_error(
-                path,
-                "xi",
-                format!("must be in (-1, 1], found {}", self.xi),
-            ));
-        }
-        check_unit_interval(path, "alpha", self.alpha)?;
-        let cam = DoubleSphere {
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            xi: self.xi,
-            alpha: self.alpha,
-            width: self.width,
-            height: self.height,
-            fov_deg: self.fov_deg,
-        };
-        check_fov_in_domain(path, self.fov_deg, cam.theta_max(), "xi, alpha")?;
-        Ok(cam)
-    }
-}
-
-/// A Unified Camera Model file as written.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawUnified {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fov_deg: f64,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    alpha: f64,
-}
-
-impl RawUnified {
-    fn resolve(self, path: &Path) -> Result<Unified> {
-        check_finite(
-            path,
-            &[
-                ("fov_deg", self.fov_deg),
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("alpha", self.alpha),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        check_fov(path, self.fov_deg)?;
-        if !(self.alpha >= 0.0 && self.alpha < 1.0) {
-            return Err(camera_error(
-                path,
-                "alpha",
-                format!(
-                    "must be in [0, 1) (alpha = 1 puts Mei's xi at infinity), found {}",
-                    self.alpha
-                ),
-            ));
-        }
-        let cam = Unified {
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            alpha: self.alpha,
-            width: self.width,
-            height: self.height,
-            fov_deg: self.fov_deg,
-        };
-        check_fov_in_domain(path, self.fov_deg, cam.theta_max(), "alpha")?;
-        Ok(cam)
-    }
-}
-
-/// An Extended Unified Camera Model file as written.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawExtendedUnified {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fov_deg: f64,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    alpha: f64,
-    beta: f64,
-}
-
-impl RawExtendedUnified {
-    fn resolve(self, path: &Path) -> Result<ExtendedUnified> {
-        check_finite(
-            path,
-            &[
-                ("fov_deg", self.fov_deg),
-                ("fx", self.fx),
-                ("fy", self.fy),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("alpha", self.alpha),
-                ("beta", self.beta),
-            ],
-        )?;
-        check_intrinsics(path, self.fx, self.fy, self.width, self.height)?;
-        check_fov(path, self.fov_deg)?;
-        check_unit_interval(path, "alpha", self.alpha)?;
-        if self.beta <= 0.0 {
-            return Err(camera_error(
-                path,
-                "beta",
-                format!("must be > 0, found {}", self.beta),
-            ));
-        }
-        let cam = ExtendedUnified {
-            fx: self.fx,
-            fy: self.fy,
-            cx: self.cx,
-            cy: self.cy,
-            alpha: self.alpha,
-            beta: self.beta,
-            width: self.width,
-            height: self.height,
-            fov_deg: self.fov_deg,
-        };
-        check_fov_in_domain(path, self.fov_deg, cam.theta_max(), "alpha, beta")?;
-        Ok(cam)
-    }
-}
-
-/// A Scaramuzza (OCamCalib) camera file as written. `cx` is the centre column (OCamCalib's
-/// `yc`), `cy` the centre row (its `xc`).
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawScaramuzza {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-    fov_deg: f64,
-    cx: f64,
-    cy: f64,
-    c: f64,
-    d: f64,
-    e: f64,
-    poly: Vec<f64>,
-    #[serde(default)]
-    inv_poly: Vec<f64>,
-}
-
-impl RawScaramuzza {
-    fn resolve(self, path: &Path) -> Result<Scaramuzza> {
-        check_finite(
-            path,
-            &[
-                ("fov_deg", self.fov_deg),
-                ("cx", self.cx),
-                ("cy", self.cy),
-                ("c", self.c),
-                ("d", self.d),
-                ("e", self.e),
-            ],
-        )?;
-        for (field, list) in [("poly", &self.poly), ("inv_poly", &self.inv_poly)] {
-            if let Some((i, v)) = list.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-                return Err(camera_error(
-                    path,
-                    field,
-                    format!("coefficient {i} must be finite, found {v}"),
-                ));
-            }
-            if list.len() > MAX_POLY_LEN {
-                return Err(camera_error(
-                    path,
-                    field,
-                    format!("{} coefficients, at most {MAX_POLY_LEN}", list.len()),
-                ));
-            }
-        }
-        match self.poly.first() {
-            Some(&a0) if a0 < 0.0 => {}
-            other => {
-                return Err(camera_error(
-                    path,
-                    "poly",
-                    format!(
-                        "the first coefficient a0 must be negative (OCamCalib's cameras look \
-                         along -z), found {other:?}"
-                    ),
-                ))
-            }
-        }
-        let det = self.c - self.d * self.e;
-        if det.is_nan() || det <= 0.0 {
-            return Err(camera_error(
-                path,
-                "c, d, e",
-                format!("the affine matrix [[c, d], [e, 1]] must have c - d e > 0, found {det}"),
-            ));
-        }
-        for (field, n) in [("width", self.width), ("height", self.height)] {
-            if n == 0 {
-                return Err(camera_error(path, field, "must be > 0 px".to_string()));
-            }
-        }
-        check_fov(path, self.fov_deg)?;
-        let cam = Scaramuzza::new(
-            self.poly,
-            self.inv_poly,
-            self.cx,
-            self.cy,
-            [self.c, self.d, self.e],
-            self.width,
-            self.height,
-            self.fov_deg,
-        );
-        check_fov_in_domain(path, self.fov_deg, cam.theta_max(), "poly")?;
-        Ok(cam)
-    }
-}
-
-/// An equirectangular panorama file as written: only the size.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RawEquirectangular {
-    #[allow(dead_code)] // read by `parse` from the table
-    model: String,
-    #[allow(dead_code)] // documentation only
-    name: Option<String>,
-    #[allow(dead_code)] // documentation only
-    description: Option<String>,
-    width: usize,
-    height: usize,
-}
-
-impl RawEquirectangular {
-    fn resolve(self, path: &Path) -> Result<Equirectangular> {
-        for (field, n) in [("width", self.width), ("height", self.height)] {
-            if n == 0 {
-                return Err(camera_error(path, field, "must be > 0 px".to_string()));
-            }
-        }
-        Ok(Equirectangular::new(self.width, self.height))
-    }
-}
-
-fn camera_error(path: &Path, field: &str, message: String) -> Error {
+/// An error in the `model` key.
+fn camera_error(path: &Path, message: String) -> Error {
     Error::Camera {
         path: path.to_path_buf(),
-        field: field.to_string(),
+        field: "model".to_string(),
         message,
     }
 }
@@ -738,85 +178,14 @@ fn toml_error(path: &Path, e: toml::de::Error) -> Error {
     }
 }
 
-fn check_finite(path: &Path, fields: &[(&str, f64)]) -> Result<()> {
-    match fields.iter().find(|(_, v)| !v.is_finite()) {
-        Some((field, v)) => Err(camera_error(
-            path,
-            field,
-            format!("must be finite, found {v}"),
-        )),
-        None => Ok(()),
-    }
-}
-
-fn check_intrinsics(path: &Path, fx: f64, fy: f64, width: usize, height: usize) -> Result<()> {
-    for (field, f) in [("fx", fx), ("fy", fy)] {
-        if f <= 0.0 {
-            return Err(camera_error(
-                path,
-                field,
-                format!("focal length must be > 0 px, found {f}"),
-            ));
-        }
-    }
-    for (field, n) in [("width", width), ("height", height)] {
-        if n == 0 {
-            return Err(camera_error(path, field, "must be > 0 px".to_string()));
-        }
-    }
-    Ok(())
-}
-
-fn check_fov(path: &Path, fov_deg: f64) -> Result<()> {
-    if fov_deg > 0.0 && fov_deg < 360.0 {
-        Ok(())
-    } else {
-        Err(camera_error(
-            path,
-            "fov_deg",
-            format!("must be in (0, 360) degrees, found {fov_deg}"),
-        ))
-    }
-}
-
-fn check_unit_interval(path: &Path, field: &str, v: f64) -> Result<()> {
-    if (0.0..=1.0).contains(&v) {
-        Ok(())
-    } else {
-        Err(camera_error(
-            path,
-            field,
-            format!("must be in [0, 1], found {v}"),
-        ))
-    }
-}
-
-/// `fov_deg / 2` must be below the model's largest projectable angle `theta_max` (radians),
-/// which `params` (the fields that set it) determine.
-fn check_fov_in_domain(path: &Path, fov_deg: f64, theta_max: f64, params: &str) -> Result<()> {
-    if (fov_deg / 2.0).to_radians() < theta_max {
-        Ok(())
-    } else {
-        Err(camera_error(
-            path,
-            "fov_deg",
-            format!(
-                "fov_deg/2 = {:.3} deg, but with these {params} the model projects rays only up \
-                 to {:.3} deg from the optical axis",
-                fov_deg / 2.0,
-                theta_max.to_degrees()
-            ),
-        ))
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use std::f64::consts::FRAC_PI_2;
     use std::path::PathBuf;
 
     use super::*;
-    use crate::camera::{load, CameraModel, PixelConvention};
+    use crate::camera::tests::{angle, kb, radtan};
+    use crate::camera::{load, CameraModel, Intrinsics, PixelConvention};
 
     /// Pixel round trips: the iterative inverses (Kannala-Brandt, radial-tangential, Scaramuzza)
     /// stop at quadratically shrinking steps below 1e-10 px or less, the closed forms are exact,
@@ -857,22 +226,12 @@ mod tests {
         }
     }
 
-    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-        let cross = [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ];
-        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
-    }
-
     #[test]
     fn shipped_files_hold_the_documented_values() {
         let f195 = load(shipped("f195.toml")).unwrap();
         assert_eq!(
             f195,
-            Camera::KannalaBrandt(KannalaBrandt::new(
+            Camera::KannalaBrandt(kb(
                 287.0,
                 287.0,
                 540.0,
@@ -891,9 +250,7 @@ mod tests {
         let f165 = load(shipped("f165.toml")).unwrap();
         assert_eq!(
             f165,
-            Camera::KannalaBrandt(KannalaBrandt::new(
-                326.0, 326.0, 540.0, 480.0, [0.0; 4], 1080, 960, 165.0
-            ))
+            Camera::KannalaBrandt(kb(326.0, 326.0, 540.0, 480.0, [0.0; 4], 1080, 960, 165.0))
         );
         let Camera::KannalaBrandt(kb) = &f165 else {
             unreachable!()
@@ -904,20 +261,19 @@ mod tests {
         let pers = load(shipped("pers.toml")).unwrap();
         assert_eq!(
             pers,
-            Camera::Pinhole(Pinhole {
-                fx: 540.0,
-                fy: 540.0,
-                cx: 540.0,
-                cy: 480.0,
-                width: 1080,
-                height: 960
-            })
+            Camera::Pinhole(
+                Pinhole::new(Intrinsics::from_parts(
+                    [540.0, 540.0, 540.0, 480.0],
+                    [1080, 960]
+                ))
+                .unwrap()
+            )
         );
         assert!((pers.fov() - FRAC_PI_2).abs() < 1e-15);
         // EuRoC MAV cam0 (sensor.yaml, Kalibr pinhole-radtan, k3 = 0).
         assert_eq!(
             load(shipped("radtan_example.toml")).unwrap(),
-            Camera::PinholeRadTan(PinholeRadTan::new(
+            Camera::PinholeRadTan(radtan(
                 458.654,
                 457.296,
                 367.215,
@@ -930,21 +286,19 @@ mod tests {
         );
         assert_eq!(
             load(shipped("equirect.toml")).unwrap(),
-            Camera::Equirectangular(Equirectangular::new(1024, 512))
+            Camera::Equirectangular(Equirectangular::new(1024, 512).unwrap())
         );
         assert_eq!(
             load(shipped("ds_example.toml")).unwrap(),
-            Camera::DoubleSphere(DoubleSphere {
-                fx: 158.28,
-                fy: 158.27,
-                cx: 254.96,
-                cy: 256.88,
-                xi: -0.172,
-                alpha: 0.593,
-                width: 512,
-                height: 512,
-                fov_deg: 153.4,
-            })
+            Camera::DoubleSphere(
+                DoubleSphere::new(
+                    Intrinsics::from_parts([158.28, 158.27, 254.96, 256.88], [512, 512]),
+                    -0.172,
+                    0.593,
+                    153.4
+                )
+                .unwrap()
+            )
         );
     }
 
@@ -1289,7 +643,7 @@ mod tests {
             assert_eq!(back, cam, "{name}:\n{text}");
         }
         // Awkward floats come back bit for bit.
-        let cam = Camera::KannalaBrandt(KannalaBrandt::new(
+        let cam = Camera::KannalaBrandt(kb(
             0.1 + 0.2,
             1e300,
             -0.0,

@@ -21,12 +21,10 @@
 
 use std::f64::consts::PI;
 
-use super::{Camera, CameraModel, PixelConvention};
-
-/// Newton iterations allowed when inverting `d`. Each failed Newton step falls back to a
-/// bisection step, and bisection alone shrinks a bracket of width pi below [`EPS`] in 42 steps;
-/// near a double root at `theta_max` Newton converges linearly (one bit per step), hence 100.
-pub const MAX_ITER: usize = 100;
+use super::intrinsics::deref_intrinsics;
+use super::schema::{checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::solve::{increasing_root, last_ok};
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// Convergence threshold on the Newton (or bisection) step, in radians: `fx * EPS` is about
 /// 3e-10 px for the shipped lenses, yet it stays well above the ~1e-15 rad round-off floor of
@@ -38,77 +36,91 @@ pub const EPS: f64 = 1e-12;
 /// no realistic degree-9 lens polynomial produces).
 const SCAN_STEPS: usize = 10_000;
 
-/// Bisection steps refining `theta_max` once the scan has bracketed it: `pi / SCAN_STEPS / 2^60`
-/// is far below one ulp, so the loop ends on the floating-point limit.
-const REFINE_STEPS: usize = 60;
-
 /// A Kannala-Brandt (OpenCV-fisheye polynomial) camera.
 ///
-/// Build it with [`KannalaBrandt::new`], which also finds the monotonic range `theta_max` of the
-/// polynomial. The fields are public for reading; if you change `k`, rebuild the camera with
-/// `new` so that `theta_max` follows. Equality compares the public fields only (`theta_max` is a
-/// function of `k`).
+/// Build it with [`KannalaBrandt::new`], which checks the parameters and finds the monotonic
+/// range `theta_max` of the polynomial. The fields are public for reading (the intrinsics
+/// through `Deref`, `cam.fx`); to change `k`, build a new camera with `new` so that `theta_max`
+/// follows. Equality compares the parameters only (`theta_max` is a function of `k`).
 #[derive(Clone, Debug)]
 pub struct KannalaBrandt {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
+    intrinsics: Intrinsics,
     /// Polynomial coefficients `[k1, k2, k3, k4]` of `d(theta)`.
     pub k: [f64; 4],
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
     /// Full field of view of the lens, in degrees (as declared by the calibration).
     pub fov_deg: f64,
     /// End of the monotonic range of `d`, in radians (see [`KannalaBrandt::theta_max`]).
     theta_max: f64,
 }
 
+deref_intrinsics!(KannalaBrandt);
+
 impl PartialEq for KannalaBrandt {
     fn eq(&self, other: &Self) -> bool {
-        self.fx == other.fx
-            && self.fy == other.fy
-            && self.cx == other.cx
-            && self.cy == other.cy
-            && self.k == other.k
-            && self.width == other.width
-            && self.height == other.height
-            && self.fov_deg == other.fov_deg
+        self.intrinsics == other.intrinsics && self.k == other.k && self.fov_deg == other.fov_deg
+    }
+}
+
+raw_camera_file! {
+    /// A Kannala-Brandt camera file as written.
+    fisheye struct Raw {
+        k1: f64,
+        k2: f64,
+        k3: f64,
+        k4: f64,
+    }
+}
+
+impl CameraFile for KannalaBrandt {
+    const MODEL: &'static str = "kannala-brandt";
+    type Raw = Raw;
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let [k1, k2, k3, k4] = self.k;
+        let params = [("k1", k1), ("k2", k2), ("k3", k3), ("k4", k4)];
+        self.intrinsics.with_fov(self.fov_deg, &params)
+    }
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        KannalaBrandt::new(r.intrinsics(), [r.k1, r.k2, r.k3, r.k4], r.fov_deg)
     }
 }
 
 impl KannalaBrandt {
-    /// A camera with these intrinsics; computes `theta_max` (see [`KannalaBrandt::theta_max`]).
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 4],
-        width: usize,
-        height: usize,
-        fov_deg: f64,
-    ) -> Self {
+    /// A checked camera (see [`KannalaBrandt::validate`]); computes `theta_max` (see
+    /// [`KannalaBrandt::theta_max`]).
+    pub fn new(intrinsics: Intrinsics, k: [f64; 4], fov_deg: f64) -> Result<Self, Invalid> {
+        checked(Self::unchecked(intrinsics, k, fov_deg), Self::validate)
+    }
+
+    /// The camera without the checks: for rescaling a checked camera and for probing a model's
+    /// domain before its field of view is known.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, k: [f64; 4], fov_deg: f64) -> Self {
         let mut cam = KannalaBrandt {
-            fx,
-            fy,
-            cx,
-            cy,
+            intrinsics,
             k,
-            width,
-            height,
             fov_deg,
             theta_max: 0.0,
         };
         cam.theta_max = cam.find_theta_max();
         cam
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`, and
+    /// a polynomial that increases on `[0, fov_deg / 2]`; the error names the field.
+    pub fn validate(&self) -> Checked {
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
+        let half_fov = self.fov_deg / 2.0;
+        if !self.is_monotonic_to(half_fov.to_radians()) {
+            return Err(Invalid::new(
+                "k1..k4",
+                format!(
+                    "d(theta) stops increasing at theta = {:.3} deg, before fov_deg/2 = {:.3} deg",
+                    self.theta_max().to_degrees(),
+                    half_fov
+                ),
+            ));
+        }
+        Ok(())
     }
 
     /// `d(theta) = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)`: the distance
@@ -147,34 +159,17 @@ impl KannalaBrandt {
             return 0.0; // only reachable with non-finite coefficients
         }
         let step = PI / SCAN_STEPS as f64;
-        for i in 1..=SCAN_STEPS {
-            let hi = if i == SCAN_STEPS { PI } else { i as f64 * step };
-            if !increasing(hi) {
-                let (mut lo, mut hi) = ((i - 1) as f64 * step, hi);
-                for _ in 0..REFINE_STEPS {
-                    let mid = 0.5 * (lo + hi);
-                    if mid <= lo || mid >= hi {
-                        break;
-                    }
-                    if increasing(mid) {
-                        lo = mid;
-                    } else {
-                        hi = mid;
-                    }
-                }
-                return lo;
-            }
-        }
-        PI
+        let grid = (1..=SCAN_STEPS).map(|i| if i == SCAN_STEPS { PI } else { i as f64 * step });
+        last_ok(increasing, 0.0, grid).unwrap_or(PI)
     }
 
-    /// Solves `d(theta) = r_d` for `theta in [0, theta_max]` by safeguarded Newton:
-    /// `theta <- theta - (d(theta) - r_d) / d'(theta)`, keeping a bracket `[lo, hi]` around the
-    /// root and taking a bisection step whenever Newton would leave it. Converged when
-    /// `|step| < EPS`. Returns `(theta, iterations)`, or `None` without convergence in
-    /// [`MAX_ITER`] steps or for `r_d` outside `[0, d(theta_max)]`.
+    /// Solves `d(theta) = r_d` for `theta in [0, theta_max]` with the shared safeguarded Newton
+    /// ([`increasing_root`]: `theta <- theta - (d(theta) - r_d) / d'(theta)`, bisecting whenever
+    /// Newton would leave the bracket), converged when `|step| < EPS`. Returns
+    /// `(theta, iterations)`, or `None` without convergence in [`MAX_ITER`](super::solve::MAX_ITER) steps or for `r_d`
+    /// outside `[0, d(theta_max)]`.
     pub(crate) fn solve_theta(&self, r_d: f64) -> Option<(f64, usize)> {
-        let (mut lo, mut hi) = (0.0, self.theta_max);
+        let hi = self.theta_max;
         if !(r_d >= 0.0 && r_d <= self.distort(hi)) {
             return None;
         }
@@ -182,30 +177,8 @@ impl KannalaBrandt {
             return Some((0.0, 0));
         }
         // d(theta) ~ theta for realistic lenses: r_d itself is an excellent first guess.
-        let mut theta = r_d.clamp(lo, hi);
-        for iter in 1..=MAX_ITER {
-            let f = self.distort(theta) - r_d;
-            if f == 0.0 {
-                return Some((theta, iter));
-            }
-            if f < 0.0 {
-                lo = theta;
-            } else {
-                hi = theta;
-            }
-            let newton = theta - f / self.distort_derivative(theta);
-            let next = if newton.is_finite() && newton >= lo && newton <= hi {
-                newton
-            } else {
-                0.5 * (lo + hi)
-            };
-            let step = next - theta;
-            theta = next;
-            if step.abs() < EPS {
-                return Some((theta, iter));
-            }
-        }
-        None
+        let g = |t: f64| (self.distort(t) - r_d, self.distort_derivative(t));
+        increasing_root(g, [0.0, hi], r_d, EPS)
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] at `ray`, or `None`
@@ -278,7 +251,7 @@ impl CameraModel for KannalaBrandt {
     }
 
     /// With `r_d = sqrt(((u - cx) / fx)^2 + ((v - cy) / fy)^2)`, solves `d(theta) = r_d` (see
-    /// [`MAX_ITER`], [`EPS`]) and returns `[sin(theta) cos(phi), sin(theta) sin(phi),
+    /// [`MAX_ITER`](super::solve::MAX_ITER), [`EPS`]) and returns `[sin(theta) cos(phi), sin(theta) sin(phi),
     /// cos(theta)]`; `[0, 0, 1]` at the principal point. `None` for non-finite input, for
     /// `r_d > d(theta_max)` and if Newton does not converge.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
@@ -297,7 +270,7 @@ impl CameraModel for KannalaBrandt {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
 
     /// `fov_deg` in radians.
@@ -305,26 +278,19 @@ impl CameraModel for KannalaBrandt {
         self.fov_deg.to_radians()
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`; `k` and `fov_deg` unchanged (they are angular).
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `k` and `fov_deg` unchanged (they
+    /// are angular).
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
-        Camera::KannalaBrandt(KannalaBrandt::new(
-            self.fx * sx,
-            self.fy * sy,
-            convention.scale_centre(self.cx, sx),
-            convention.scale_centre(self.cy, sy),
-            self.k,
-            (self.width as f64 * sx).round() as usize,
-            (self.height as f64 * sy).round() as usize,
-            self.fov_deg,
-        ))
+        let intrinsics = self.intrinsics.rescaled(scale, convention);
+        Camera::KannalaBrandt(KannalaBrandt::unchecked(intrinsics, self.k, self.fov_deg))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::solve::MAX_ITER;
+    use crate::camera::tests::{angle, kb};
 
     /// Round trips are exact up to a few ulps of theta times fx (~1e-13 px); 1e-9 px leaves
     /// margin for sin/cos/atan2 rounding without hiding a real error (the Newton EPS is 1e-12 rad).
@@ -342,7 +308,7 @@ mod tests {
 
     /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
     fn f195() -> KannalaBrandt {
-        KannalaBrandt::new(
+        kb(
             287.0,
             287.0,
             540.0,
@@ -361,7 +327,7 @@ mod tests {
 
     /// A made-up lens whose polynomial turns back: d' = 1 - 1.5 theta^2 = 0 at theta = sqrt(2/3).
     fn folding() -> KannalaBrandt {
-        KannalaBrandt::new(
+        kb(
             300.0,
             300.0,
             500.0,
@@ -371,16 +337,6 @@ mod tests {
             800,
             90.0,
         )
-    }
-
-    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-        let cross = [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ];
-        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-        (cross[0].hypot(cross[1]).hypot(cross[2])).atan2(dot)
     }
 
     #[test]
@@ -534,14 +490,14 @@ mod tests {
         // fx 287 * 0.5, fy 287 * 0.25, cx (540.5) * 0.5 - 0.5, cy (480.5) * 0.25 - 0.5.
         assert_eq!(
             half,
-            KannalaBrandt::new(143.5, 71.75, 269.75, 119.625, cam.k, 540, 240, 195.0)
+            kb(143.5, 71.75, 269.75, 119.625, cam.k, 540, 240, 195.0)
         );
         let Camera::KannalaBrandt(paper) = cam.rescaled([0.5, 0.25], PixelConvention::Paper) else {
             panic!("model changed");
         };
         assert_eq!(
             paper,
-            KannalaBrandt::new(143.5, 71.75, 270.0, 120.0, cam.k, 540, 240, 195.0)
+            kb(143.5, 71.75, 270.0, 120.0, cam.k, 540, 240, 195.0)
         );
         assert_eq!(half.theta_max(), cam.theta_max());
         assert_eq!(half.fov(), 195.0f64.to_radians());

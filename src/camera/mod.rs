@@ -13,25 +13,38 @@
 //! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Scaramuzza`]
 //! (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model whose kernels wrap
 //! horizontally). [`import`] reads the calibration files of other tools.
+//!
+//! A model's file also owns its camera-file schema: its `Raw` fields, its `validate()` (which its
+//! `new` calls, so every camera in the program is checked) and its fields for [`to_toml`]. What
+//! the models share is written once: [`Intrinsics`] (`fx fy cx cy width height`: checks, size,
+//! rescaling), `schema` (the [`Invalid`] error, the checks, the header keys every file carries),
+//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only dispatches on
+//! `model =`. A new model is its file, plus here its `mod` / `pub use`, its [`Camera`] variant and
+//! its `dispatch!` arm, and its line in `file`'s reader table.
 
 mod double_sphere;
 mod equirectangular;
 mod extended_unified;
 mod geometry;
 pub mod import;
+mod intrinsics;
 mod kannala_brandt;
 mod pinhole;
 mod pinhole_radtan;
 mod scaramuzza;
+mod schema;
+mod solve;
 mod unified;
 
 pub use double_sphere::DoubleSphere;
 pub use equirectangular::Equirectangular;
 pub use extended_unified::ExtendedUnified;
+pub use intrinsics::Intrinsics;
 pub use kannala_brandt::KannalaBrandt;
 pub use pinhole::Pinhole;
 pub use pinhole_radtan::PinholeRadTan;
 pub use scaramuzza::Scaramuzza;
+pub use schema::Invalid;
 pub use unified::Unified;
 
 use std::path::Path;
@@ -162,16 +175,10 @@ macro_rules! dispatch {
 impl Camera {
     /// The model's name in camera files (`model = "..."`).
     pub fn model_name(&self) -> &'static str {
-        match self {
-            Camera::KannalaBrandt(_) => "kannala-brandt",
-            Camera::Pinhole(_) => "pinhole",
-            Camera::PinholeRadTan(_) => "pinhole-radtan",
-            Camera::DoubleSphere(_) => "double-sphere",
-            Camera::Unified(_) => "unified",
-            Camera::ExtendedUnified(_) => "extended-unified",
-            Camera::Scaramuzza(_) => "scaramuzza",
-            Camera::Equirectangular(_) => "equirectangular",
+        fn name<M: schema::CameraFile>(_: &M) -> &'static str {
+            M::MODEL
         }
+        dispatch!(self, m => name(m))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] (each model's

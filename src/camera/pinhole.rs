@@ -7,26 +7,46 @@
 //! Pixels are `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; rays are
 //! camera-frame `[x, y, z]` with z forward; angles in radians.
 
-use super::{Camera, CameraModel, PixelConvention};
+use super::intrinsics::deref_intrinsics;
+use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
-/// A pinhole camera without distortion.
+/// A pinhole camera without distortion: its intrinsics (read as `cam.fx`, through `Deref`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Pinhole {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
+    intrinsics: Intrinsics,
+}
+
+deref_intrinsics!(Pinhole);
+
+raw_camera_file! {
+    /// A pinhole camera file as written (its field of view is derived, not stored).
+    pinhole struct Raw {}
+}
+
+impl CameraFile for Pinhole {
+    const MODEL: &'static str = "pinhole";
+    type Raw = Raw;
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        Pinhole::new(r.intrinsics())
+    }
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        self.intrinsics.fields().to_vec()
+    }
 }
 
 impl Pinhole {
+    /// A checked camera (see [`Pinhole::validate`]).
+    pub fn new(intrinsics: Intrinsics) -> Result<Self, Invalid> {
+        checked(Pinhole { intrinsics }, Self::validate)
+    }
+
+    /// Every float finite and the intrinsics' checks ([`Intrinsics::validate`]).
+    pub fn validate(&self) -> Checked {
+        check_finite(self.fields())?;
+        self.intrinsics.validate()
+    }
+
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`]:
     /// `[[fx / z, 0, -fx x / z^2], [0, fy / z, -fy y / z^2]]`, or `None` where `project` is.
     pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
@@ -58,9 +78,8 @@ impl CameraModel for Pinhole {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
-
     /// `2 atan(width / (2 fx))`: the angle between the left and right image edges (pixel edges at
     /// `-0.5` and `width - 0.5`) when the principal point is centred (`cx = (width - 1) / 2`).
     /// For an off-centre `cx` the true edge-to-edge angle is
@@ -69,17 +88,10 @@ impl CameraModel for Pinhole {
         2.0 * (self.width as f64 / (2.0 * self.fx)).atan()
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`.
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]).
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
         Camera::Pinhole(Pinhole {
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: convention.scale_centre(self.cx, sx),
-            cy: convention.scale_centre(self.cy, sy),
-            width: (self.width as f64 * sx).round() as usize,
-            height: (self.height as f64 * sy).round() as usize,
+            intrinsics: self.intrinsics.rescaled(scale, convention),
         })
     }
 }
@@ -92,14 +104,15 @@ mod tests {
     const PX_TOL: f64 = 1e-9;
 
     fn pers() -> Pinhole {
-        Pinhole {
+        Pinhole::new(Intrinsics {
             fx: 540.0,
             fy: 540.0,
             cx: 540.0,
             cy: 480.0,
             width: 1080,
             height: 960,
-        }
+        })
+        .unwrap()
     }
 
     #[test]
@@ -132,19 +145,21 @@ mod tests {
     fn rescaled_by_both_conventions() {
         let cam = pers();
         // fx 540 * 0.5, fy 540 * 0.25, cx 540.5 * 0.5 - 0.5, cy 480.5 * 0.25 - 0.5.
-        let half = Pinhole {
+        let half = Pinhole::new(Intrinsics {
             fx: 270.0,
             fy: 135.0,
             cx: 269.75,
             cy: 119.625,
             width: 540,
             height: 240,
-        };
-        let paper = Pinhole {
+        })
+        .unwrap();
+        let paper = Pinhole::new(Intrinsics {
             cx: 270.0,
             cy: 120.0,
-            ..half.clone()
-        };
+            ..*half
+        })
+        .unwrap();
         assert_eq!(
             cam.rescaled([0.5, 0.25], PixelConvention::HalfPixel),
             Camera::Pinhole(half)

@@ -27,7 +27,10 @@
 //! top-left pixel centre at `(0, 0)`; radians.
 
 use super::geometry::{finite3, normalize};
-use super::{Camera, CameraModel, PixelConvention};
+use super::intrinsics::deref_intrinsics;
+use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::solve::last_ok;
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// Newton iterations allowed when undistorting. Newton converges quadratically from `(x'', y'')`
 /// in 3 to 6 steps for realistic lenses (measured on the test cameras); halved steps near the
@@ -50,9 +53,9 @@ const SCAN_MAX_LOG10_R2: f64 = 12.0;
 /// Below `r^2 = 1e-6` the radial derivative is `1 + O(1e-6 k1)`: positive for any real lens.
 const SCAN_MIN_LOG10_R2: f64 = -6.0;
 
-/// Bisection steps refining `r_max^2` once bracketed (the bracket is 2.1 % wide: 60 halvings
-/// reach the floating-point limit).
-const REFINE_STEPS: usize = 60;
+/// Pixels checked along each edge of the image for invertibility (plus the corners): a fold
+/// narrower than 1/256 of an edge between two checked pixels is not realistic.
+const BORDER_SAMPLES: usize = 256;
 
 /// A pinhole camera with OpenCV radial-tangential distortion.
 ///
@@ -60,69 +63,70 @@ const REFINE_STEPS: usize = 60;
 /// view. Equality compares the public fields only (the derived values are functions of them).
 #[derive(Clone, Debug)]
 pub struct PinholeRadTan {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
+    intrinsics: Intrinsics,
     /// Radial coefficients `[k1, k2, k3]` (of `r^2`, `r^4`, `r^6`).
     pub k: [f64; 3],
     /// Tangential coefficients `[p1, p2]`.
     pub p: [f64; 2],
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
     /// End of the monotonic radial range on the `z = 1` plane (may be infinite).
     r_max: f64,
     /// Edge-to-edge horizontal field of view, radians.
     fov: f64,
 }
 
+deref_intrinsics!(PinholeRadTan);
+
 impl PartialEq for PinholeRadTan {
     fn eq(&self, other: &Self) -> bool {
-        self.fx == other.fx
-            && self.fy == other.fy
-            && self.cx == other.cx
-            && self.cy == other.cy
-            && self.k == other.k
-            && self.p == other.p
-            && self.width == other.width
-            && self.height == other.height
+        self.intrinsics == other.intrinsics && self.k == other.k && self.p == other.p
+    }
+}
+
+raw_camera_file! {
+    /// A pinhole camera with OpenCV radial-tangential distortion, as written.
+    pinhole struct Raw {
+        k1: f64,
+        k2: f64,
+        p1: f64,
+        p2: f64,
+        k3: f64,
+    }
+}
+
+impl CameraFile for PinholeRadTan {
+    const MODEL: &'static str = "pinhole-radtan";
+    type Raw = Raw;
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let ([k1, k2, k3], [p1, p2]) = (self.k, self.p);
+        let mut fields = self.intrinsics.fields().to_vec();
+        fields.extend([("k1", k1), ("k2", k2), ("p1", p1), ("p2", p2), ("k3", k3)]);
+        fields
+    }
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        PinholeRadTan::new(r.intrinsics(), [r.k1, r.k2, r.k3], [r.p1, r.p2])
     }
 }
 
 impl PinholeRadTan {
-    /// A camera with these intrinsics (`k = [k1, k2, k3]`, `p = [p1, p2]`); computes `r_max`
-    /// and the field of view. If an image edge does not unproject (the distortion folds inside
-    /// the image, which the camera file reader rejects) the field of view falls back to the
-    /// undistorted pinhole's `2 atan(width / (2 fx))`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        k: [f64; 3],
-        p: [f64; 2],
-        width: usize,
-        height: usize,
-    ) -> Self {
+    /// A checked camera (see [`PinholeRadTan::validate`]) with `k = [k1, k2, k3]`,
+    /// `p = [p1, p2]`; computes `r_max` and the field of view.
+    pub fn new(intrinsics: Intrinsics, k: [f64; 3], p: [f64; 2]) -> Result<Self, Invalid> {
+        checked(Self::unchecked(intrinsics, k, p), Self::validate)
+    }
+
+    /// The camera without the checks; computes `r_max` and the field of view. If an image edge
+    /// does not unproject (the distortion folds inside the image, which [`PinholeRadTan::new`]
+    /// rejects) the field of view falls back to the undistorted pinhole's
+    /// `2 atan(width / (2 fx))`.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, k: [f64; 3], p: [f64; 2]) -> Self {
         let mut cam = PinholeRadTan {
-            fx,
-            fy,
-            cx,
-            cy,
+            intrinsics,
             k,
             p,
-            width,
-            height,
             r_max: 0.0,
             fov: 0.0,
         };
+        let Intrinsics { fx, cy, width, .. } = intrinsics;
         cam.r_max = cam.find_r_max();
         let edges = [-0.5, width as f64 - 0.5].map(|u| cam.unproject([u, cy]));
         cam.fov = match edges {
@@ -138,6 +142,36 @@ impl PinholeRadTan {
             _ => 2.0 * (width as f64 / (2.0 * fx)).atan(),
         };
         cam
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), and every pixel of the
+    /// image border unprojects (the distortion does not fold inside the image); the error names
+    /// the field.
+    pub fn validate(&self) -> Checked {
+        check_finite(self.fields())?;
+        self.intrinsics.validate()?;
+        // The outer pixel edges, BORDER_SAMPLES + 1 points per side (corners included).
+        let (w, h) = (self.width as f64, self.height as f64);
+        let border = (0..=BORDER_SAMPLES).flat_map(|i| {
+            let t = i as f64 / BORDER_SAMPLES as f64;
+            let (u, v) = (-0.5 + t * w, -0.5 + t * h);
+            [[u, -0.5], [u, h - 0.5], [-0.5, v], [w - 0.5, v]]
+        });
+        for px in border {
+            if self.unproject(px).is_none() {
+                return Err(Invalid::new(
+                    "k1, k2, p1, p2, k3",
+                    format!(
+                        "the distortion folds inside the image: pixel ({}, {}) has no inverse \
+                         (the radial part stops increasing at r = {:.4} on the z = 1 plane)",
+                        px[0],
+                        px[1],
+                        self.r_max()
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// End of the monotonic radial range on the `z = 1` plane: the first `r > 0` where
@@ -161,27 +195,7 @@ impl PinholeRadTan {
         if !ok(0.0) {
             return 0.0; // only with non-finite coefficients
         }
-        let mut lo = 0.0;
-        for i in 0..=SCAN_STEPS {
-            let hi = s_at(i);
-            if !ok(hi) {
-                let mut hi = hi;
-                for _ in 0..REFINE_STEPS {
-                    let mid = 0.5 * (lo + hi);
-                    if mid <= lo || mid >= hi {
-                        break;
-                    }
-                    if ok(mid) {
-                        lo = mid;
-                    } else {
-                        hi = mid;
-                    }
-                }
-                return lo.sqrt();
-            }
-            lo = hi;
-        }
-        f64::INFINITY
+        last_ok(ok, 0.0, (0..=SCAN_STEPS).map(s_at)).map_or(f64::INFINITY, f64::sqrt)
     }
 
     /// `(x'', y'')` of a normalised point `(x', y')` (module docs).
@@ -323,7 +337,7 @@ impl CameraModel for PinholeRadTan {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
 
     /// The angle between the rays of the left and right image edges on the principal row
@@ -332,26 +346,18 @@ impl CameraModel for PinholeRadTan {
         self.fov
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`; the distortion coefficients unchanged (they act on `x/z`).
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `k`, `p` unchanged (they act on the
+    /// `z = 1` plane); `r_max` and the field of view recomputed.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
-        Camera::PinholeRadTan(PinholeRadTan::new(
-            self.fx * sx,
-            self.fy * sy,
-            convention.scale_centre(self.cx, sx),
-            convention.scale_centre(self.cy, sy),
-            self.k,
-            self.p,
-            (self.width as f64 * sx).round() as usize,
-            (self.height as f64 * sy).round() as usize,
-        ))
+        let intrinsics = self.intrinsics.rescaled(scale, convention);
+        Camera::PinholeRadTan(PinholeRadTan::unchecked(intrinsics, self.k, self.p))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::tests::radtan;
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
@@ -361,7 +367,7 @@ mod tests {
 
     /// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
     fn euroc() -> PinholeRadTan {
-        PinholeRadTan::new(
+        radtan(
             458.654,
             457.296,
             367.215,
@@ -379,7 +385,7 @@ mod tests {
         // 9 k1^2 - 20 k2 = 0.7229 - 1.4792 < 0, so it never vanishes: unbounded.
         assert_eq!(euroc().r_max(), f64::INFINITY);
         // k1 = -0.5 alone: 1 - 1.5 r^2 = 0 at r = sqrt(2/3).
-        let c = PinholeRadTan::new(
+        let c = radtan(
             500.0,
             500.0,
             320.0,
@@ -428,15 +434,16 @@ mod tests {
     #[test]
     fn zero_distortion_is_the_pinhole() {
         // cx = (width - 1) / 2: the pinhole's fov formula is exact for a centred principal point.
-        let c = PinholeRadTan::new(540.0, 530.0, 539.5, 480.0, [0.0; 3], [0.0; 2], 1080, 960);
-        let pin = crate::camera::Pinhole {
+        let c = radtan(540.0, 530.0, 539.5, 480.0, [0.0; 3], [0.0; 2], 1080, 960);
+        let pin = crate::camera::Pinhole::new(Intrinsics {
             fx: 540.0,
             fy: 530.0,
             cx: 539.5,
             cy: 480.0,
             width: 1080,
             height: 960,
-        };
+        })
+        .unwrap();
         for ray in [[0.3, -0.2, 1.0], [2.0, 1.0, 0.5], [-1e-3, 4.0, 0.1]] {
             assert_eq!(c.project(ray), pin.project(ray));
         }

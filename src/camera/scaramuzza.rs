@@ -20,7 +20,7 @@
 //!            u = w (x + e y) + cx,   v = w (d x + c y) + cy
 //! ```
 //!
-//! `project` solves the direct polynomial exactly (safeguarded Newton, `MAX_ITER`, `EPS`), so
+//! `project` solves the direct polynomial exactly (the shared safeguarded Newton, `MAX_ITER`, `EPS`), so
 //! pixels round-trip; OCamCalib's `world2cam` instead evaluates its fitted inverse polynomial
 //! `rho = b0 + b1 t + b2 t^2 + ...` of `t = atan(-z / sqrt(x^2 + y^2)) = theta - pi/2`, which
 //! differs from the exact inverse by its fit error (hundredths of a pixel). Here that inverse polynomial
@@ -34,14 +34,12 @@
 use std::f64::consts::{FRAC_PI_2, PI};
 
 use super::geometry::{finite3, normalize};
+use super::schema::{
+    check_finite, check_fov, check_fov_in_domain, check_size, checked, float_list, raw_camera_file,
+    write_fields, CameraFile, Checked, Invalid,
+};
+use super::solve::{increasing_root, last_ok};
 use super::{Camera, CameraModel, PixelConvention};
-
-/// Newton iterations allowed when solving for `rho`. Newton on the increasing angle converges in
-/// a handful of steps (measured on the example camera: 3 inside its field of view, 11 next to
-/// `theta_max` where the angle is nearly flat); failed steps fall back to
-/// bisection, which shrinks the bracket (at most twice the image diagonal, ~1e4 px) below
-/// `EPS` in ~50 steps; 100 leaves room for both.
-pub const MAX_ITER: usize = 100;
 
 /// Convergence threshold on the Newton step, in pixels of `rho`: far below anything visible,
 /// far above the ~1e-13 px round-off of `rho ~ 1e3`, so the test can fire.
@@ -50,8 +48,8 @@ pub const EPS: f64 = 1e-10;
 /// Grid points scanning `rho f'(rho) - f(rho)` for its first non-positive value.
 const SCAN_STEPS: usize = 20_000;
 
-/// Bisection steps refining `rho_max` once bracketed.
-const REFINE_STEPS: usize = 60;
+/// Longest polynomial accepted (OCamCalib's `MAX_POL_LENGTH` is 64).
+const MAX_POLY_LEN: usize = 64;
 
 /// A camera of Scaramuzza's model (OCamCalib).
 ///
@@ -99,17 +97,71 @@ impl PartialEq for Scaramuzza {
     }
 }
 
+raw_camera_file! {
+    /// A Scaramuzza (OCamCalib) camera file as written. `cx` is the centre column (OCamCalib's
+    /// `yc`), `cy` the centre row (its `xc`).
+    struct Raw {
+        width: usize,
+        height: usize,
+        fov_deg: f64,
+        cx: f64,
+        cy: f64,
+        c: f64,
+        d: f64,
+        e: f64,
+        poly: Vec<f64>,
+        #[serde(default)]
+        inv_poly: Vec<f64>,
+    }
+}
+
+impl CameraFile for Scaramuzza {
+    const MODEL: &'static str = "scaramuzza";
+    type Raw = Raw;
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        let (cde, size) = ([r.c, r.d, r.e], [r.width, r.height]);
+        Scaramuzza::new(r.poly, r.inv_poly, [r.cx, r.cy], cde, size, r.fov_deg)
+    }
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        let fields = [("fov_deg", self.fov_deg), ("cx", self.cx), ("cy", self.cy)];
+        let mut fields = fields.to_vec();
+        fields.extend([("c", self.c), ("d", self.d), ("e", self.e)]);
+        fields
+    }
+    /// The float fields, then `poly` and (when given) `inv_poly`.
+    fn write_fields(&self, out: &mut String) {
+        write_fields(out, self.size(), &self.fields());
+        out.push_str(&format!("poly = {}\n", float_list(&self.poly)));
+        if !self.inv_poly.is_empty() {
+            out.push_str(&format!("inv_poly = {}\n", float_list(&self.inv_poly)));
+        }
+    }
+}
+
 impl Scaramuzza {
-    /// A camera with these parameters (see the field docs); computes `rho_max`.
-    #[allow(clippy::too_many_arguments)]
+    /// A checked camera (see [`Scaramuzza::validate`]) with these parameters (see the field
+    /// docs; `centre = [cx, cy]`, `size = [width, height]`); computes `rho_max`.
     pub fn new(
         poly: Vec<f64>,
         inv_poly: Vec<f64>,
-        cx: f64,
-        cy: f64,
+        centre: [f64; 2],
+        cde: [f64; 3],
+        size: [usize; 2],
+        fov_deg: f64,
+    ) -> Result<Self, Invalid> {
+        checked(
+            Self::unchecked(poly, inv_poly, centre, cde, size, fov_deg),
+            Self::validate,
+        )
+    }
+
+    /// The camera without the checks (for rescaling a checked camera and probing the domain).
+    pub(crate) fn unchecked(
+        poly: Vec<f64>,
+        inv_poly: Vec<f64>,
+        [cx, cy]: [f64; 2],
         [c, d, e]: [f64; 3],
-        width: usize,
-        height: usize,
+        [width, height]: [usize; 2],
         fov_deg: f64,
     ) -> Self {
         let mut cam = Scaramuzza {
@@ -127,6 +179,45 @@ impl Scaramuzza {
         };
         cam.rho_max = cam.find_rho_max();
         cam
+    }
+
+    /// Every float finite, at most [`MAX_POLY_LEN`] coefficients, `a0 < 0`, `c - d e > 0`,
+    /// `width, height > 0`, `0 < fov_deg < 360` and `fov_deg / 2` below
+    /// [`Scaramuzza::theta_max`]; the error names the field.
+    pub fn validate(&self) -> Checked {
+        check_finite(self.fields())?;
+        for (field, list) in [("poly", &self.poly), ("inv_poly", &self.inv_poly)] {
+            if let Some((i, v)) = list.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+                let message = format!("coefficient {i} must be finite, found {v}");
+                return Err(Invalid::new(field, message));
+            }
+            if list.len() > MAX_POLY_LEN {
+                let message = format!("{} coefficients, at most {MAX_POLY_LEN}", list.len());
+                return Err(Invalid::new(field, message));
+            }
+        }
+        match self.poly.first() {
+            Some(&a0) if a0 < 0.0 => {}
+            other => {
+                return Err(Invalid::new(
+                    "poly",
+                    format!(
+                        "the first coefficient a0 must be negative (OCamCalib's cameras look \
+                         along -z), found {other:?}"
+                    ),
+                ))
+            }
+        }
+        let det = self.c - self.d * self.e;
+        if det.is_nan() || det <= 0.0 {
+            return Err(Invalid::new(
+                "c, d, e",
+                format!("the affine matrix [[c, d], [e, 1]] must have c - d e > 0, found {det}"),
+            ));
+        }
+        check_size(self.width, self.height)?;
+        check_fov(self.fov_deg)?;
+        check_fov_in_domain(self.fov_deg, self.theta_max(), "poly")
     }
 
     /// `f(rho) = sum a_i rho^i` (Horner).
@@ -175,31 +266,13 @@ impl Scaramuzza {
             return 0.0;
         }
         let step = limit / SCAN_STEPS as f64;
-        for i in 1..=SCAN_STEPS {
-            let hi = i as f64 * step;
-            if !ok(hi) {
-                let (mut lo, mut hi) = ((i - 1) as f64 * step, hi);
-                for _ in 0..REFINE_STEPS {
-                    let mid = 0.5 * (lo + hi);
-                    if mid <= lo || mid >= hi {
-                        break;
-                    }
-                    if ok(mid) {
-                        lo = mid;
-                    } else {
-                        hi = mid;
-                    }
-                }
-                return lo;
-            }
-        }
-        limit
+        last_ok(ok, 0.0, (1..=SCAN_STEPS).map(|i| i as f64 * step)).unwrap_or(limit)
     }
 
     /// Solves `g(rho) = theta` on `[0, rho_max]`, where `g(rho) = atan2(rho, -f(rho))` increases
     /// (so the bracket is kept by the sign of `g - theta`), by Newton with
     /// `g'(rho) = (rho f'(rho) - f(rho)) / (rho^2 + f(rho)^2)` and a bisection step whenever
-    /// Newton would leave the bracket. Seeded by the inverse polynomial when it lands inside the
+    /// Newton would leave the bracket (the shared [`increasing_root`]). Seeded by the inverse polynomial when it lands inside the
     /// bracket, else by the paraxial `rho = -a0 theta`. Converged when `|step| < EPS`. Returns
     /// `(rho, iterations)`, or `None` without convergence or for `theta` outside
     /// `[0, theta_max]`.
@@ -210,37 +283,17 @@ impl Scaramuzza {
         if theta == 0.0 {
             return Some((0.0, 0));
         }
-        let (mut lo, mut hi) = (0.0, self.rho_max);
         let inside = |r: f64| r > 0.0 && r < self.rho_max;
-        let mut rho = match self.inv_poly_rho(theta) {
+        let rho = match self.inv_poly_rho(theta) {
             Some(r) if inside(r) => r,
-            _ => (-self.poly[0] * theta).clamp(0.0, self.rho_max),
+            _ => -self.poly[0] * theta,
         };
-        for iter in 1..=MAX_ITER {
+        let g = |rho: f64| {
             let f = self.f(rho);
-            let g = rho.atan2(-f) - theta;
-            if g == 0.0 {
-                return Some((rho, iter));
-            }
-            if g < 0.0 {
-                lo = rho;
-            } else {
-                hi = rho;
-            }
             let slope = (rho * self.f_derivative(rho) - f) / (rho * rho + f * f);
-            let newton = rho - g / slope;
-            let next = if newton.is_finite() && newton > lo && newton < hi {
-                newton
-            } else {
-                0.5 * (lo + hi)
-            };
-            let step = next - rho;
-            rho = next;
-            if step.abs() < EPS {
-                return Some((rho, iter));
-            }
-        }
-        None
+            (rho.atan2(-f) - theta, slope)
+        };
+        increasing_root(g, [0.0, self.rho_max], rho, EPS)
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
@@ -339,14 +392,18 @@ impl CameraModel for Scaramuzza {
             .map(|(i, a)| a * sx.powi(1 - i as i32))
             .collect();
         let inv_poly = self.inv_poly.iter().map(|b| b * sx).collect();
-        Camera::Scaramuzza(Scaramuzza::new(
+        Camera::Scaramuzza(Scaramuzza::unchecked(
             poly,
             inv_poly,
-            convention.scale_centre(self.cx, sx),
-            convention.scale_centre(self.cy, sy),
+            [
+                convention.scale_centre(self.cx, sx),
+                convention.scale_centre(self.cy, sy),
+            ],
             [self.c * ratio, self.d * ratio, self.e],
-            (self.width as f64 * sx).round() as usize,
-            (self.height as f64 * sy).round() as usize,
+            [
+                (self.width as f64 * sx).round() as usize,
+                (self.height as f64 * sy).round() as usize,
+            ],
             self.fov_deg,
         ))
     }
@@ -355,6 +412,21 @@ impl CameraModel for Scaramuzza {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A camera from positional parameters, unchecked.
+    #[allow(clippy::too_many_arguments)]
+    fn ocam(
+        poly: Vec<f64>,
+        inv_poly: Vec<f64>,
+        cx: f64,
+        cy: f64,
+        cde: [f64; 3],
+        width: usize,
+        height: usize,
+        fov_deg: f64,
+    ) -> Scaramuzza {
+        Scaramuzza::unchecked(poly, inv_poly, [cx, cy], cde, [width, height], fov_deg)
+    }
     use crate::camera::geometry::angle_to_axis;
 
     /// Newton to |step| < 1e-10 px with quadratic convergence: round-off only (~1e-13 px);
@@ -371,7 +443,7 @@ mod tests {
 
     /// `data/cameras/ocam_example.toml`.
     fn example() -> Scaramuzza {
-        Scaramuzza::new(
+        ocam(
             vec![-181.0, 0.0, 0.005213419, -2.499194e-05, 4.96439e-08],
             vec![
                 290.61471853,
@@ -511,7 +583,7 @@ mod tests {
     fn domain_ends_at_the_fold() {
         // f(rho) = -100 + 0.01 rho^2 - 1e-5 rho^3: rho f' - f = 100 + 0.01 rho^2 - 2e-5 rho^3,
         // positive up to its root near 518.6 px.
-        let m = Scaramuzza::new(
+        let m = ocam(
             vec![-100.0, 0.0, 0.01, -1e-5],
             vec![],
             500.0,

@@ -22,7 +22,8 @@ const EQUIV_ANGLE_TOL: f64 = 1e-10;
 /// Pixel agreement of projections computed by different formulas: round-off times ~1e3 px.
 const EQUIV_PX_TOL: f64 = 1e-9;
 
-fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+/// The angle between two rays, radians (`atan2(|a x b|, a . b)`, accurate at small angles).
+pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     let cross = [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -32,17 +33,48 @@ fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
 }
 
+/// A Kannala-Brandt camera from positional parameters, unchecked (some tests need a folding
+/// polynomial).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn kb(
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    k: [f64; 4],
+    width: usize,
+    height: usize,
+    fov_deg: f64,
+) -> KannalaBrandt {
+    KannalaBrandt::unchecked(
+        Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
+        k,
+        fov_deg,
+    )
+}
+
+/// A radial-tangential camera from positional parameters, unchecked.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn radtan(
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    k: [f64; 3],
+    p: [f64; 2],
+    width: usize,
+    height: usize,
+) -> PinholeRadTan {
+    PinholeRadTan::unchecked(
+        Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
+        k,
+        p,
+    )
+}
+
 fn unified(alpha: f64) -> Unified {
-    Unified {
-        fx: 300.0,
-        fy: 290.0,
-        cx: 320.5,
-        cy: 240.25,
-        alpha,
-        width: 640,
-        height: 480,
-        fov_deg: 180.0,
-    }
+    let intrinsics = Intrinsics::from_parts([300.0, 290.0, 320.5, 240.25], [640, 480]);
+    Unified::unchecked(intrinsics, alpha, 180.0)
 }
 
 /// Pixels on a grid covering the image and well beyond it.
@@ -98,17 +130,7 @@ fn same_camera(a: &impl CameraModel, b: &impl CameraModel, theta_max: f64, what:
 fn double_sphere_with_xi_zero_is_the_unified_model() {
     for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
         let u = unified(alpha);
-        let ds = DoubleSphere {
-            fx: u.fx,
-            fy: u.fy,
-            cx: u.cx,
-            cy: u.cy,
-            xi: 0.0,
-            alpha,
-            width: u.width,
-            height: u.height,
-            fov_deg: u.fov_deg,
-        };
+        let ds = DoubleSphere::unchecked(*u, 0.0, alpha, u.fov_deg);
         assert!((ds.theta_max() - u.theta_max()).abs() < 1e-15);
         same_camera(&ds, &u, u.theta_max(), &format!("DS xi=0 alpha={alpha}"));
     }
@@ -118,17 +140,7 @@ fn double_sphere_with_xi_zero_is_the_unified_model() {
 fn extended_unified_with_beta_one_is_the_unified_model() {
     for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
         let u = unified(alpha);
-        let e = ExtendedUnified {
-            fx: u.fx,
-            fy: u.fy,
-            cx: u.cx,
-            cy: u.cy,
-            alpha,
-            beta: 1.0,
-            width: u.width,
-            height: u.height,
-            fov_deg: u.fov_deg,
-        };
+        let e = ExtendedUnified::unchecked(*u, alpha, 1.0, u.fov_deg);
         assert!((e.theta_max() - u.theta_max()).abs() < 1e-15);
         same_camera(&e, &u, u.theta_max(), &format!("EUCM beta=1 alpha={alpha}"));
     }
@@ -137,26 +149,9 @@ fn extended_unified_with_beta_one_is_the_unified_model() {
 #[test]
 fn unified_with_alpha_zero_is_the_pinhole() {
     let u = unified(0.0);
-    let p = Pinhole {
-        fx: u.fx,
-        fy: u.fy,
-        cx: u.cx,
-        cy: u.cy,
-        width: u.width,
-        height: u.height,
-    };
+    let p = Pinhole::new(*u).unwrap();
     same_camera(&u, &p, std::f64::consts::FRAC_PI_2 * 0.99, "UCM alpha=0");
-    let ds = DoubleSphere {
-        fx: u.fx,
-        fy: u.fy,
-        cx: u.cx,
-        cy: u.cy,
-        xi: 0.0,
-        alpha: 0.0,
-        width: u.width,
-        height: u.height,
-        fov_deg: u.fov_deg,
-    };
+    let ds = DoubleSphere::unchecked(*u, 0.0, 0.0, u.fov_deg);
     same_camera(&ds, &p, std::f64::consts::FRAC_PI_2 * 0.99, "DS xi=alpha=0");
     assert_eq!(u.project([0.1, 0.0, 0.0]), None);
 }
@@ -164,26 +159,16 @@ fn unified_with_alpha_zero_is_the_pinhole() {
 #[test]
 fn para_catadioptric_scaramuzza_is_the_unified_model_at_one_half() {
     let f = 150.0;
-    let s = Scaramuzza::new(
+    let s = Scaramuzza::unchecked(
         vec![-f, 0.0, 1.0 / (4.0 * f)],
         vec![],
-        320.5,
-        240.25,
+        [320.5, 240.25],
         [1.0, 0.0, 0.0],
-        640,
-        480,
+        [640, 480],
         180.0,
     );
-    let u = Unified {
-        fx: f,
-        fy: f,
-        cx: 320.5,
-        cy: 240.25,
-        alpha: 0.5,
-        width: 640,
-        height: 480,
-        fov_deg: 180.0,
-    };
+    let intrinsics = Intrinsics::from_parts([f, f, 320.5, 240.25], [640, 480]);
+    let u = Unified::unchecked(intrinsics, 0.5, 180.0);
     // theta approaches pi only as rho -> infinity; the search stops at twice the diagonal
     // (1600 px, ~158.8 deg).
     let tm = s.theta_max();
@@ -207,15 +192,10 @@ fn para_catadioptric_scaramuzza_is_the_unified_model_at_one_half() {
 fn only_the_panorama_wraps() {
     let cams: Vec<Camera> = vec![
         Camera::Unified(unified(0.4)),
-        Camera::Pinhole(Pinhole {
-            fx: 1.0,
-            fy: 1.0,
-            cx: 0.0,
-            cy: 0.0,
-            width: 2,
-            height: 2,
-        }),
-        Camera::Equirectangular(Equirectangular::new(64, 32)),
+        Camera::Pinhole(
+            Pinhole::new(Intrinsics::from_parts([1.0, 1.0, 0.0, 0.0], [2, 2])).unwrap(),
+        ),
+        Camera::Equirectangular(Equirectangular::new(64, 32).unwrap()),
     ];
     let wraps: Vec<bool> = cams.iter().map(|c| c.wraps_horizontally()).collect();
     assert_eq!(wraps, [false, false, true]);

@@ -31,30 +31,74 @@
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
 use super::geometry::{finite3, normalize, unified_w};
-use super::{Camera, CameraModel, PixelConvention};
+use super::intrinsics::deref_intrinsics;
+use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// A Unified Camera Model camera (Usenko's `alpha` form). Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Unified {
-    /// Focal length along u, in pixels.
-    pub fx: f64,
-    /// Focal length along v, in pixels.
-    pub fy: f64,
-    /// Principal point column, in pixels (top-left pixel centre at 0).
-    pub cx: f64,
-    /// Principal point row, in pixels (top-left pixel centre at 0).
-    pub cy: f64,
+    intrinsics: Intrinsics,
     /// Model parameter in `[0, 1)`; Mei's `xi = alpha / (1 - alpha)`.
     pub alpha: f64,
-    /// Image width in pixels.
-    pub width: usize,
-    /// Image height in pixels.
-    pub height: usize,
     /// Full field of view of the lens, in degrees (as declared by the calibration).
     pub fov_deg: f64,
 }
 
+deref_intrinsics!(Unified);
+
+raw_camera_file! {
+    /// A Unified Camera Model file as written.
+    fisheye struct Raw {
+        alpha: f64,
+    }
+}
+
+impl CameraFile for Unified {
+    const MODEL: &'static str = "unified";
+    type Raw = Raw;
+    fn fields(&self) -> Vec<(&'static str, f64)> {
+        self.intrinsics
+            .with_fov(self.fov_deg, &[("alpha", self.alpha)])
+    }
+    fn from_raw(r: Raw) -> Result<Self, Invalid> {
+        Unified::new(r.intrinsics(), r.alpha, r.fov_deg)
+    }
+}
+
 impl Unified {
+    /// A checked camera (see [`Unified::validate`]).
+    pub fn new(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
+        checked(Self::unchecked(intrinsics, alpha, fov_deg), Self::validate)
+    }
+
+    /// The camera without the checks: for probing the model's domain before its field of view
+    /// is known.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Self {
+        Unified {
+            intrinsics,
+            alpha,
+            fov_deg,
+        }
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
+    /// `alpha in [0, 1)`, and `fov_deg / 2` below [`Unified::theta_max`]; the error names the field.
+    pub fn validate(&self) -> Checked {
+        self.intrinsics
+            .validate_fisheye(&self.fields(), self.fov_deg)?;
+        if !(self.alpha >= 0.0 && self.alpha < 1.0) {
+            return Err(Invalid::new(
+                "alpha",
+                format!(
+                    "must be in [0, 1) (alpha = 1 puts Mei's xi at infinity), found {}",
+                    self.alpha
+                ),
+            ));
+        }
+        check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha")
+    }
+
     /// Largest angle to the optical axis that projects, in radians: `acos(-w)` (exclusive).
     pub fn theta_max(&self) -> f64 {
         (-unified_w(self.alpha)).clamp(-1.0, 1.0).acos()
@@ -126,7 +170,7 @@ impl CameraModel for Unified {
     }
 
     fn size(&self) -> [usize; 2] {
-        [self.width, self.height]
+        self.intrinsics.size()
     }
 
     /// `fov_deg` in radians.
@@ -134,17 +178,10 @@ impl CameraModel for Unified {
         self.fov_deg.to_radians()
     }
 
-    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
-    /// `round(height sy)`; `alpha` and `fov_deg` unchanged.
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `alpha` and `fov_deg` unchanged.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        let [sx, sy] = scale;
         Camera::Unified(Unified {
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: convention.scale_centre(self.cx, sx),
-            cy: convention.scale_centre(self.cy, sy),
-            width: (self.width as f64 * sx).round() as usize,
-            height: (self.height as f64 * sy).round() as usize,
+            intrinsics: self.intrinsics.rescaled(scale, convention),
             ..self.clone()
         })
     }
@@ -160,13 +197,15 @@ mod tests {
 
     fn cam(alpha: f64) -> Unified {
         Unified {
-            fx: 300.0,
-            fy: 298.0,
-            cx: 320.5,
-            cy: 240.25,
+            intrinsics: Intrinsics {
+                fx: 300.0,
+                fy: 298.0,
+                cx: 320.5,
+                cy: 240.25,
+                width: 640,
+                height: 480,
+            },
             alpha,
-            width: 640,
-            height: 480,
             fov_deg: 180.0,
         }
     }

@@ -37,7 +37,7 @@
 
 use rayon::prelude::*;
 
-use crate::camera::{Camera, CameraModel, Pinhole};
+use crate::camera::{Camera, CameraModel, Intrinsics, Pinhole};
 use crate::data::panorama::geometry::V3;
 use crate::data::panorama::Panorama;
 use crate::data::rng::{tag, Rng};
@@ -364,14 +364,8 @@ pub fn rectified_camera(fisheye: &Camera, hfov_deg: Option<f64>) -> Result<Camer
             )))
         }
     };
-    Ok(Camera::Pinhole(Pinhole {
-        fx: f,
-        fy: f * aspect,
-        cx: c[0],
-        cy: c[1],
-        width,
-        height,
-    }))
+    let intrinsics = Intrinsics::from_parts([f, f * aspect, c[0], c[1]], [width, height]);
+    Ok(Camera::Pinhole(Pinhole::new(intrinsics)?))
 }
 
 /// The fisheye pixel each pinhole pixel samples when rectifying, computed once per camera
@@ -547,16 +541,9 @@ mod tests {
     #[test]
     fn principal_point_looks_along_the_forward_direction() {
         // A small F195-like camera with an integer principal point.
-        let cam = Camera::KannalaBrandt(KannalaBrandt::new(
-            30.0,
-            30.0,
-            32.0,
-            28.0,
-            [0.0, -3.5e-5, 1e-7, -6.9e-11],
-            65,
-            57,
-            195.0,
-        ));
+        let intrinsics = Intrinsics::from_parts([30.0, 30.0, 32.0, 28.0], [65, 57]);
+        let k = [0.0, -3.5e-5, 1e-7, -6.9e-11];
+        let cam = Camera::KannalaBrandt(KannalaBrandt::new(intrinsics, k, 195.0).unwrap());
         let pano = indexed_pano(64);
         let sampling = ViewSampling::default();
         for k in 0..6 {

@@ -1,21 +1,13 @@
 use super::*;
-use crate::camera::{KannalaBrandt, Pinhole};
+use crate::camera::{Intrinsics, KannalaBrandt, Pinhole};
 
 /// Offsets are stored as f32: 1e-4 px covers rounding of values up to ~100 px.
 const OFFSET_TOL: f32 = 1e-4;
 
 fn symmetric_kb() -> Camera {
     // Principal point at the exact image centre in the pixel-centre convention.
-    Camera::KannalaBrandt(KannalaBrandt::new(
-        40.0,
-        40.0,
-        63.5,
-        47.5,
-        [0.0, -0.01, 0.0, 0.0],
-        128,
-        96,
-        195.0,
-    ))
+    let intrinsics = Intrinsics::from_parts([40.0, 40.0, 63.5, 47.5], [128, 96]);
+    Camera::KannalaBrandt(KannalaBrandt::new(intrinsics, [0.0, -0.01, 0.0, 0.0], 195.0).unwrap())
 }
 
 #[test]
@@ -48,14 +40,17 @@ fn pinhole_offsets_at_the_principal_point_are_the_focal_mismatch() {
     // match exactly).
     let (w, h) = (101usize, 101usize);
     let fx = 300.0;
-    let cam = Camera::Pinhole(Pinhole {
-        fx,
-        fy: fx,
-        cx: 50.0,
-        cy: 50.0,
-        width: w,
-        height: h,
-    });
+    let cam = Camera::Pinhole(
+        Pinhole::new(Intrinsics {
+            fx,
+            fy: fx,
+            cx: 50.0,
+            cy: 50.0,
+            width: w,
+            height: h,
+        })
+        .unwrap(),
+    );
     let d = kernel_focal(3, cam.fov(), w).unwrap();
     let ratio = fx / d - 1.0;
     assert!(ratio.abs() < 0.01, "focal mismatch {ratio}");

@@ -4,7 +4,7 @@ use tch::nn::{Module, VarStore};
 use tch::{Device, Kind, Tensor};
 
 use super::*;
-use crate::camera::{Camera, Pinhole};
+use crate::camera::{Camera, Intrinsics, Pinhole};
 use crate::kernel::InputFrame;
 
 fn f195() -> Camera {
@@ -64,14 +64,17 @@ fn both_kinds_have_identical_parameters_and_weights_move_between_them() {
 fn pinhole_with_matching_focal_is_close_to_standard_conv() {
     // A narrow pinhole: the virtual kernel focal d = k / (2 tan(k fov / 2W)) is within 0.1% of
     // fx in the centre, so sampling differs from the regular grid by well under a pixel.
-    let cam = Camera::Pinhole(Pinhole {
-        fx: 200.0,
-        fy: 200.0,
-        cx: 31.5,
-        cy: 31.5,
-        width: 64,
-        height: 64,
-    });
+    let cam = Camera::Pinhole(
+        Pinhole::new(Intrinsics {
+            fx: 200.0,
+            fy: 200.0,
+            cx: 31.5,
+            cy: 31.5,
+            width: 64,
+            height: 64,
+        })
+        .unwrap(),
+    );
     let vs = VarStore::new(Device::Cpu);
     let cal = conv2d(
         &vs.root(),

@@ -1,0 +1,411 @@
+//! Calibrations of other tools as cameras of this crate (`calibconv camera import`).
+//!
+//! | `--from` | file | models read |
+//! |---|---|---|
+//! | `kalibr` | camchain YAML (`camN:` blocks) | `pinhole-equi`, `pinhole-radtan`, `pinhole-none`, `ds-none`, `eucm-none`, `omni-none` (and `omni-radtan` with zero coefficients) |
+//! | `opencv` | `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or JSON, or plain YAML / JSON | fisheye (`K`, `D` = k1..k4) and standard (`D` = k1 k2 p1 p2 (k3), longer `D` only with zero extra terms) |
+//! | `basalt` | calibration JSON (`value0.intrinsics[N]`) | `kb4`, `ds`, `eucm`, `ucm`, `pinhole` |
+//! | `colmap` | `cameras.txt` | `OPENCV_FISHEYE`, `OPENCV`, `FULL_OPENCV` (zero k4..k6), `PINHOLE`, `SIMPLE_PINHOLE`, `SIMPLE_RADIAL`, `RADIAL` |
+//! | `ocamcalib` | `calib_results.txt` | Scaramuzza's model |
+//!
+//! Anything else (Kalibr `pinhole-fov`, Basalt `pinhole-radtan8`, COLMAP `FOV`, OpenCV's
+//! rational model, ...) is an error naming the model.
+//!
+//! Conventions converted on the way in (all else is copied as is):
+//! - COLMAP puts the centre of the top-left pixel at `(0.5, 0.5)`; this crate (like OpenCV,
+//!   Kalibr, Basalt and OCamCalib's C export) at `(0, 0)`: COLMAP's `cx`, `cy` move by -0.5 px.
+//! - Kalibr's `omni` is Mei's unified model `u = fu x / (z + xi d) + pu`; it is the crate's
+//!   `unified` model with `alpha = xi / (1 + xi)` and `fx = fu / (1 + xi)` (same for `fy`).
+//! - OCamCalib's centre is "row, column": `xc` becomes `cy`, `yc` becomes `cx`.
+//! - Kalibr `pinhole-radtan` and OpenCV 4-coefficient standard distortion have `k3 = 0`.
+//!
+//! The field of view of the fisheye models (`fov_deg`) is rarely in the source file. Unless
+//! given (`--fov-deg`), it is the angle the image **width** spans on the principal row: the
+//! angle to the optical axis of the left pixel edge `(-0.5, cy)` plus that of the right one
+//! `(width - 0.5, cy)`. For a lens whose image circle is narrower than the sensor that is more
+//! than the lens sees (pass the lens's `--fov-deg` then); it is an error when an edge lies outside
+//! the model's domain. Pinhole models derive their field of view and take no `--fov-deg`.
+//!
+//! JSON numbers are read exactly (serde_json's `float_roundtrip`), YAML numbers by Rust's own
+//! float parser, so coefficients reach the camera file bit for bit.
+//!
+//! Every imported camera is built by its model's validating constructor, which the camera-file
+//! reader calls too, so it is exactly what the written file will read back as.
+
+use std::path::Path;
+
+mod basalt;
+mod colmap;
+mod kalibr;
+mod ocamcalib;
+mod opencv;
+mod tree;
+
+use super::geometry::angle_to_axis;
+use super::{
+    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
+    Pinhole, PinholeRadTan, Scaramuzza, Unified,
+};
+use crate::error::{Error, Result};
+
+/// The source tools `calibconv camera import --from` reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    /// Kalibr camchain YAML.
+    Kalibr,
+    /// OpenCV calibration (`cv::FileStorage` YAML / JSON, or plain YAML / JSON).
+    OpenCv,
+    /// Basalt calibration JSON.
+    Basalt,
+    /// COLMAP `cameras.txt`.
+    Colmap,
+    /// OCamCalib `calib_results.txt`.
+    OcamCalib,
+}
+
+impl std::str::FromStr for Format {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "kalibr" => Ok(Format::Kalibr),
+            "opencv" => Ok(Format::OpenCv),
+            "basalt" => Ok(Format::Basalt),
+            "colmap" => Ok(Format::Colmap),
+            "ocamcalib" => Ok(Format::OcamCalib),
+            other => Err(format!(
+                "unknown format `{other}` (expected kalibr, opencv, basalt, colmap or ocamcalib)"
+            )),
+        }
+    }
+}
+
+impl std::fmt::Display for Format {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Format::Kalibr => "kalibr",
+            Format::OpenCv => "opencv",
+            Format::Basalt => "basalt",
+            Format::Colmap => "colmap",
+            Format::OcamCalib => "ocamcalib",
+        })
+    }
+}
+
+/// Which of OpenCV's two camera models an OpenCV file holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OpenCvModel {
+    /// `cv::fisheye` (Kannala-Brandt, `D` = k1..k4).
+    Fisheye,
+    /// The standard pinhole model with radial-tangential distortion.
+    Standard,
+}
+
+impl std::str::FromStr for OpenCvModel {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "fisheye" => Ok(OpenCvModel::Fisheye),
+            "standard" => Ok(OpenCvModel::Standard),
+            other => Err(format!(
+                "unknown OpenCV model `{other}` (expected fisheye or standard)"
+            )),
+        }
+    }
+}
+
+/// Choices the source file may leave open.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ImportOptions {
+    /// Which camera of a multi-camera file: Kalibr `camN`, Basalt `intrinsics[N]` (default 0),
+    /// COLMAP `CAMERA_ID` (default: the first line).
+    pub camera: Option<usize>,
+    /// Full field of view in degrees, for the fisheye models (default: see the module docs).
+    pub fov_deg: Option<f64>,
+    /// OpenCV only: the model, when the file does not say (4 coefficients fit both).
+    pub opencv_model: Option<OpenCvModel>,
+}
+
+/// Where an imported camera's `fov_deg` came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FovSource {
+    /// `--fov-deg`.
+    Given,
+    /// The angle spanned by the image width on the principal row.
+    ImageWidth,
+    /// A pinhole model: the field of view follows from the intrinsics.
+    Derived,
+}
+
+/// An imported camera and what the conversion did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Imported {
+    /// The camera, checked like a camera file.
+    pub camera: Camera,
+    /// What was read, e.g. "kalibr cam0 (pinhole-equi)".
+    pub source: String,
+    /// Where `fov_deg` came from.
+    pub fov: FovSource,
+    /// One line per convention converted or value chosen, for the written file's header.
+    pub notes: Vec<String>,
+}
+
+/// Reads `path` as a calibration file of `format`.
+pub fn import_file(format: Format, path: &Path, options: &ImportOptions) -> Result<Imported> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    import_text(format, &text, path, options)
+}
+
+/// Parses `text` as a calibration file of `format`; `path` names the file in errors.
+pub fn import_text(
+    format: Format,
+    text: &str,
+    path: &Path,
+    options: &ImportOptions,
+) -> Result<Imported> {
+    if options.camera.is_some() && matches!(format, Format::OpenCv | Format::OcamCalib) {
+        return Err(format_error(
+            path,
+            format!("--camera does not apply to {format} files (they hold one camera)"),
+        ));
+    }
+    if options.opencv_model.is_some() && format != Format::OpenCv {
+        return Err(format_error(
+            path,
+            "--opencv-model applies to opencv files only".to_string(),
+        ));
+    }
+    let parsed = match format {
+        Format::Kalibr => kalibr::read(text, path, options)?,
+        Format::OpenCv => opencv::read(text, path, options)?,
+        Format::Basalt => basalt::read(text, path, options)?,
+        Format::Colmap => colmap::read(text, path, options)?,
+        Format::OcamCalib => ocamcalib::read(text, path)?,
+    };
+    finish(parsed, path, options)
+}
+
+/// Intrinsics read from a source file, before the field of view is chosen.
+#[derive(Clone, Debug)]
+enum Model {
+    KannalaBrandt {
+        f: [f64; 4],
+        k: [f64; 4],
+    },
+    Pinhole {
+        f: [f64; 4],
+    },
+    RadTan {
+        f: [f64; 4],
+        k: [f64; 3],
+        p: [f64; 2],
+    },
+    DoubleSphere {
+        f: [f64; 4],
+        xi: f64,
+        alpha: f64,
+    },
+    Unified {
+        f: [f64; 4],
+        alpha: f64,
+    },
+    ExtendedUnified {
+        f: [f64; 4],
+        alpha: f64,
+        beta: f64,
+    },
+    Scaramuzza {
+        poly: Vec<f64>,
+        inv_poly: Vec<f64>,
+        centre: [f64; 2],
+        cde: [f64; 3],
+    },
+}
+
+/// What a reader found: the model (`f` = `[fx, fy, cx, cy]`), the image size, a description.
+struct Parsed {
+    model: Model,
+    size: [usize; 2],
+    source: String,
+    notes: Vec<String>,
+}
+
+/// The camera for `fov_deg` (ignored by the pinhole models), through the models' validating
+/// constructors: exactly what the written camera file will read back as.
+fn build(model: &Model, size: [usize; 2], fov_deg: f64) -> std::result::Result<Camera, Invalid> {
+    let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
+    Ok(match model.clone() {
+        Model::KannalaBrandt { f, k } => {
+            Camera::KannalaBrandt(KannalaBrandt::new(intrinsics(f), k, fov_deg)?)
+        }
+        Model::Pinhole { f } => Camera::Pinhole(Pinhole::new(intrinsics(f))?),
+        Model::RadTan { f, k, p } => {
+            Camera::PinholeRadTan(PinholeRadTan::new(intrinsics(f), k, p)?)
+        }
+        Model::DoubleSphere { f, xi, alpha } => {
+            Camera::DoubleSphere(DoubleSphere::new(intrinsics(f), xi, alpha, fov_deg)?)
+        }
+        Model::Unified { f, alpha } => {
+            Camera::Unified(Unified::new(intrinsics(f), alpha, fov_deg)?)
+        }
+        Model::ExtendedUnified { f, alpha, beta } => {
+            Camera::ExtendedUnified(ExtendedUnified::new(intrinsics(f), alpha, beta, fov_deg)?)
+        }
+        Model::Scaramuzza {
+            poly,
+            inv_poly,
+            centre,
+            cde,
+        } => Camera::Scaramuzza(Scaramuzza::new(poly, inv_poly, centre, cde, size, fov_deg)?),
+    })
+}
+
+/// A fisheye camera without the checks, to probe the model's domain before `fov_deg` is chosen
+/// (the domain does not depend on it); `None` for the pinhole models, which derive theirs.
+fn probe(model: &Model, size: [usize; 2]) -> Option<Camera> {
+    let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
+    let fov_deg = 180.0;
+    Some(match model.clone() {
+        Model::Pinhole { .. } | Model::RadTan { .. } => return None,
+        Model::KannalaBrandt { f, k } => {
+            Camera::KannalaBrandt(KannalaBrandt::unchecked(intrinsics(f), k, fov_deg))
+        }
+        Model::DoubleSphere { f, xi, alpha } => {
+            Camera::DoubleSphere(DoubleSphere::unchecked(intrinsics(f), xi, alpha, fov_deg))
+        }
+        Model::Unified { f, alpha } => {
+            Camera::Unified(Unified::unchecked(intrinsics(f), alpha, fov_deg))
+        }
+        Model::ExtendedUnified { f, alpha, beta } => Camera::ExtendedUnified(
+            ExtendedUnified::unchecked(intrinsics(f), alpha, beta, fov_deg),
+        ),
+        Model::Scaramuzza {
+            poly,
+            inv_poly,
+            centre,
+            cde,
+        } => Camera::Scaramuzza(Scaramuzza::unchecked(
+            poly, inv_poly, centre, cde, size, fov_deg,
+        )),
+    })
+}
+
+/// Rounds the width-derived field of view down to 1e-3 deg (readable, and never past an edge).
+const FOV_DECIMALS: f64 = 1e3;
+
+/// Chooses `fov_deg` (module docs) and checks the camera like a camera file.
+fn finish(parsed: Parsed, path: &Path, options: &ImportOptions) -> Result<Imported> {
+    let Parsed {
+        model,
+        size,
+        source,
+        mut notes,
+    } = parsed;
+    let probe = probe(&model, size);
+    let fov = if probe.is_none() {
+        if options.fov_deg.is_some() {
+            return Err(format_error(
+                path,
+                format!(
+                    "--fov-deg does not apply to {source}: a pinhole camera's field of view \
+                     follows from its focal length and width"
+                ),
+            ));
+        }
+        FovSource::Derived
+    } else if options.fov_deg.is_some() {
+        FovSource::Given
+    } else {
+        FovSource::ImageWidth
+    };
+    let fov_deg = match (fov, options.fov_deg, &probe) {
+        (FovSource::Given, Some(f), _) => {
+            notes.push(format!(
+                "fov_deg: {f} deg, given on the command line (--fov-deg)"
+            ));
+            f
+        }
+        (FovSource::ImageWidth, _, Some(probe)) => {
+            let fov = width_fov(probe, path)?;
+            notes.push(format!(
+                "fov_deg: {fov} deg, the angle the image width spans on the principal row (the \
+                 source does not give it; import with --fov-deg to set the lens's own)"
+            ));
+            fov
+        }
+        _ => 180.0, // unused by pinhole models
+    };
+    let camera = build(&model, size, fov_deg).map_err(|e| e.in_file(path))?;
+    Ok(Imported {
+        camera,
+        source,
+        fov,
+        notes,
+    })
+}
+
+/// The angle the image width spans on the principal row of `probe` (module docs), rounded down
+/// to 1e-3 deg; an error naming `fov_deg` if an image edge lies outside the model's domain.
+fn width_fov(probe: &Camera, path: &Path) -> Result<f64> {
+    let [w, _] = probe.size();
+    let cy = principal_row(probe);
+    let mut total = 0.0;
+    for u in [-0.5, w as f64 - 0.5] {
+        let ray = probe.unproject([u, cy]).ok_or_else(|| {
+            camera_error(
+                path,
+                "fov_deg",
+                format!(
+                    "the image edge ({u}, {cy}) lies outside the {} model's domain, so the field \
+                     of view cannot be taken from the image width: pass --fov-deg",
+                    probe.model_name()
+                ),
+            )
+        })?;
+        total += angle_to_axis(ray).to_degrees();
+    }
+    Ok((total * FOV_DECIMALS).floor() / FOV_DECIMALS)
+}
+
+/// The principal row of a camera built by [`build`] or [`probe`].
+fn principal_row(camera: &Camera) -> f64 {
+    match camera {
+        Camera::KannalaBrandt(m) => m.cy,
+        Camera::Pinhole(m) => m.cy,
+        Camera::PinholeRadTan(m) => m.cy,
+        Camera::DoubleSphere(m) => m.cy,
+        Camera::Unified(m) => m.cy,
+        Camera::ExtendedUnified(m) => m.cy,
+        Camera::Scaramuzza(m) => m.cy,
+        Camera::Equirectangular(m) => m.cv,
+    }
+}
+
+fn format_error(path: &Path, message: String) -> Error {
+    Error::Format {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+fn camera_error(path: &Path, field: &str, message: String) -> Error {
+    Error::Camera {
+        path: path.to_path_buf(),
+        field: field.to_string(),
+        message,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_and_models_parse_from_their_names() {
+        for f in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+            assert_eq!(f.parse::<Format>().unwrap().to_string(), f);
+        }
+        assert!("matlab".parse::<Format>().unwrap_err().contains("kalibr"));
+        assert_eq!("fisheye".parse::<OpenCvModel>(), Ok(OpenCvModel::Fisheye));
+        assert!("omni".parse::<OpenCvModel>().is_err());
+    }
+}

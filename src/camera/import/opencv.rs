@@ -1,0 +1,227 @@
+//! OpenCV calibration files: `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or JSON,
+//! or plain YAML / JSON.
+
+use std::path::Path;
+
+use serde_json::Value;
+
+use super::tree::{dimension, expect_len, number, numbers, parse_tree, size_pair};
+use super::{camera_error, ImportOptions, Model, OpenCvModel, Parsed};
+use crate::error::Result;
+
+const OPENCV_K_KEYS: [&str; 4] = ["camera_matrix", "cameraMatrix", "K", "intrinsic_matrix"];
+const OPENCV_D_KEYS: [&str; 5] = [
+    "distortion_coefficients",
+    "dist_coeffs",
+    "distCoeffs",
+    "D",
+    "distortion",
+];
+
+/// The first of `keys` present in `tree`, with its name.
+fn first_key<'a>(tree: &'a Value, keys: &[&'a str]) -> Option<(&'a str, &'a Value)> {
+    keys.iter().find_map(|k| tree.get(*k).map(|v| (*k, v)))
+}
+
+/// A matrix as OpenCV's FileStorage writes it (`{rows, cols, dt, data}`, tagged
+/// `!!opencv-matrix` in YAML, `"type_id": "opencv-matrix"` in JSON), a nested list, or a flat
+/// list: its values in row-major order.
+fn matrix(v: &Value, path: &Path, field: &str) -> Result<Vec<f64>> {
+    match v {
+        Value::Object(m) => {
+            let data = numbers(
+                m.get("data")
+                    .ok_or_else(|| camera_error(path, field, "matrix without `data`".into()))?,
+                path,
+                &format!("{field}.data"),
+            )?;
+            if let (Some(r), Some(c)) = (m.get("rows"), m.get("cols")) {
+                let (r, c) = (number(r, path, field)?, number(c, path, field)?);
+                if (r * c) as usize != data.len() {
+                    return Err(camera_error(
+                        path,
+                        field,
+                        format!("{r}x{c} matrix with {} values", data.len()),
+                    ));
+                }
+            }
+            Ok(data)
+        }
+        Value::Array(rows) if rows.iter().all(|r| r.is_array()) => {
+            let mut out = Vec::new();
+            for (i, row) in rows.iter().enumerate() {
+                out.extend(numbers(row, path, &format!("{field}[{i}]"))?);
+            }
+            Ok(out)
+        }
+        other => numbers(other, path, field),
+    }
+}
+
+pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> {
+    let tree = parse_tree(text, path)?;
+    let (k_key, k_value) = first_key(&tree, &OPENCV_K_KEYS).ok_or_else(|| {
+        camera_error(
+            path,
+            "camera_matrix",
+            format!("no camera matrix (looked for {OPENCV_K_KEYS:?})"),
+        )
+    })?;
+    let k = matrix(k_value, path, k_key)?;
+    expect_len(&k, 9, path, k_key, "a 3x3 camera matrix")?;
+    if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
+        return Err(camera_error(
+            path,
+            k_key,
+            format!(
+                "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew is not supported), found \
+                 {k:?}"
+            ),
+        ));
+    }
+    let f = [k[0], k[4], k[2], k[5]];
+    let (d_key, d_value) = first_key(&tree, &OPENCV_D_KEYS).ok_or_else(|| {
+        camera_error(
+            path,
+            "distortion_coefficients",
+            format!("no distortion coefficients (looked for {OPENCV_D_KEYS:?})"),
+        )
+    })?;
+    let d = matrix(d_value, path, d_key)?;
+    let size = image_size(&tree, path)?;
+    // Which model: the command line, then the file, then the number of coefficients.
+    let from_file = declared_model(&tree, path)?;
+    let model = match options.opencv_model.or(from_file) {
+        Some(m) => m,
+        None if d.len() == 4 => {
+            return Err(camera_error(
+                path,
+                d_key,
+                "4 coefficients fit both OpenCV's fisheye model (k1..k4) and the standard one \
+                 (k1 k2 p1 p2), and the file does not say which: pass --opencv-model fisheye or \
+                 --opencv-model standard"
+                    .to_string(),
+            ))
+        }
+        None => OpenCvModel::Standard,
+    };
+    let mut notes = Vec::new();
+    let (model, name) = match model {
+        OpenCvModel::Fisheye => {
+            expect_len(&d, 4, path, d_key, "fisheye [k1, k2, k3, k4]")?;
+            (
+                Model::KannalaBrandt {
+                    f,
+                    k: [d[0], d[1], d[2], d[3]],
+                },
+                "fisheye",
+            )
+        }
+        OpenCvModel::Standard => {
+            let extra = d.get(5..).unwrap_or_default();
+            if ![4, 5, 8, 12, 14].contains(&d.len()) {
+                return Err(camera_error(
+                    path,
+                    d_key,
+                    format!(
+                        "OpenCV's standard model has 4, 5, 8, 12 or 14 coefficients, found {}",
+                        d.len()
+                    ),
+                ));
+            }
+            if extra.iter().any(|c| *c != 0.0) {
+                return Err(camera_error(
+                    path,
+                    d_key,
+                    format!(
+                        "OpenCV's rational / thin-prism / tilted model (non-zero k4.. of {} \
+                         coefficients) is not supported; only k1 k2 p1 p2 k3",
+                        d.len()
+                    ),
+                ));
+            }
+            if d.len() == 4 {
+                notes.push("k3 = 0: the file has four coefficients".to_string());
+            }
+            (
+                Model::RadTan {
+                    f,
+                    k: [d[0], d[1], d.get(4).copied().unwrap_or(0.0)],
+                    p: [d[2], d[3]],
+                },
+                "standard",
+            )
+        }
+    };
+    Ok(Parsed {
+        model,
+        size,
+        source: format!("opencv ({name} model)"),
+        notes,
+    })
+}
+
+/// `image_width` + `image_height`, or a two-element `image_size` / `imageSize` / `resolution`.
+fn image_size(tree: &Value, path: &Path) -> Result<[usize; 2]> {
+    Ok(
+        if let (Some(w), Some(h)) = (tree.get("image_width"), tree.get("image_height")) {
+            [
+                dimension(w, path, "image_width")?,
+                dimension(h, path, "image_height")?,
+            ]
+        } else if let Some((key, v)) = first_key(tree, &["image_size", "imageSize", "resolution"]) {
+            let values = matrix(v, path, key)?;
+            expect_len(&values, 2, path, key, "[width, height]")?;
+            let pair = Value::from(values);
+            size_pair(&pair, path, key)?
+        } else {
+            return Err(camera_error(
+                path,
+                "image_width",
+                "no image size (looked for image_width + image_height, image_size, imageSize, \
+             resolution)"
+                    .to_string(),
+            ));
+        },
+    )
+}
+
+/// The model the file declares (`fisheye_model: 0 | 1`, or `distortion_model` / `model` by
+/// name), if it does.
+fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
+    Ok(if let Some(v) = tree.get("fisheye_model") {
+        // OpenCV's camera_calibration sample writes `fisheye_model: 0 | 1`.
+        match v {
+            Value::Bool(b) => Some(*b),
+            other => Some(number(other, path, "fisheye_model")? != 0.0),
+        }
+        .map(|fisheye| {
+            if fisheye {
+                OpenCvModel::Fisheye
+            } else {
+                OpenCvModel::Standard
+            }
+        })
+    } else if let Some((key, v)) = first_key(tree, &["distortion_model", "model"]) {
+        match v.as_str().unwrap_or_default() {
+            "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
+                Some(OpenCvModel::Fisheye)
+            }
+            "plumb_bob" | "radtan" | "radial-tangential" | "standard" | "pinhole" => {
+                Some(OpenCvModel::Standard)
+            }
+            other => {
+                return Err(camera_error(
+                    path,
+                    key,
+                    format!(
+                        "OpenCV model `{other}` is not supported (supported: fisheye, \
+                         equidistant, plumb_bob, radtan)"
+                    ),
+                ))
+            }
+        }
+    } else {
+        None
+    })
+}

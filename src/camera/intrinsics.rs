@@ -1,0 +1,113 @@
+//! The pinhole intrinsics shared by every model that has a focal length and a principal point
+//! (Kannala-Brandt, pinhole, radial-tangential, double sphere, unified, extended unified): their
+//! fields, checks, size and rescaling are written once here.
+
+use super::schema::{check_finite, check_fov, check_size, Checked, Invalid};
+use super::PixelConvention;
+
+/// Focal lengths, principal point and image size, in pixels (top-left pixel centre at 0).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    /// Focal length along u, in pixels.
+    pub fx: f64,
+    /// Focal length along v, in pixels.
+    pub fy: f64,
+    /// Principal point column, in pixels (top-left pixel centre at 0).
+    pub cx: f64,
+    /// Principal point row, in pixels (top-left pixel centre at 0).
+    pub cy: f64,
+    /// Image width in pixels.
+    pub width: usize,
+    /// Image height in pixels.
+    pub height: usize,
+}
+
+impl Intrinsics {
+    /// From `[fx, fy, cx, cy]` and `[width, height]` (a camera file's fields).
+    pub fn from_parts([fx, fy, cx, cy]: [f64; 4], [width, height]: [usize; 2]) -> Self {
+        Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        }
+    }
+
+    /// The float fields as named in camera files, in file order (`fx fy cx cy`).
+    pub fn fields(&self) -> [(&'static str, f64); 4] {
+        [
+            ("fx", self.fx),
+            ("fy", self.fy),
+            ("cx", self.cx),
+            ("cy", self.cy),
+        ]
+    }
+
+    /// `fx, fy > 0` and `width, height > 0` (finiteness is checked with the model's other
+    /// fields, in file order, by the model's `validate`).
+    pub fn validate(&self) -> Checked {
+        for (field, f) in [("fx", self.fx), ("fy", self.fy)] {
+            if f <= 0.0 {
+                return Err(Invalid::new(
+                    field,
+                    format!("focal length must be > 0 px, found {f}"),
+                ));
+            }
+        }
+        check_size(self.width, self.height)
+    }
+
+    /// A fisheye model's float fields in file order: `fov_deg`, `fx fy cx cy`, then `params`.
+    pub(crate) fn with_fov(
+        &self,
+        fov_deg: f64,
+        params: &[(&'static str, f64)],
+    ) -> Vec<(&'static str, f64)> {
+        let mut fields = vec![("fov_deg", fov_deg)];
+        fields.extend(self.fields());
+        fields.extend_from_slice(params);
+        fields
+    }
+
+    /// The checks every fisheye model starts with: its `fields` finite (in file order), then
+    /// [`Intrinsics::validate`], then `0 < fov_deg < 360`.
+    pub(crate) fn validate_fisheye(&self, fields: &[(&str, f64)], fov_deg: f64) -> Checked {
+        check_finite(fields.iter().copied())?;
+        self.validate()?;
+        check_fov(fov_deg)
+    }
+
+    /// Image size `[width, height]` in pixels.
+    pub fn size(&self) -> [usize; 2] {
+        [self.width, self.height]
+    }
+
+    /// `fx sx`, `fy sy`, the principal point moved by `convention`, size `round(width sx)` x
+    /// `round(height sy)` (Section 3.2 of the paper).
+    pub fn rescaled(&self, [sx, sy]: [f64; 2], convention: PixelConvention) -> Self {
+        Intrinsics {
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: convention.scale_centre(self.cx, sx),
+            cy: convention.scale_centre(self.cy, sy),
+            width: (self.width as f64 * sx).round() as usize,
+            height: (self.height as f64 * sy).round() as usize,
+        }
+    }
+}
+
+/// Lets a model read its intrinsics as its own fields (`cam.fx`); they are set only through
+/// the model's validating constructor.
+macro_rules! deref_intrinsics {
+    ($model:ty) => {
+        impl std::ops::Deref for $model {
+            type Target = $crate::camera::Intrinsics;
+            fn deref(&self) -> &$crate::camera::Intrinsics {
+                &self.intrinsics
+            }
+        }
+    };
+}
+pub(crate) use deref_intrinsics;
