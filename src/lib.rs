@@ -35,14 +35,17 @@
 //!   [`train::Reporter`] trait.
 //! - [`experiment`]: experiment TOML files (raw -> resolved, did-you-mean errors), the hook that
 //!   opens data sources (data set folders whose camera matches, or the toy task), and the run
-//!   directory: training then evaluations, as `calibconv train` / `calibconv eval` run them;
-//!   profiles and `--set` overrides (TOML overlays) and sweeps over a folder in dependency order
-//!   (skip, resume, keep going past failures, SLURM scripts), as `calibconv sweep` runs them.
+//!   directory (`experiment::layout`: its paths, typed records and lock): training then
+//!   evaluations, as `calibconv train` / `calibconv eval` run them; profiles and `--set`
+//!   overrides (TOML overlays) and sweeps over a folder with seeds as replicates, in dependency
+//!   order (skip, resume, keep going past failures, SLURM scripts), as `calibconv sweep` runs
+//!   them.
 //! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots, point
 //!   clouds), the training reporters (TensorBoard event files, CSV logs), and the report of a
 //!   sweep's results over seed replicates (the paper's tables with Student-t intervals over
 //!   seeds, paired differences with a bootstrap over test images, radial plots, qualitative
-//!   grids, the computed verdict on the paper's claims, `REPORT.md`).
+//!   grids, the computed verdict on the paper's claims, the gain against the field of view,
+//!   `REPORT.md`).
 //! - [`io`]: atomic file output used by every writer.
 
 pub mod camera;
