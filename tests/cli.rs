@@ -1,18 +1,13 @@
 //! The `calibconv` binary end to end: files written, shapes, and clear errors on bad input.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use calibconv::camera;
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry};
-
-fn calibconv(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run calibconv")
-}
+use common::calibconv;
 
 fn camera_file(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))

@@ -2,23 +2,18 @@
 //! regeneration, resuming, refusing to overwrite, Stanford 2D-3D-S input, batches per the
 //! contract of `calibconv::data`.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use calibconv::camera::{self, CameraModel};
 use calibconv::data::format::{Manifest, Split, MANIFEST, SAMPLE_DIRS};
 use calibconv::data::loader::{Dataset, InputSize, LoaderConfig};
 use calibconv::data::{BatchSource, CLASSES, IGNORE_LABEL};
+use common::calibconv;
 use tch::Kind;
-
-fn calibconv(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run calibconv")
-}
 
 fn text(o: &Output) -> String {
     format!(
