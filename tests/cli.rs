@@ -155,6 +155,32 @@ fn bad_arguments_exit_non_zero() {
     assert!(!Path::new(env!("CARGO_MANIFEST_DIR")).join("x").exists());
 }
 
+/// A size whose offsets cannot be held is a clear error before anything is allocated, not an
+/// allocation failure that aborts with a backtrace.
+#[test]
+fn offsets_too_large_to_allocate_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("huge.safetensors");
+    let o = calibconv(&[
+        "offsets",
+        "--camera",
+        "data/cameras/f195.toml",
+        "--size",
+        "100000x100000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    // Exit status 1 (an error), not a signal (SIGABRT).
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("100000x100000") && err.contains("too large"),
+        "{err}"
+    );
+    assert!(!err.contains("memory allocation"), "{err}");
+    assert!(!out.exists());
+}
+
 #[test]
 fn kernels_draws_a_png_of_the_camera_size_and_rejects_a_wrong_image() {
     let dir = tempfile::tempdir().unwrap();
