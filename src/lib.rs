@@ -43,8 +43,11 @@
 //!   sweep's results over seed replicates (the paper's tables with Student-t intervals over
 //!   seeds, paired differences with a bootstrap over test images, radial plots, qualitative
 //!   grids, the computed verdict on the paper's claims, `REPORT.md`).
+//! - [`bench`](mod@bench): the benchmark `calibconv bench` runs (paired, interleaved timings of the
+//!   calibrated convolution against `conv2d`, and a peak-memory pass).
 //! - [`io`]: atomic file output used by every writer.
 
+pub mod bench;
 pub mod camera;
 pub mod data;
 pub mod error;
