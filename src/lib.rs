@@ -46,8 +46,11 @@
 //!   seeds, paired differences with a bootstrap over test images, radial plots, qualitative
 //!   grids, the computed verdict on the paper's claims, the gain against the field of view,
 //!   `REPORT.md`).
+//! - [`bench`](mod@bench): the benchmark `calibconv bench` runs (paired, interleaved timings of the
+//!   calibrated convolution against `conv2d`, and a peak-memory pass).
 //! - [`io`]: atomic file output used by every writer.
 
+pub mod bench;
 pub mod camera;
 pub mod data;
 pub mod error;

@@ -8,14 +8,13 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use calibconv::camera::import::{
     import_file, import_text, Format, FovSource, ImportOptions, Imported, OpenCvModel,
 };
 use calibconv::camera::{self, Camera, CameraModel};
 
-use common::golden;
+use common::{calibconv, golden};
 
 /// Two closed forms of Mei's projection in float64: round-off only (~1e-13 px at these radii).
 const MEI_PX_TOL: f64 = 1e-9;
@@ -338,14 +337,6 @@ fn an_image_edge_outside_the_model_asks_for_the_field_of_view() {
         ..Default::default()
     };
     assert!(import_text(Format::Kalibr, text, path, &options).is_ok());
-}
-
-fn calibconv(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run calibconv")
 }
 
 #[test]

@@ -1,18 +1,13 @@
 //! The `calibconv` binary end to end: files written, shapes, and clear errors on bad input.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use calibconv::camera;
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry};
-
-fn calibconv(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run calibconv")
-}
+use common::calibconv;
 
 fn camera_file(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))
@@ -158,6 +153,32 @@ fn bad_arguments_exit_non_zero() {
         assert!(!stderr(&o).is_empty());
     }
     assert!(!Path::new(env!("CARGO_MANIFEST_DIR")).join("x").exists());
+}
+
+/// A size whose offsets cannot be held is a clear error before anything is allocated, not an
+/// allocation failure that aborts with a backtrace.
+#[test]
+fn offsets_too_large_to_allocate_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("huge.safetensors");
+    let o = calibconv(&[
+        "offsets",
+        "--camera",
+        "data/cameras/f195.toml",
+        "--size",
+        "100000x100000",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    // Exit status 1 (an error), not a signal (SIGABRT).
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("100000x100000") && err.contains("too large"),
+        "{err}"
+    );
+    assert!(!err.contains("memory allocation"), "{err}");
+    assert!(!out.exists());
 }
 
 #[test]

@@ -2,23 +2,18 @@
 //! regeneration, resuming, refusing to overwrite, Stanford 2D-3D-S input, batches per the
 //! contract of `calibconv::data`.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use calibconv::camera::{self, CameraModel};
 use calibconv::data::format::{Manifest, Split, MANIFEST, SAMPLE_DIRS};
 use calibconv::data::loader::{Dataset, InputSize, LoaderConfig};
 use calibconv::data::{BatchSource, CLASSES, IGNORE_LABEL};
+use common::{calibconv, calibconv_in};
 use tch::Kind;
-
-fn calibconv(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("run calibconv")
-}
 
 fn text(o: &Output) -> String {
     format!(
@@ -113,6 +108,40 @@ fn synth_writes_the_documented_layout_byte_identically() {
         text(&o)
     );
     assert_eq!(tree(&a), ta);
+}
+
+/// The embedded default needs no file of the repository (its cameras are embedded too): run
+/// from an empty folder, it writes the same bytes as from the repository root.
+#[test]
+fn the_embedded_default_runs_outside_the_repository() {
+    let tmp = tempfile::tempdir().unwrap();
+    let elsewhere = tmp.path().join("elsewhere");
+    std::fs::create_dir(&elsewhere).unwrap();
+    let in_root = tmp.path().join("from-root");
+    let args = [
+        "synth",
+        "--panoramas",
+        "3",
+        "--pano-height",
+        "16",
+        "--views-per-panorama",
+        "1",
+        "--width",
+        "16",
+        "--out",
+    ];
+    let o = calibconv(&[&args[..], &[in_root.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let o = calibconv_in(&elsewhere, &[&args[..], &["out"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let out = elsewhere.join("out");
+    for set in ["f195", "f165", "pers", "rect-f165"] {
+        let m = Manifest::read(&out.join(set)).unwrap();
+        assert!(m.complete, "{set}");
+    }
+    let m = Manifest::read(&out.join("f195")).unwrap();
+    assert_eq!(m.camera_source, "data/cameras/f195.toml");
+    assert_eq!(tree(&out), tree(&in_root));
 }
 
 #[test]

@@ -1,10 +1,13 @@
 //! Every file in `experiments/` parses and resolves, experiment names are unique (they name run
 //! directories), and `init = { experiment = ... }` names an experiment that exists.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use calibconv::experiment::{self, InitSpec};
+use common::calibconv_command;
 
 fn toml_files(dir: &Path, out: &mut Vec<PathBuf>) {
     for entry in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
@@ -167,19 +170,18 @@ fn quick_data_sets_test_on_160_images_of_panoramas_not_used_in_training() {
     let out = tempfile::tempdir().unwrap();
     // The configuration as `make demo` runs it, on 16-px-high panoramas (the splits do not
     // depend on the panorama size) and one set.
-    let o = std::process::Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args([
-            "synth",
-            "--config",
-            "data/synth-quick.toml",
-            "--set",
-            "f195",
-        ])
-        .args(["--pano-height", "16", "--out"])
-        .arg(out.path())
-        .current_dir(root)
-        .output()
-        .unwrap();
+    let o = calibconv_command(&[
+        "synth",
+        "--config",
+        "data/synth-quick.toml",
+        "--set",
+        "f195",
+    ])
+    .args(["--pano-height", "16", "--out"])
+    .arg(out.path())
+    .current_dir(root)
+    .output()
+    .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let manifest: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(out.path().join("f195/manifest.json")).unwrap(),

@@ -2,6 +2,8 @@
 //! `calibconv train` or `calibconv eval` of it fails at once with an error naming the first
 //! one's PID; after `kill -9` of the holder the lock is free again (the OS releases it).
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -47,9 +49,10 @@ lr = 1e-3
     )
 }
 
+/// The binary with `args`, on one OpenMP thread.
 fn calibconv(args: &[&str]) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_calibconv"));
-    c.args(args).env("OMP_NUM_THREADS", "1");
+    let mut c = common::calibconv_command(args);
+    c.env("OMP_NUM_THREADS", "1");
     c
 }
 

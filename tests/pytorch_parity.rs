@@ -25,7 +25,7 @@ use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::train;
 use calibconv::train::checkpoint::{self, CheckpointInfo};
-use common::{max_rel, read_safetensors};
+use common::{calibconv, max_rel, read_safetensors, root};
 
 /// float32 convolutions, BatchNorm and up-sampling by one libtorch from two front ends; the
 /// issue's bound. Observed: 0 (bit-identical) on this machine; other thread counts reorder sums.
@@ -45,10 +45,6 @@ fn config(up: UpMode) -> UNetConfig {
         up,
         head: Head::Segmentation { classes: 3 },
     }
-}
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
 /// Runs `tools/make_pytorch_parity.py` with `.venv/bin/python`; panics with its output on
@@ -71,14 +67,6 @@ fn python(args: &[&Path]) {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
-}
-
-fn calibconv(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(root())
-        .output()
-        .expect("run calibconv")
 }
 
 fn ok(o: &Output) {

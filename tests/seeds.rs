@@ -3,8 +3,9 @@
 //! shared across seeds on request, `study.json`, and SLURM arrays with one task per run and
 //! seed.
 
+mod common;
+
 use std::path::Path;
-use std::process::{Command, Output};
 
 use tch::Tensor;
 
@@ -13,18 +14,11 @@ use calibconv::experiment::layout::{ResultsDir, RunDir};
 use calibconv::experiment::run::open_training_source;
 use calibconv::experiment::sweep::{self, Seeds};
 use calibconv::experiment::{DefaultOpener, InitSpec};
-
-fn calibconv(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("run calibconv")
-}
+use common::calibconv_in;
 
 /// A 32-px F195 data set (10 panoramas, 2 views each) in `dir/sets/f195`.
 fn synth(dir: &Path) {
-    let o = calibconv(
+    let o = calibconv_in(
         Path::new(env!("CARGO_MANIFEST_DIR")),
         &[
             "synth",
@@ -242,7 +236,7 @@ fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed(
     )
     .unwrap();
     let exp_dir = e.display().to_string();
-    let o = calibconv(
+    let o = calibconv_in(
         dir,
         &[
             "sweep",
@@ -285,7 +279,7 @@ fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed(
     assert_eq!(study.runs.len(), 6);
 
     let slurm = dir.join("slurm");
-    let o = calibconv(
+    let o = calibconv_in(
         dir,
         &[
             "sweep",

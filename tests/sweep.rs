@@ -2,13 +2,15 @@
 //! does not stop the others (and blocks its dependants), overrides recorded in each run; the
 //! SLURM scripts' structure; the report of the results.
 
+mod common;
+
 use std::path::Path;
-use std::process::{Command, Output};
 
 use calibconv::experiment::layout::{RunDir, SweepStatus};
 use calibconv::experiment::profile::Override;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
+use common::calibconv_in;
 
 /// A tiny toy experiment: 2 steps of the tiny U-Net on 16x16 toy images.
 fn toy(name: &str, init: Option<&str>, train: &str) -> String {
@@ -188,21 +190,13 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     assert!(dir.join("report/verdict.json").is_file());
 }
 
-fn calibconv(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("run calibconv")
-}
-
 #[test]
 fn the_command_exits_non_zero_after_a_failure_and_writes_slurm_scripts_by_level() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     write_set(dir);
     let d = dir.display().to_string();
-    let o = calibconv(
+    let o = calibconv_in(
         dir,
         &["sweep", &d, "--profile", "tiny", "--only", "*broken", "-q"],
     );
@@ -214,7 +208,7 @@ fn the_command_exits_non_zero_after_a_failure_and_writes_slurm_scripts_by_level(
     );
 
     let slurm = dir.join("slurm");
-    let o = calibconv(
+    let o = calibconv_in(
         dir,
         &[
             "sweep",
@@ -259,7 +253,7 @@ fn the_command_exits_non_zero_after_a_failure_and_writes_slurm_scripts_by_level(
 fn experiments_train_on_data_set_folders_and_refuse_another_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    let o = calibconv(
+    let o = calibconv_in(
         Path::new(env!("CARGO_MANIFEST_DIR")),
         &[
             "synth",
@@ -318,13 +312,13 @@ camera = "{root}/data/cameras/{eval_camera}.toml"
     };
     let file = dir.join("ds.toml");
     std::fs::write(&file, exp("f195")).unwrap();
-    let o = calibconv(dir, &["train", &file.display().to_string(), "-q"]);
+    let o = calibconv_in(dir, &["train", &file.display().to_string(), "-q"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let m = std::fs::read_to_string(dir.join("runs/ds/eval/f195-standard/metrics.json")).unwrap();
     assert!(m.contains("\"rmse\""), "{m}");
     // The F165 camera on F195 images: a clear error naming the folder.
     std::fs::write(&file, exp("f165")).unwrap();
-    let o = calibconv(dir, &["eval", &file.display().to_string(), "-q"]);
+    let o = calibconv_in(dir, &["eval", &file.display().to_string(), "-q"]);
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(

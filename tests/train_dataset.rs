@@ -2,19 +2,11 @@
 //! loader behind the experiment's data sources), and the geometry check between a data set's
 //! camera and the experiment's input camera.
 
-use std::path::Path;
-use std::process::Command;
+mod common;
 
 use calibconv::experiment::{self, DefaultOpener, RunOptions};
-
-fn calibconv(args: &[&str]) {
-    let o = Command::new(env!("CARGO_BIN_EXE_calibconv"))
-        .args(args)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
+use common::calibconv;
+use std::path::Path;
 
 fn camera(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))
@@ -23,7 +15,7 @@ fn camera(name: &str) -> String {
 /// F195 and Pers sets, 128 px wide (128x114 stored), 32 / 4 / 4 samples.
 fn synth(dir: &Path) -> std::path::PathBuf {
     let root = dir.join("synth");
-    calibconv(&[
+    let o = calibconv(&[
         "synth",
         "--out",
         root.to_str().unwrap(),
@@ -36,6 +28,7 @@ fn synth(dir: &Path) -> std::path::PathBuf {
         "--set",
         "pers",
     ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     root
 }
 

@@ -7,8 +7,9 @@
 //! is built through `train::seeded` (which holds a lock) and nothing else draws random numbers,
 //! so initial weights depend on the seeds only.
 
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
@@ -357,13 +358,7 @@ fn the_binary_trains_and_evaluates_and_names_a_wrong_checkpoint() {
     let text = experiment_text(dir.path(), "cli", "standard", 4, "");
     let file = dir.path().join("cli.toml");
     std::fs::write(&file, &text).unwrap();
-    let run = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_calibconv"))
-            .args(args)
-            .current_dir(env!("CARGO_MANIFEST_DIR"))
-            .output()
-            .unwrap()
-    };
+    let run = common::calibconv;
     let f = file.to_str().unwrap();
     let o = run(&["train", f, "--quiet"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

@@ -121,6 +121,9 @@ fn configure(args: &SynthArgs) -> Result<(RawSynthConfig, PathBuf)> {
             if !args.sets.is_empty() {
                 bail!("--set selects sets of the configuration; it cannot be combined with --kind");
             }
+            // The --kind set's camera is the user's file: read it from disk, even where its
+            // path is one the embedded default embeds.
+            raw.embedded_cameras = &[];
             raw.sets = vec![RawSet {
                 name: args.name.clone().unwrap_or(kind.as_str().to_string()),
                 kind: *kind,

@@ -28,6 +28,8 @@
 //! kind = "fisheye"             # "pers" (pinhole camera), "fisheye", "rectified" (fisheye
 //!                              # re-projected to a pinhole; FOV < 180 only)
 //! camera = "data/cameras/f195.toml"   # relative paths are relative to the working directory
+//!                              # (the embedded default's cameras are embedded too, see
+//!                              # [`DEFAULT_CAMERAS`])
 //! width = 128                  # stored width; the camera is scaled by width / camera width
 //!                              # (half-pixel convention) and camera.toml holds the result
 //! # rectify_hfov_deg = 120.0   # rectified only: the pinhole's horizontal FOV (default: keep
@@ -77,6 +79,25 @@ pub const GENERATOR_VERSION: u32 = 1;
 
 /// `data/synth.toml`, the embedded default configuration.
 pub const DEFAULT_CONFIG: &str = include_str!("../../data/synth.toml");
+
+/// The camera files [`DEFAULT_CONFIG`] names, embedded in the binary as well, so that the
+/// embedded default works from any directory: `(path as written in the configuration, text)`.
+/// A set of [`RawSynthConfig::default_config`] whose camera is one of these paths reads this
+/// text instead of the file on disk (the same bytes, compiled from this repository).
+pub const DEFAULT_CAMERAS: &[(&str, &str)] = &[
+    (
+        "data/cameras/f195.toml",
+        include_str!("../../data/cameras/f195.toml"),
+    ),
+    (
+        "data/cameras/f165.toml",
+        include_str!("../../data/cameras/f165.toml"),
+    ),
+    (
+        "data/cameras/pers.toml",
+        include_str!("../../data/cameras/pers.toml"),
+    ),
+];
 
 /// Where panoramas come from.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -227,6 +248,12 @@ pub struct RawSynthConfig {
     /// The `[[set]]`s.
     #[serde(rename = "set")]
     pub sets: Vec<RawSet>,
+    /// Camera files read from the binary instead of the disk, `(path, text)`: a set whose
+    /// `camera` is one of these paths (compared as written) uses the text. [`DEFAULT_CAMERAS`]
+    /// for [`RawSynthConfig::default_config`], empty for configurations read from files; clear
+    /// it to read every camera from disk.
+    #[serde(skip)]
+    pub embedded_cameras: &'static [(&'static str, &'static str)],
 }
 
 /// Smallest panorama height accepted.
@@ -249,10 +276,26 @@ impl RawSynthConfig {
         Self::parse(&text, path)
     }
 
-    /// The embedded default (`data/synth.toml`).
+    /// The embedded default (`data/synth.toml`), with its cameras embedded too
+    /// ([`DEFAULT_CAMERAS`]): it resolves in any working directory.
     pub fn default_config() -> Self {
-        Self::parse(DEFAULT_CONFIG, Path::new("<embedded data/synth.toml>"))
-            .expect("the embedded default configuration parses")
+        let mut raw = Self::parse(DEFAULT_CONFIG, Path::new("<embedded data/synth.toml>"))
+            .expect("the embedded default configuration parses");
+        raw.embedded_cameras = DEFAULT_CAMERAS;
+        raw
+    }
+
+    /// A set's camera: the embedded text if `path` is one of [`Self::embedded_cameras`], else
+    /// the file.
+    fn load_camera(&self, path: &Path) -> Result<Camera> {
+        match self
+            .embedded_cameras
+            .iter()
+            .find(|(name, _)| Path::new(name) == path)
+        {
+            Some((name, text)) => camera::parse(text, Path::new(name)),
+            None => camera::load(path),
+        }
     }
 
     /// Checks every field and loads the cameras; `path` names the configuration in errors.
@@ -366,7 +409,7 @@ impl RawSynthConfig {
                     format!("must be >= {MIN_WIDTH}, found {}", raw.width),
                 ));
             }
-            let cam = camera::load(&raw.camera).map_err(|e| {
+            let cam = self.load_camera(&raw.camera).map_err(|e| {
                 Error::data(
                     path,
                     format!("field `{}`: cannot use camera file: {e}", field("camera")),
@@ -1029,6 +1072,27 @@ mod tests {
         // 1080x960 scaled to 16 wide: 16 x round(14.22) = 14.
         assert_eq!(plan.sets[0].camera.size(), [16, 14]);
         assert!(matches!(plan.sets[3].camera, Camera::Pinhole(_)));
+    }
+
+    #[test]
+    fn the_default_configs_cameras_are_embedded_and_equal_the_shipped_files() {
+        let raw = RawSynthConfig::default_config();
+        for set in &raw.sets {
+            assert!(
+                DEFAULT_CAMERAS
+                    .iter()
+                    .any(|(name, _)| Path::new(name) == set.camera),
+                "{} is not embedded",
+                set.camera.display()
+            );
+        }
+        for (name, text) in DEFAULT_CAMERAS {
+            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(name);
+            assert_eq!(*text, std::fs::read_to_string(&path).unwrap(), "{name}");
+        }
+        // A configuration read from a file reads its cameras from disk.
+        let from_file = RawSynthConfig::parse(DEFAULT_CONFIG, Path::new("c.toml")).unwrap();
+        assert!(from_file.embedded_cameras.is_empty());
     }
 
     #[test]

@@ -65,12 +65,14 @@ impl LayerGeometry {
     }
 
     /// Output size `[H_out, W_out]` for an input feature map `[H, W]` (PyTorch's formula), or
-    /// `None` if the kernel does not fit.
+    /// `None` if the kernel does not fit (or the sizes overflow `usize`).
     pub fn output_size(&self, input: [usize; 2]) -> Option<[usize; 2]> {
         let mut out = [0; 2];
         for a in 0..2 {
-            let span = self.dilation[a] * (self.kernel[a] - 1) + 1;
-            let padded = input[a] + 2 * self.padding[a];
+            let span = self.dilation[a]
+                .checked_mul(self.kernel[a].checked_sub(1)?)?
+                .checked_add(1)?;
+            let padded = input[a].checked_add(self.padding[a].checked_mul(2)?)?;
             if padded < span || self.stride[a] == 0 {
                 return None;
             }
@@ -207,11 +209,58 @@ pub fn kernel_focal(k: usize, fov: f64, w_fm: usize) -> Result<f64> {
     Ok(k as f64 / (2.0 * (alpha / 2.0).tan()))
 }
 
+/// The most values (float32, `2 * kh * kw * H_out * W_out`) one layer's offsets may hold:
+/// `2^31 - 1`, 8 GiB, already twice what a sampling plan can index with its int32 indices. A
+/// larger request is refused before anything is allocated.
+pub const MAX_OFFSET_VALUES: usize = i32::MAX as usize;
+
+/// The zeroed buffer of `2 * taps * H_out * W_out` offsets for a `input_size` input, or an error
+/// naming the size if it is over [`MAX_OFFSET_VALUES`] or cannot be allocated (checked before
+/// allocating: no abort).
+fn offsets_buffer(
+    input_size: [usize; 2],
+    kernel: [usize; 2],
+    output: [usize; 2],
+) -> Result<Vec<f32>> {
+    let [kh, kw] = kernel;
+    let [ho, wo] = output;
+    let too_large = |why: &str| {
+        let bytes = 2.0 * kh as f64 * kw as f64 * ho as f64 * wo as f64 * 4.0;
+        Error::InvalidArgument(format!(
+            "a {}x{} input is too large: the offsets of a {kh}x{kw} kernel on it, \
+             2 x {kh}x{kw} x {ho}x{wo} float32 ({:.1} GB), {why}",
+            input_size[0],
+            input_size[1],
+            bytes / 1e9,
+        ))
+    };
+    let values = [2, kh, kw, ho, wo]
+        .into_iter()
+        .try_fold(1usize, usize::checked_mul)
+        .filter(|&n| n <= MAX_OFFSET_VALUES)
+        .ok_or_else(|| {
+            too_large(&format!(
+                "exceed the limit of {MAX_OFFSET_VALUES} values ({:.1} GB)",
+                MAX_OFFSET_VALUES as f64 * 4.0 / 1e9
+            ))
+        })?;
+    let mut data = Vec::new();
+    data.try_reserve_exact(values)
+        .map_err(|_| too_large("cannot be allocated"))?;
+    data.resize(values, 0.0f32);
+    Ok(data)
+}
+
 /// Computes the calibrated offsets of one layer.
 ///
 /// `input_size` is the layer's input feature map `[H, W]`; the camera is scaled from its image
 /// (plus `frame.padding`) to that size. Runs in parallel over output rows; the result does not
 /// depend on the number of threads.
+///
+/// # Errors
+/// An invalid geometry, a kernel that does not fit or spans too wide a field of view, a
+/// padded panorama, and sizes whose offsets would exceed [`MAX_OFFSET_VALUES`] or cannot be
+/// allocated (an error naming the size, before allocating).
 pub fn compute_offsets(
     camera: &Camera,
     input_size: [usize; 2],
@@ -244,13 +293,12 @@ pub fn compute_offsets(
     let [kh, kw] = geometry.kernel;
     let d = kernel_focal(kw, camera.fov(), input_size[1])?;
     let [ho, wo] = output_size;
+    let mut data = offsets_buffer(input_size, geometry.kernel, output_size)?;
     let (ch, cw) = ((kh - 1) / 2, (kw - 1) / 2);
     let taps = kh * kw;
 
     // The planes [2 * taps, H_out, W_out] cut into rows, grouped by output row: every row task
     // writes its (dy, dx) straight into its 2 * taps row slices (untouched taps stay 0).
-    let plane = ho * wo;
-    let mut data = vec![0.0f32; 2 * taps * plane];
     let mut by_row: Vec<Vec<&mut [f32]>> = (0..ho).map(|_| Vec::with_capacity(2 * taps)).collect();
     for (i, chunk) in data.chunks_mut(wo.max(1)).enumerate() {
         by_row[i % ho].push(chunk); // chunk i is plane i / ho, row i % ho

@@ -225,3 +225,24 @@ fn pyramid_sizes_floor_like_maxpool() {
         vec![[960, 1082], [480, 541], [240, 270], [120, 135], [60, 67]]
     );
 }
+
+#[test]
+fn offsets_too_large_to_hold_are_refused_naming_the_size() {
+    let cam = symmetric_kb();
+    let e = compute_offsets(
+        &cam,
+        [100_000, 100_000],
+        &LayerGeometry::same(3),
+        &InputFrame::default(),
+    )
+    .unwrap_err();
+    assert!(matches!(e, Error::InvalidArgument(_)), "{e}");
+    assert!(e.to_string().contains("100000x100000"), "{e}");
+    // Sizes that overflow `usize` are refused too, not wrapped.
+    let huge = LayerGeometry {
+        padding: [usize::MAX / 2 + 1; 2],
+        ..LayerGeometry::same(3)
+    };
+    assert!(compute_offsets(&cam, [32, 32], &huge, &InputFrame::default()).is_err());
+    assert_eq!(huge.output_size([32, 32]), None);
+}

@@ -1,0 +1,555 @@
+//! The benchmark behind `calibconv bench`: the calibrated convolution against `conv2d`,
+//! interleaved in one process.
+//!
+//! Timings on a shared machine drift with the load, so every measurement is paired: within one
+//! repetition the reference (`conv2d`, same weights) and the candidate run back to back (the
+//! order alternates between repetitions), and the reported ratio is the median of the
+//! per-repetition ratios. Times are medians too. The system load (`/proc/loadavg`) before and
+//! after the timings is reported with them. Nothing here is asserted anywhere: these are numbers
+//! for people.
+//!
+//! The timing process is configured like the trainer: the allocator is left alone (no `mallopt`),
+//! and the thread count is libtorch's or `--threads`. Peak memory is measured afterwards in a
+//! child process (`calibconv bench ... --memory-child`, the same arguments, which runs
+//! [`memory_child`]) that pins glibc's
+//! mmap threshold first (`mallopt`), so freed tensors go back to the kernel instead of lingering
+//! in the heap and hiding later allocations; pinning it in the timing process made every
+//! allocation over 256 KiB a fresh mmap with page faults, which slowed `conv2d` 1.5-3.5x and made
+//! the ratios look better than in a training process. A measurement is `VmHWM` after one training
+//! step minus `VmRSS` before it (the kernel's high-water mark, reset by writing `5` to
+//! `/proc/self/clear_refs`), i.e. the resident memory the step added at its peak (inputs, weights
+//! and the probe are allocated before and not counted). Limits: page granularity, process-wide
+//! (any thread's memory counts), and memory the allocator keeps cached from earlier steps is not
+//! seen again.
+//!
+//! `--presets` times every 3x3 layer shape of the project's U-Net presets at the sizes the
+//! experiments use them (tiny at 64x64 and small at 128x128, batch 8; classic at 256x256, batch
+//! 2, a CPU-sized stand-in for the paper's 1088x960 GPU runs). A network's first layer reads the
+//! image, which needs no gradient: its forward+backward computes the weight gradient only, as in
+//! training.
+//!
+//! Layout: this file holds the options, the report and its printing; `measure` the timed
+//! and measured workloads; `proc` the platform probes (`/proc`, `clock_gettime`, `mallopt`),
+//! real on Linux only (elsewhere they report nothing). The CLI wrapper
+//! (`src/commands/bench.rs`) parses flags, loads the camera and runs the memory child.
+
+mod measure;
+mod proc;
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::error::Result;
+use crate::kernel::pyramid_sizes;
+use crate::nn::{Head, UNetConfig};
+
+pub use measure::memory_child;
+use measure::{bench_functional, bench_pyramid, bench_shape, bench_unet, ratio};
+use proc::{cpu_seconds, load_average};
+
+/// A part of the benchmark.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Part {
+    /// The table of layer shapes.
+    Layers,
+    /// Offsets and sampling plans of the camera's U-Net pyramid.
+    Pyramid,
+    /// The U-Net-shaped training step.
+    Unet,
+    /// The functional `ops::deform_conv2d` called again and again with one offsets tensor
+    /// (B4, 32 channels, 128x128; its plan comes from the plan cache).
+    Functional,
+}
+
+/// What to run (the flags of `calibconv bench`).
+#[derive(Clone, Debug, Default)]
+pub struct Options {
+    /// A short run: fewer shapes and repetitions, no pyramid unless asked for.
+    pub quick: bool,
+    /// Every shape of the grid.
+    pub full: bool,
+    /// The layer shapes of the U-Net presets at the experiments' sizes.
+    pub presets: bool,
+    /// Also time the ATen backend.
+    pub aten: bool,
+    /// Skip the peak-memory pass.
+    pub no_memory: bool,
+    /// Explicit layer shapes `[batch, c_in, c_out, height, width]`.
+    pub shapes: Vec<[i64; 5]>,
+    /// Only these parts (empty: the default parts).
+    pub only: Vec<Part>,
+    /// The camera file, as named in the output.
+    pub camera: PathBuf,
+}
+
+/// One layer shape: `[batch, c_in, c_out, height, width]` (3x3, stride 1, "same" padding).
+type Shape = [i64; 5];
+
+/// A layer to time: a shape, whether the input needs a gradient (not for a network's first
+/// layer, which reads the image), and where it comes from.
+#[derive(Clone, Debug)]
+struct Layer {
+    shape: Shape,
+    input_grad: bool,
+    /// The preset it belongs to ("" for explicit shapes).
+    net: &'static str,
+    /// How many layers of the preset have this shape.
+    count: usize,
+}
+
+impl Layer {
+    fn plain(shape: Shape) -> Self {
+        Layer {
+            shape,
+            input_grad: true,
+            net: "",
+            count: 1,
+        }
+    }
+}
+
+/// The presets of `--presets`: (preset, input side, batch).
+const PRESET_SIZES: &[(&str, i64, i64)] =
+    &[("tiny", 64, 8), ("small", 128, 8), ("classic", 256, 2)];
+
+/// Every 3x3 layer of the presets' U-Nets (transposed up-sampling, as `nn::unet` builds them):
+/// `inc` (in -> base -> base), `down l` (w(l-1) -> w(l) -> w(l)) and `up` to level l
+/// (2 w(l) -> w(l) -> w(l)), w(l) = base * 2^l, at the pyramid sizes; identical shapes merged
+/// with a count.
+fn preset_layers() -> Result<Vec<Layer>> {
+    let mut layers: Vec<Layer> = Vec::new();
+    for &(name, side, batch) in PRESET_SIZES {
+        let cfg = UNetConfig::preset(name, Head::Depth)?;
+        let sizes = pyramid_sizes([side as usize, side as usize], cfg.depth);
+        let w = |l: usize| cfg.base << l;
+        let mut add = |c_in: i64, c_out: i64, l: usize| {
+            let [h, wd] = sizes[l].map(|v| v as i64);
+            let shape = [batch, c_in, c_out, h, wd];
+            let input_grad = !(l == 0 && c_in == cfg.in_channels);
+            match layers
+                .iter_mut()
+                .find(|x| x.net == name && x.shape == shape && x.input_grad == input_grad)
+            {
+                Some(x) => x.count += 1,
+                None => layers.push(Layer {
+                    shape,
+                    input_grad,
+                    net: name,
+                    count: 1,
+                }),
+            }
+        };
+        add(cfg.in_channels, w(0), 0);
+        add(w(0), w(0), 0);
+        for l in 1..=cfg.depth {
+            add(w(l - 1), w(l), l);
+            add(w(l), w(l), l);
+        }
+        for l in (0..cfg.depth).rev() {
+            add(2 * w(l), w(l), l);
+            add(w(l), w(l), l);
+        }
+    }
+    Ok(layers)
+}
+
+/// `--quick`: a smoke run of a few seconds.
+const QUICK: &[Shape] = &[
+    [1, 32, 32, 64, 64],
+    [2, 64, 64, 32, 32],
+    [1, 128, 128, 16, 16],
+];
+/// The default table: the levels of a U-Net with 32..512 channels at 256x256, at batch 2, and
+/// the extremes of batch size.
+const DEFAULT: &[Shape] = &[
+    [2, 32, 32, 256, 256],
+    [2, 64, 64, 128, 128],
+    [2, 128, 128, 64, 64],
+    [2, 256, 256, 32, 32],
+    [2, 512, 512, 16, 16],
+    [1, 32, 32, 256, 256],
+    [1, 128, 128, 64, 64],
+    [8, 64, 64, 128, 128],
+    [8, 512, 512, 16, 16],
+    [4, 32, 64, 128, 128],
+];
+/// Seconds of reference (`conv2d` training steps) spent per shape, which sets the repetitions.
+const BUDGET_S: f64 = 1.5;
+const MIN_REPS: usize = 3;
+const MAX_REPS: usize = 15;
+
+/// `--full`: every U-Net level at batch 1, 4 and 8.
+fn full_shapes() -> Vec<Shape> {
+    let levels = [(32, 256), (64, 128), (128, 64), (256, 32), (512, 16)];
+    [1, 4, 8]
+        .iter()
+        .flat_map(|&b| levels.iter().map(move |&(c, s)| [b, c, c, s, s]))
+        .collect()
+}
+
+/// Medians of a paired measurement (milliseconds) and of the per-repetition ratios.
+#[derive(Debug, Serialize)]
+struct Paired {
+    reference_ms: f64,
+    candidate_ms: f64,
+    ratio: f64,
+    /// The same from the process's CPU time (all threads, user + system) instead of wall time:
+    /// on a machine loaded beyond its cores a run longer than a scheduler time slice is
+    /// preempted more often than a short one, which inflates wall-time ratios; with one thread
+    /// the CPU-time ratio is the work ratio (with more, it counts OpenMP's spinning too).
+    cpu_ratio: Option<f64>,
+}
+
+#[derive(Debug, Serialize)]
+struct Impl {
+    forward: Paired,
+    forward_backward: Paired,
+    /// Peak resident memory added by one training step (MiB), and its ratio to `conv2d`'s.
+    peak_mib: Option<f64>,
+    peak_ratio: Option<f64>,
+}
+
+#[derive(Debug, Serialize)]
+struct ShapeResult {
+    /// The preset the layer belongs to ("" for explicit shapes) and how many of its layers have
+    /// this shape.
+    net: &'static str,
+    count: usize,
+    batch: i64,
+    c_in: i64,
+    c_out: i64,
+    height: i64,
+    width: i64,
+    /// Whether forward+backward computes the input gradient (not for a first layer).
+    input_grad: bool,
+    reps: usize,
+    conv2d_peak_mib: Option<f64>,
+    /// The default implementation (native kernels on the CPU).
+    calibrated: Impl,
+    /// The ATen composition (`--aten`), the CUDA path and the pre-native CPU path.
+    aten: Option<Impl>,
+}
+
+#[derive(Debug, Serialize)]
+struct PyramidResult {
+    input_hw: [usize; 2],
+    levels: usize,
+    anchors: usize,
+    offsets_s: f64,
+    plans_s: f64,
+    total_s: f64,
+    /// CPU time of all threads (user + system) for offsets and plans: on a loaded machine,
+    /// `cpu_s / threads` estimates the wall time of an idle one.
+    cpu_s: Option<f64>,
+    plan_mib: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct UnetResult {
+    what: String,
+    batch: i64,
+    input_hw: [i64; 2],
+    base_channels: i64,
+    depth: usize,
+    reps: usize,
+    step: Paired,
+    conv2d_peak_mib: Option<f64>,
+    calibrated_peak_mib: Option<f64>,
+    peak_ratio: Option<f64>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct Report {
+    threads: i32,
+    /// `/proc/loadavg` (1, 5, 15 minutes) before and after the timings.
+    load_before: Option<[f64; 3]>,
+    load_after: Option<[f64; 3]>,
+    note: &'static str,
+    shapes: Vec<ShapeResult>,
+    pyramid: Option<PyramidResult>,
+    unet: Option<UnetResult>,
+    /// `ops::deform_conv2d` with one offsets tensor, forward+backward against `conv2d`.
+    functional: Option<Paired>,
+}
+
+/// What the memory child process (`--memory-child`) prints on its last line of stdout: peaks
+/// (MiB) per layer, `[conv2d, calibrated, aten]`, and of the U-Net step `[conv2d, calibrated]`.
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub struct MemoryReport {
+    layers: Vec<[Option<f64>; 3]>,
+    unet: Option<[Option<f64>; 2]>,
+}
+
+/// The layers the arguments select.
+fn selected_layers(args: &Options) -> Result<Vec<Layer>> {
+    let run_part = |p: Part| args.only.is_empty() || args.only.contains(&p);
+    Ok(if !run_part(Part::Layers) {
+        Vec::new()
+    } else if args.presets {
+        preset_layers()?
+    } else if !args.shapes.is_empty() {
+        args.shapes.iter().copied().map(Layer::plain).collect()
+    } else if args.quick {
+        QUICK.iter().copied().map(Layer::plain).collect()
+    } else if args.full {
+        full_shapes().into_iter().map(Layer::plain).collect()
+    } else {
+        DEFAULT.iter().copied().map(Layer::plain).collect()
+    })
+}
+
+/// Runs the timings and prints them; then, unless `no_memory`, calls `memory_in_child` (which
+/// runs [`memory_child`] in a fresh process with the same options and returns its report, or an
+/// error to print) and prints the peak memory. Returns the report (the CLI writes it as JSON).
+pub fn run(
+    camera: &Camera,
+    args: &Options,
+    memory_in_child: impl FnOnce() -> std::result::Result<MemoryReport, String>,
+) -> Result<Report> {
+    tch::manual_seed(0);
+    let layers = selected_layers(args)?;
+    let run_part = |p: Part| args.only.is_empty() || args.only.contains(&p);
+    let threads = tch::get_num_threads();
+    let load_before = load_average();
+    println!(
+        "calibconv bench: {threads} libtorch threads, camera {}, load {}; ratios are calibrated \
+         / conv2d (medians of paired, interleaved runs)",
+        args.camera.display(),
+        fmt_load(load_before)
+    );
+    if !layers.is_empty() {
+        print_header(args.aten);
+    }
+    let mut results = Vec::new();
+    for layer in &layers {
+        let r = bench_shape(camera, layer, args)?;
+        print_row(&r);
+        results.push(r);
+    }
+    // The full-resolution pyramid takes seconds: not part of --quick unless asked for.
+    let pyramid = if run_part(Part::Pyramid) && !(args.quick && args.only.is_empty()) {
+        Some(bench_pyramid(camera)?)
+    } else {
+        None
+    };
+    let mut unet = if run_part(Part::Unet) {
+        Some(bench_unet(camera, args)?)
+    } else {
+        None
+    };
+    // Part of the default run only when asked for (it repeats a layer of the table).
+    let functional = if args.only.contains(&Part::Functional) {
+        Some(bench_functional(camera, args)?)
+    } else {
+        None
+    };
+    let load_after = load_average();
+    println!("\nload after the timings: {}", fmt_load(load_after));
+    if !args.no_memory && (!results.is_empty() || unet.is_some()) {
+        match memory_in_child() {
+            Ok(mem) => {
+                merge_memory(&mut results, unet.as_mut(), &mem);
+                print_memory(&results, unet.as_ref());
+            }
+            Err(e) => println!(
+                "
+peak memory not measured: {e}"
+            ),
+        }
+    }
+    Ok(Report {
+        threads,
+        load_before,
+        load_after,
+        note: "ratios = medians of per-repetition (calibrated / conv2d) times, interleaved, in a \
+               process configured like the trainer; peak = VmHWM - VmRSS around one training \
+               step, measured in a separate process with glibc's mmap threshold pinned",
+        shapes: results,
+        pyramid,
+        unet,
+        functional,
+    })
+}
+
+fn fmt_load(l: Option<[f64; 3]>) -> String {
+    l.map_or("-".into(), |l| {
+        format!("{:.2} {:.2} {:.2}", l[0], l[1], l[2])
+    })
+}
+
+fn merge_memory(results: &mut [ShapeResult], unet: Option<&mut UnetResult>, mem: &MemoryReport) {
+    for (r, m) in results.iter_mut().zip(&mem.layers) {
+        r.conv2d_peak_mib = m[0];
+        r.calibrated.peak_mib = m[1];
+        r.calibrated.peak_ratio = ratio(m[1], m[0]);
+        if let Some(a) = r.aten.as_mut() {
+            a.peak_mib = m[2];
+            a.peak_ratio = ratio(m[2], m[0]);
+        }
+    }
+    if let (Some(u), Some(m)) = (unet, mem.unet) {
+        u.conv2d_peak_mib = m[0];
+        u.calibrated_peak_mib = m[1];
+        u.peak_ratio = ratio(m[1], m[0]);
+    }
+}
+
+fn print_memory(results: &[ShapeResult], unet: Option<&UnetResult>) {
+    if !results.is_empty() {
+        println!("\npeak memory of one training step (separate process, mmap threshold pinned):");
+        println!(
+            "{:>7} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5}",
+            "net", "B", "Cin", "Cout", "HxW", "conv MiB", "cal MiB", "x"
+        );
+    }
+    for r in results {
+        println!(
+            "{:>7} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5}",
+            r.net,
+            r.batch,
+            r.c_in,
+            r.c_out,
+            format!("{}x{}", r.height, r.width),
+            fmt_opt(r.conv2d_peak_mib, 1),
+            fmt_opt(r.calibrated.peak_mib, 1),
+            fmt_opt(r.calibrated.peak_ratio, 2),
+        );
+    }
+    if let Some(u) = unet {
+        println!(
+            "U-Net step peak: conv2d {} MiB, calibrated {} MiB ({}x)",
+            fmt_opt(u.conv2d_peak_mib, 0),
+            fmt_opt(u.calibrated_peak_mib, 0),
+            fmt_opt(u.peak_ratio, 2)
+        );
+    }
+}
+
+fn fmt_opt(v: Option<f64>, prec: usize) -> String {
+    v.map_or("-".to_string(), |v| format!("{v:.prec$}"))
+}
+
+fn print_header(aten: bool) {
+    println!(
+        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} {:>5} | {:>8} {:>8} {:>5} {:>5}{}",
+        "net",
+        "n",
+        "B",
+        "Cin",
+        "Cout",
+        "HxW",
+        "conv fwd",
+        "cal fwd",
+        "x",
+        "cpu x",
+        "conv f+b",
+        "cal f+b",
+        "x",
+        "cpu x",
+        if aten { " | aten fwd x  f+b x" } else { "" }
+    );
+}
+
+fn print_row(r: &ShapeResult) {
+    let c = &r.calibrated;
+    let mut line =
+        format!(
+        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>5}",
+        r.net,
+        r.count,
+        r.batch,
+        r.c_in,
+        r.c_out,
+        format!("{}x{}{}", r.height, r.width, if r.input_grad { "" } else { "*" }),
+        c.forward.reference_ms,
+        c.forward.candidate_ms,
+        c.forward.ratio,
+        fmt_opt(c.forward.cpu_ratio, 2),
+        c.forward_backward.reference_ms,
+        c.forward_backward.candidate_ms,
+        c.forward_backward.ratio,
+        fmt_opt(c.forward_backward.cpu_ratio, 2),
+    );
+    if let Some(a) = &r.aten {
+        line.push_str(&format!(
+            " | {:>10.2} {:>6.2}",
+            a.forward.ratio, a.forward_backward.ratio
+        ));
+    }
+    println!("{line}");
+}
+
+/// Wall time of `f` in milliseconds.
+fn time_ms(f: &mut dyn FnMut()) -> f64 {
+    let start = Instant::now();
+    f();
+    start.elapsed().as_secs_f64() * 1e3
+}
+
+/// Wall and process CPU time of `f` in milliseconds.
+fn time_both_ms(f: &mut dyn FnMut()) -> (f64, Option<f64>) {
+    let cpu0 = cpu_seconds();
+    let wall = time_ms(f);
+    let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| (b - a) * 1e3);
+    (wall, cpu)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n == 0 {
+        f64::NAN
+    } else if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Runs `reference` and every candidate `reps` times, interleaved (the order rotates each
+/// repetition), after one warm-up call each; returns one [`Paired`] per candidate.
+fn paired(
+    reps: usize,
+    reference: &mut dyn FnMut(),
+    candidates: &mut [&mut dyn FnMut()],
+) -> Vec<Paired> {
+    reference();
+    for c in candidates.iter_mut() {
+        c();
+    }
+    let n = candidates.len();
+    let mut times = vec![Vec::with_capacity(reps); n + 1]; // slot 0: the reference
+    for rep in 0..reps {
+        // Rotate who goes first.
+        for k in 0..=n {
+            let slot = (k + rep) % (n + 1);
+            let t = if slot == 0 {
+                time_both_ms(reference)
+            } else {
+                time_both_ms(candidates[slot - 1])
+            };
+            times[slot].push(t);
+        }
+    }
+    let wall = |v: &[(f64, Option<f64>)]| v.iter().map(|t| t.0).collect::<Vec<_>>();
+    let ref_wall = wall(&times[0]);
+    times[1..]
+        .iter()
+        .map(|c| {
+            let cpu: Option<Vec<f64>> = c
+                .iter()
+                .zip(&times[0])
+                .map(|(c, r)| Some(c.1? / r.1?.max(1e-6)))
+                .collect();
+            Paired {
+                reference_ms: median(ref_wall.clone()),
+                candidate_ms: median(wall(c)),
+                ratio: median(c.iter().zip(&ref_wall).map(|(c, r)| c.0 / r).collect()),
+                cpu_ratio: cpu.map(median),
+            }
+        })
+        .collect()
+}
