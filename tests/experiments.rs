@@ -151,11 +151,11 @@ fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
             assert_eq!((spec.gres.as_deref(), spec.cpus_per_task), (None, Some(1)));
         }
         if name == "study" {
-            // 128 px wide, the small U-Net at depth 3 (see the profile's header).
+            // 160 px wide, the small U-Net at depth 3 (see the profile's header).
             let bl = &plan[0].exp;
             assert_eq!(
                 (bl.input.size, bl.model.base, bl.model.depth),
-                ([128, 128], 16, 3)
+                ([144, 160], 16, 3)
             );
         }
     }

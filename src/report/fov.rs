@@ -53,7 +53,8 @@ fn fov_by_dataset(study: &Study) -> Result<BTreeMap<(Task, String), f64>> {
                 row.dir.join("metrics.json").display()
             ))
         })?;
-        out.insert(key, cam.fov().to_degrees());
+        // Degrees to 1e-6 (the radians round trip leaves 239.99999999999997 for 240).
+        out.insert(key, (cam.fov().to_degrees() * 1e6).round() / 1e6);
     }
     Ok(out)
 }
