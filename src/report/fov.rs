@@ -14,7 +14,8 @@ use serde::Serialize;
 use super::collect::Study;
 use super::plots::{line_band_plot, Curve, PlotSpec};
 use super::stats::MeanCi;
-use super::study::{paired_difference, Block, Observations, Task, CALIBRATED, STANDARD};
+use super::study::{paired_difference, Block, Cell, Observations, Task, CALIBRATED, STANDARD};
+use super::tables::comparison_pairs;
 use super::verdict::claim_metrics;
 use crate::camera::{self, CameraModel};
 use crate::error::{Error, Result};
@@ -66,18 +67,17 @@ pub fn fov_gain(study: &Study, obs: &Observations) -> Result<Vec<FovRow>> {
     let mut rows = Vec::new();
     for task in [Task::Depth, Task::Segmentation] {
         let mut task_rows = Vec::new();
+        // The FT calibrated − standard pairs the difference table compares.
+        let pairs: Vec<(Cell, Cell)> = comparison_pairs(obs, task)
+            .into_iter()
+            .filter(|(a, b)| a.block == Block::Ft && a.kernel == CALIBRATED && b.kernel == STANDARD)
+            .collect();
         for metric in claim_metrics(task) {
-            for cell in obs.cells() {
-                if cell.task != task || cell.block != Block::Ft || cell.kernel != CALIBRATED {
-                    continue;
-                }
-                let Some(&fov_deg) = fovs.get(&(task, cell.dataset.clone())) else {
+            for (cal, std) in &pairs {
+                let Some(&fov_deg) = fovs.get(&(task, cal.dataset.clone())) else {
                     continue;
                 };
-                let d = paired_difference(
-                    &obs.get(&cell, metric),
-                    &obs.get(&cell.with_kernel(STANDARD), metric),
-                );
+                let d = paired_difference(&obs.get(cal, metric), &obs.get(std, metric));
                 if d.is_empty() {
                     continue;
                 }
@@ -85,7 +85,7 @@ pub fn fov_gain(study: &Study, obs: &Observations) -> Result<Vec<FovRow>> {
                 let ci = MeanCi::of(&xs);
                 task_rows.push(FovRow {
                     fov_deg,
-                    dataset: cell.dataset.clone(),
+                    dataset: cal.dataset.clone(),
                     task: task.name().to_string(),
                     metric: metric.name().to_string(),
                     mean: ci.mean,
@@ -174,7 +174,6 @@ pub fn write_fov_gain(rows: &[FovRow], out: &Path) -> Result<Vec<PathBuf>> {
 mod tests {
     use super::*;
     use crate::eval::metrics::Metric;
-    use crate::report::study::Cell;
 
     fn obs_with(sets: &[(&str, [f64; 3], [f64; 3])]) -> Observations {
         let mut obs = Observations::default();
