@@ -14,29 +14,11 @@ use calibconv::experiment::layout::{ResultsDir, RunDir};
 use calibconv::experiment::run::open_training_source;
 use calibconv::experiment::sweep::{self, Seeds};
 use calibconv::experiment::{DefaultOpener, InitSpec};
-use common::calibconv_in;
+use common::{calibconv_in, synth_tiny_f195};
 
 /// A 32-px F195 data set (10 panoramas, 2 views each) in `dir/sets/f195`.
 fn synth(dir: &Path) {
-    let o = calibconv_in(
-        Path::new(env!("CARGO_MANIFEST_DIR")),
-        &[
-            "synth",
-            "--set",
-            "f195",
-            "--panoramas",
-            "10",
-            "--pano-height",
-            "16",
-            "--views-per-panorama",
-            "2",
-            "--width",
-            "32",
-            "--out",
-            &dir.join("sets").display().to_string(),
-        ],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    synth_tiny_f195(&dir.join("sets"), 32);
 }
 
 /// A baseline (`init` None) or a fine-tuning of `bl` with `kernel` on the F195 set, with

@@ -10,7 +10,7 @@ use calibconv::experiment::layout::{RunDir, SweepStatus};
 use calibconv::experiment::profile::Override;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
-use common::calibconv_in;
+use common::{calibconv_in, synth_tiny_f195};
 
 /// A tiny toy experiment: 2 steps of the tiny U-Net on 16x16 toy images.
 fn toy(name: &str, init: Option<&str>, train: &str) -> String {
@@ -253,25 +253,7 @@ fn the_command_exits_non_zero_after_a_failure_and_writes_slurm_scripts_by_level(
 fn experiments_train_on_data_set_folders_and_refuse_another_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    let o = calibconv_in(
-        Path::new(env!("CARGO_MANIFEST_DIR")),
-        &[
-            "synth",
-            "--set",
-            "f195",
-            "--panoramas",
-            "10",
-            "--pano-height",
-            "16",
-            "--views-per-panorama",
-            "2",
-            "--width",
-            "16",
-            "--out",
-            &dir.join("sets").display().to_string(),
-        ],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    synth_tiny_f195(&dir.join("sets"), 16);
     let exp = |eval_camera: &str| {
         format!(
             r#"name = "ds"

@@ -48,6 +48,32 @@ pub fn calibconv(args: &[&str]) -> Output {
     calibconv_in(root(), args)
 }
 
+/// A tiny F195 data set in `out/f195` (10 procedural panoramas 16 px high, 2 views each,
+/// `width` px wide), written by `calibconv synth`.
+///
+/// # Panics
+/// If the command fails.
+pub fn synth_tiny_f195(out: &Path, width: u32) {
+    let out = out.display().to_string();
+    let width = width.to_string();
+    let o = calibconv(&[
+        "synth",
+        "--set",
+        "f195",
+        "--panoramas",
+        "10",
+        "--pano-height",
+        "16",
+        "--views-per-panorama",
+        "2",
+        "--width",
+        &width,
+        "--out",
+        &out,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
 /// `tests/golden/`.
 pub fn golden_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden")
