@@ -7,7 +7,7 @@ REQ_HASH := $(shell sha256sum requirements.txt | cut -c1-16)
 VENV_CACHE ?= $(HOME)/.cache/calibconv/venv-$(REQ_HASH)
 STAMP := $(VENV_CACHE)/.complete
 
-.PHONY: setup test demo bench fixtures lint
+.PHONY: setup test demo study bench fixtures lint
 
 setup: .venv/.complete
 
@@ -47,6 +47,12 @@ demo: setup
 	echo "make demo: synth + sweep + report in $$(( $$(date +%s) - start )) s (sweep $$sweep_s s; exit status $$status)"; \
 	echo "report: $(CURDIR)/results/quick/REPORT.md"; \
 	exit $$status
+
+# The study (experiments/paper/profiles/study.toml + experiments/fov): 160 px data sets, 3 seeds,
+# ~2 h on 2 cores; resumable (run it again to continue). Results: results/study, report: docs/study.
+study: setup
+	cargo build --release
+	bash tools/study.sh
 
 bench: setup
 	cargo run --release -- bench

@@ -507,10 +507,23 @@ pub struct SweepRecord {
     pub action: Option<String>,
     /// Wall time of the action.
     pub seconds: Option<f64>,
+    /// When the action ended (Unix seconds; absent in records written before it existed): with
+    /// `seconds`, the interval the run occupied, from which a report computes the elapsed wall
+    /// time of a study whose runs overlap.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub finished_unix: Option<f64>,
     /// The error, with its cause chain (failed or blocked runs).
     pub error: Option<String>,
     /// The merged experiment text the run used.
     pub experiment_text: String,
+}
+
+/// The current time in Unix seconds (0 on a clock before 1970), as records store it.
+pub fn unix_now() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
 }
 
 /// One run of a study.

@@ -573,6 +573,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
         status,
         action,
         seconds,
+        finished_unix: seconds.map(|_| layout::unix_now()),
         error,
         experiment_text: p.text.clone(),
     };

@@ -50,6 +50,10 @@ pub struct RunInfo {
     pub train_seconds: Option<f64>,
     pub steps: Option<u64>,
     pub sweep_seconds: Option<f64>,
+    /// When the sweep's action ended (Unix seconds): `sweep.json`'s `finished_unix`, or for
+    /// records written before that field existed, the file's modification time (the sweep
+    /// writes it as the run ends).
+    pub sweep_finished: Option<f64>,
     pub git: Option<String>,
     pub overrides: Vec<String>,
     pub profile: Option<String>,
@@ -111,6 +115,10 @@ fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
         train_seconds: summary.as_ref().map(|s| s.seconds),
         steps: summary.as_ref().map(|s| s.steps),
         sweep_seconds: sweep.as_ref().and_then(|s| s.seconds),
+        sweep_finished: sweep
+            .as_ref()
+            .and_then(|s| s.finished_unix)
+            .or_else(|| modified_unix(&run.sweep_json())),
         git: record.as_ref().and_then(|r| r.last_git().map(String::from)),
         overrides: sweep
             .as_ref()
@@ -289,7 +297,20 @@ impl Study {
         self.study.as_ref().is_some_and(|s| s.share_baseline)
     }
 
-    /// Total sweep wall seconds of the runs (every seed), and the runs without a time.
+    /// Elapsed wall seconds of the study: the length of the union of the intervals the runs
+    /// occupied (`[finished - seconds, finished]` from `sweep.json`), so that runs that overlap
+    /// (`--jobs 2`) count once and the time between two sessions of a resumed study counts not at
+    /// all. Runs without a time are left out (see [`Self::wall_seconds`] for their count).
+    pub fn elapsed_seconds(&self) -> f64 {
+        let spans = self.runs.iter().filter_map(|r| {
+            let (s, end) = (r.sweep_seconds?, r.sweep_finished?);
+            Some((end - s, end))
+        });
+        union_length(spans)
+    }
+
+    /// Sum of the runs' own sweep wall seconds (every seed; parallel runs overlap, so this is
+    /// more than the elapsed time), and the runs without a time.
     pub fn wall_seconds(&self) -> (f64, usize) {
         let total = self.runs.iter().filter_map(|r| r.sweep_seconds).sum();
         let missing = self
@@ -298,5 +319,44 @@ impl Study {
             .filter(|r| r.sweep_seconds.is_none())
             .count();
         (total, missing)
+    }
+}
+
+/// A file's modification time in Unix seconds, if the file system tells.
+fn modified_unix(path: &Path) -> Option<f64> {
+    let t = std::fs::metadata(path).ok()?.modified().ok()?;
+    Some(t.duration_since(std::time::UNIX_EPOCH).ok()?.as_secs_f64())
+}
+
+/// The total length of the union of intervals `(start, end)` (empty or reversed ones count 0).
+pub fn union_length(spans: impl IntoIterator<Item = (f64, f64)>) -> f64 {
+    let mut v: Vec<(f64, f64)> = spans.into_iter().filter(|(a, b)| b > a).collect();
+    v.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let mut total = 0.0;
+    let mut current: Option<(f64, f64)> = None;
+    for (a, b) in v {
+        current = match current {
+            Some((ca, cb)) if a <= cb => Some((ca, cb.max(b))),
+            Some((ca, cb)) => {
+                total += cb - ca;
+                Some((a, b))
+            }
+            None => Some((a, b)),
+        };
+    }
+    total + current.map_or(0.0, |(a, b)| b - a)
+}
+
+#[cfg(test)]
+mod union_tests {
+    use super::union_length;
+
+    #[test]
+    fn overlapping_runs_count_once_and_gaps_not_at_all() {
+        // Two parallel runs 0-10 and 5-12, then a session later 100-103.
+        let spans = [(0.0, 10.0), (100.0, 103.0), (5.0, 12.0)];
+        assert_eq!(union_length(spans), 15.0);
+        assert_eq!(union_length([(3.0, 3.0), (4.0, 2.0)]), 0.0);
+        assert_eq!(union_length([(0.0, 4.0), (4.0, 6.0)]), 6.0);
     }
 }

@@ -187,7 +187,8 @@ fn verdict_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
             profile: study.profile(),
             test_images: study.test_images(),
             averaging: opts.averaging,
-            wall_s: study.wall_seconds().0,
+            wall_s: study.elapsed_seconds(),
+            run_seconds: study.wall_seconds().0,
         },
     );
     let mut verdict_md = markdown(&v);
@@ -466,8 +467,11 @@ fn runs_section(study: &Study, out: &Path) -> String {
         );
     }
     let (total, _) = study.wall_seconds();
-    report +=
-        &format!("\nTotal sweep wall time of these runs: {total:.1} s.\n\n## Configurations\n\n");
+    let elapsed = study.elapsed_seconds();
+    report += &format!(
+        "\nElapsed wall time of these runs: {elapsed:.1} s (the sum of their own wall times: \
+         {total:.1} s; parallel runs overlap).\n\n## Configurations\n\n"
+    );
     for r in &study.runs {
         report += &format!(
             "<details><summary>{} (seed {}, {})</summary>\n\n```toml\n{}\n```\n</details>\n\n",

@@ -84,8 +84,12 @@ pub struct Verdict {
     /// Test images per evaluation.
     pub test_images: u64,
     pub averaging: Averaging,
-    /// Total wall seconds of the runs (every seed).
+    /// Elapsed wall seconds of the runs (every seed): overlapping runs count once, the time
+    /// between the sessions of a resumed study not at all.
     pub wall_s: f64,
+    /// Sum of the runs' own wall seconds (more than `wall_s` when runs ran in parallel).
+    #[serde(default)]
+    pub run_seconds: f64,
     pub claims: Vec<ClaimRow>,
 }
 
@@ -96,6 +100,7 @@ pub struct Meta {
     pub test_images: u64,
     pub averaging: Averaging,
     pub wall_s: f64,
+    pub run_seconds: f64,
 }
 
 /// Whether a claim says the first row is better or worse than the second.
@@ -309,6 +314,7 @@ pub fn verdict(obs: &Observations, meta: &Meta) -> Verdict {
         test_images: meta.test_images,
         averaging: meta.averaging,
         wall_s: meta.wall_s,
+        run_seconds: meta.run_seconds,
         claims: rows,
     }
 }
@@ -365,7 +371,7 @@ pub fn markdown(v: &Verdict) -> String {
     let mut s = format!(
         "## Verdict on the paper's claims\n\nProfile `{}`, seeds {:?} (n = {}), {} test images \
          per evaluation, depth metrics averaged `{}` (segmentation: one confusion matrix over \
-         the test set), total wall time of the runs {:.0} s (the sum of the runs' own wall times; parallel runs overlap). Differences are per seed, paired \
+         the test set), elapsed wall time of the runs {:.0} s (the sum of their own wall times: {:.0} s; parallel runs overlap). Differences are per seed, paired \
          (the same seed's rows, the same test images); mean and 95% Student-t interval over \
          seeds; ± is the half-width: the smallest difference this study could detect. \
          `holds` / `contradicted`: the whole interval on the predicted / the other side of 0.\n\n",
@@ -374,7 +380,8 @@ pub fn markdown(v: &Verdict) -> String {
         v.seeds.len(),
         v.test_images,
         v.averaging,
-        v.wall_s
+        v.wall_s,
+        v.run_seconds
     );
     let mut statements = BTreeMap::new();
     for c in &v.claims {
@@ -446,6 +453,7 @@ mod tests {
             test_images: 160,
             averaging: Averaging::PerImage,
             wall_s: 12.0,
+            run_seconds: 20.0,
         }
     }
 
