@@ -9,7 +9,7 @@ use tch::{Device, Kind, Tensor};
 use calibconv::camera::{self, Camera, CameraModel, Equirectangular};
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, Offsets};
 use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
-use calibconv::ops::{deform_conv2d_planned, Border, SamplingPlan};
+use calibconv::ops::{deform_conv2d_planned, Border, ConvGeometry, SamplingPlan};
 
 use common::max_rel;
 
@@ -135,10 +135,7 @@ fn wrap_x_with_zero_offsets_is_a_convolution_of_the_circularly_padded_input() {
             SamplingPlan::with_border(
                 &offsets,
                 [h, w],
-                [3, 3],
-                stride,
-                padding,
-                dilation,
+                ConvGeometry::new([3, 3], stride, padding, dilation),
                 Kind::Double,
                 border,
             )
@@ -196,10 +193,7 @@ fn calibrated_conv_on_a_panorama_commutes_with_turning_it() {
     let zeros = SamplingPlan::new(
         &conv.offsets.to_tensor(),
         size,
-        [3, 3],
-        [1, 1],
-        [1, 1],
-        [1, 1],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
         Kind::Float,
     )
     .unwrap();

@@ -9,7 +9,9 @@ use super::*;
 use crate::camera::CameraModel;
 use crate::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry};
 use crate::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, UNet, UpMode};
-use crate::ops::{deform_conv2d, deform_conv2d_planned_with, Backend, Border, SamplingPlan};
+use crate::ops::{
+    deform_conv2d, deform_conv2d_planned_with, Backend, Border, ConvGeometry, SamplingPlan,
+};
 
 /// The camera's pyramid frame: the image padded right/bottom to a multiple of `2^depth`.
 fn pyramid_frame(camera: &Camera, depth: usize) -> (InputFrame, [usize; 2]) {
@@ -221,9 +223,7 @@ pub(super) fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
         for off in &offsets {
             let plan = SamplingPlan::from_offsets(
                 off,
-                [1, 1],
-                [1, 1],
-                [1, 1],
+                ConvGeometry::for_offsets(off, [1, 1], [1, 1], [1, 1]),
                 Kind::Float,
                 Border::Zeros,
             )?;

@@ -8,7 +8,7 @@ use tch::{Device, Kind, Tensor};
 use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
-use crate::ops::{deform_conv2d_planned, layer_plan, Border, SamplingPlan};
+use crate::ops::{deform_conv2d_planned, layer_plan, Border, ConvGeometry, SamplingPlan};
 
 /// Geometry and bias of a convolution (pairs are `[y, x]`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -116,9 +116,7 @@ impl CalibratedConv2d {
         };
         let plan = layer_plan(
             &offsets,
-            cfg.stride,
-            padding,
-            cfg.dilation,
+            ConvGeometry::for_offsets(&offsets, cfg.stride, padding, cfg.dilation),
             Kind::Float,
             border,
             vs.device(),

@@ -19,7 +19,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 
 use tch::{Device, Kind, Tensor};
 
-use super::plan::{Border, SamplingPlan};
+use super::plan::{Border, ConvGeometry, SamplingPlan};
 use crate::error::Result;
 use crate::kernel::Offsets;
 
@@ -31,9 +31,7 @@ pub const TENSOR_PLANS: usize = 16;
 /// and everything else the plan depends on.
 struct LayerKey {
     offsets: Arc<Offsets>,
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geom: ConvGeometry,
     kind: Kind,
     border: Border,
     device: Device,
@@ -42,8 +40,8 @@ struct LayerKey {
 impl LayerKey {
     fn matches(&self, o: &LayerKey) -> bool {
         Arc::ptr_eq(&self.offsets, &o.offsets)
-            && (self.stride, self.padding, self.dilation) == (o.stride, o.padding, o.dilation)
-            && (self.kind, self.border, self.device) == (o.kind, o.border, o.device)
+            && (self.geom, self.kind, self.border, self.device)
+                == (o.geom, o.kind, o.border, o.device)
     }
 }
 
@@ -58,10 +56,7 @@ struct TensorKey {
     offsets_kind: Kind,
     device: Device,
     input_size: [i64; 2],
-    kernel: [i64; 2],
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geom: ConvGeometry,
     kind: Kind,
 }
 
@@ -84,18 +79,14 @@ fn lock() -> std::sync::MutexGuard<'static, Caches> {
 /// The plan of a layer with `offsets` on `device` (built once, then shared: same storage).
 pub fn layer_plan(
     offsets: &Arc<Offsets>,
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geom: ConvGeometry,
     kind: Kind,
     border: Border,
     device: Device,
 ) -> Result<SamplingPlan> {
     let key = LayerKey {
         offsets: offsets.clone(),
-        stride,
-        padding,
-        dilation,
+        geom,
         kind,
         border,
         device,
@@ -110,8 +101,7 @@ pub fn layer_plan(
         return Ok(plan);
     }
     // Built outside the lock (other layers keep going); the first insert wins.
-    let plan = SamplingPlan::from_offsets(offsets, stride, padding, dilation, kind, border)?
-        .to_device(device);
+    let plan = SamplingPlan::from_offsets(offsets, geom, kind, border)?.to_device(device);
     let mut c = lock();
     if let Some(plan) = hit(&c) {
         return Ok(plan);
@@ -123,21 +113,16 @@ pub fn layer_plan(
 /// The plan of a functional call ([`SamplingPlan::new`]'s arguments, on the input's device),
 /// from the cache when the same offsets tensor (same storage, shape, strides and version) was
 /// planned before with the same geometry.
-#[allow(clippy::too_many_arguments)]
 pub fn tensor_plan(
     offsets: &Tensor,
     input_size: [i64; 2],
-    kernel: [i64; 2],
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geom: ConvGeometry,
     kind: Kind,
     device: Device,
 ) -> Result<SamplingPlan> {
     let build = || {
         Ok::<_, crate::error::Error>(
-            SamplingPlan::new(offsets, input_size, kernel, stride, padding, dilation, kind)?
-                .to_device(device),
+            SamplingPlan::new(offsets, input_size, geom, kind)?.to_device(device),
         )
     };
     // Inference tensors have no version counter: never cached.
@@ -152,10 +137,7 @@ pub fn tensor_plan(
         offsets_kind: offsets.kind(),
         device,
         input_size,
-        kernel,
-        stride,
-        padding,
-        dilation,
+        geom,
         kind,
     };
     {

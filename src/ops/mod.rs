@@ -76,7 +76,7 @@ mod native;
 mod plan;
 
 pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
-pub use plan::{Border, SamplingPlan};
+pub use plan::{Border, ConvGeometry, SamplingPlan};
 
 use tch::{Kind, Tensor};
 
@@ -141,10 +141,7 @@ pub fn f_deform_conv2d(
     let plan = tensor_plan(
         offsets,
         [h, w],
-        [kh, kw],
-        stride,
-        padding,
-        dilation,
+        ConvGeometry::new([kh, kw], stride, padding, dilation),
         input.kind(),
         input.device(),
     )?;

@@ -19,6 +19,69 @@ pub enum Border {
     WrapX,
 }
 
+/// A convolution's geometry besides its input: kernel size, stride, padding and dilation, each
+/// `[rows, columns]` (PyTorch's conventions).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ConvGeometry {
+    pub kernel: [i64; 2],
+    pub stride: [i64; 2],
+    pub padding: [i64; 2],
+    pub dilation: [i64; 2],
+}
+
+impl ConvGeometry {
+    pub fn new(kernel: [i64; 2], stride: [i64; 2], padding: [i64; 2], dilation: [i64; 2]) -> Self {
+        ConvGeometry {
+            kernel,
+            stride,
+            padding,
+            dilation,
+        }
+    }
+
+    /// The geometry of a layer with `offsets` (their kernel size) and the given spacing.
+    pub fn for_offsets(
+        offsets: &Offsets,
+        stride: [i64; 2],
+        padding: [i64; 2],
+        dilation: [i64; 2],
+    ) -> Self {
+        Self::new(offsets.kernel.map(|v| v as i64), stride, padding, dilation)
+    }
+
+    /// Output size `[H_out, W_out]` on an `input_size = [H, W]` input (PyTorch's formula), or an
+    /// error naming the geometry if it is invalid or does not fit.
+    pub fn output_size(&self, input_size: [i64; 2]) -> Result<[i64; 2]> {
+        let ConvGeometry {
+            kernel,
+            stride,
+            padding,
+            dilation,
+        } = *self;
+        let [h, w] = input_size;
+        if kernel.iter().chain(&input_size).any(|&v| v < 1)
+            || stride.iter().chain(&dilation).any(|&v| v < 1)
+            || padding.iter().any(|&p| p < 0)
+        {
+            return Err(Error::InvalidArgument(format!(
+                "input {input_size:?}, kernel {kernel:?}, stride {stride:?}, padding {padding:?}, \
+                 dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
+            )));
+        }
+        let dim = |a: usize| {
+            (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
+        };
+        let (ho, wo) = (dim(0), dim(1));
+        if ho < 1 || wo < 1 {
+            return Err(Error::InvalidArgument(format!(
+                "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
+                 {h}x{w} input"
+            )));
+        }
+        Ok([ho, wo])
+    }
+}
+
 /// Precomputed bilinear sampling of a deformable convolution with fixed offsets.
 ///
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
@@ -113,10 +176,7 @@ struct Layout {
     w: i64,
     ho: i64,
     wo: i64,
-    kernel: [i64; 2],
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geom: ConvGeometry,
     per_item: bool,
     border: Border,
 }
@@ -133,7 +193,12 @@ impl Layout {
         frac: &mut [W],
     ) -> [i32; 2] {
         let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
-        let [kh, kw] = self.kernel;
+        let ConvGeometry {
+            kernel: [kh, kw],
+            stride,
+            padding,
+            dilation,
+        } = self.geom;
         let taps = (kh * kw) as usize;
         let plane = (ho * wo) as usize;
         let (item, oy) = (row as i64 / ho, row as i64 % ho);
@@ -147,9 +212,9 @@ impl Layout {
             for i in 0..kh {
                 for j in 0..kw {
                     let k = (i * kw + j) as usize;
-                    let y = (oy * self.stride[0] - self.padding[0] + i * self.dilation[0]) as f64
+                    let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64
                         + item_off[2 * k * plane + p].into();
-                    let x = (ox * self.stride[1] - self.padding[1] + j * self.dilation[1]) as f64
+                    let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64
                         + item_off[(2 * k + 1) * plane + p].into();
                     let mut inside = false;
                     for (c, (flat, _)) in bilinear(y, x, h, w, self.border).into_iter().enumerate()
@@ -189,7 +254,7 @@ impl Layout {
             )));
         }
         let (h, w, ho, wo) = (self.h, self.w, self.ho, self.wo);
-        let taps = self.kernel[0] * self.kernel[1];
+        let taps = self.geom.kernel[0] * self.geom.kernel[1];
         let items = batch.unwrap_or(1);
         let samples = (items * ho * wo * taps) as usize;
         // Indices are int32 (half the memory of int64); refuse what overflows.
@@ -229,42 +294,10 @@ impl Layout {
             rows: Tensor::from_slice(&rows),
             input_size: [h, w],
             output_size: [ho, wo],
-            kernel: self.kernel,
+            kernel: self.geom.kernel,
             batch,
         })
     }
-}
-
-/// Output size `[H_out, W_out]` of a convolution (PyTorch's formula), or an error naming the
-/// geometry if it is invalid or does not fit.
-fn output_size(
-    input_size: [i64; 2],
-    kernel: [i64; 2],
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
-) -> Result<[i64; 2]> {
-    let [h, w] = input_size;
-    if kernel.iter().chain(&input_size).any(|&v| v < 1)
-        || stride.iter().chain(&dilation).any(|&v| v < 1)
-        || padding.iter().any(|&p| p < 0)
-    {
-        return Err(Error::InvalidArgument(format!(
-            "input {input_size:?}, kernel {kernel:?}, stride {stride:?}, padding {padding:?}, \
-             dilation {dilation:?}: sizes, strides and dilations must be >= 1, padding >= 0"
-        )));
-    }
-    let dim = |a: usize| {
-        (input_size[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1) / stride[a] + 1
-    };
-    let (ho, wo) = (dim(0), dim(1));
-    if ho < 1 || wo < 1 {
-        return Err(Error::InvalidArgument(format!(
-            "kernel {kernel:?} with padding {padding:?}, dilation {dilation:?} does not fit a \
-             {h}x{w} input"
-        )));
-    }
-    Ok([ho, wo])
 }
 
 impl SamplingPlan {
@@ -272,44 +305,28 @@ impl SamplingPlan {
     /// for an input of `input_size = [H, W]`; weights are stored in `kind` (float32 or
     /// float64), tensors on the CPU. Runs in parallel over output rows. Zeros outside the input
     /// (torchvision); see [`SamplingPlan::with_border`].
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
         offsets: &Tensor,
         input_size: [i64; 2],
-        kernel: [i64; 2],
-        stride: [i64; 2],
-        padding: [i64; 2],
-        dilation: [i64; 2],
+        geom: ConvGeometry,
         kind: Kind,
     ) -> Result<Self> {
-        Self::with_border(
-            offsets,
-            input_size,
-            kernel,
-            stride,
-            padding,
-            dilation,
-            kind,
-            Border::Zeros,
-        )
+        Self::with_border(offsets, input_size, geom, kind, Border::Zeros)
     }
 
     /// [`SamplingPlan::new`] with a choice of what is read outside the input: with
     /// [`Border::WrapX`] the convolution's horizontal zero padding reads the other side of the
     /// image as well (circular padding in x).
-    #[allow(clippy::too_many_arguments)]
     pub fn with_border(
         offsets: &Tensor,
         input_size: [i64; 2],
-        kernel: [i64; 2],
-        stride: [i64; 2],
-        padding: [i64; 2],
-        dilation: [i64; 2],
+        geom: ConvGeometry,
         kind: Kind,
         border: Border,
     ) -> Result<Self> {
         check_float(offsets, "offsets")?;
-        let [ho, wo] = output_size(input_size, kernel, stride, padding, dilation)?;
+        let [ho, wo] = geom.output_size(input_size)?;
+        let kernel = geom.kernel;
         let taps = kernel[0] * kernel[1];
         let batch = match offsets.size().as_slice() {
             [c, oh, ow] if *c == 2 * taps && [*oh, *ow] == [ho, wo] => None,
@@ -332,10 +349,7 @@ impl SamplingPlan {
             w: input_size[1],
             ho,
             wo,
-            kernel,
-            stride,
-            padding,
-            dilation,
+            geom,
             per_item: batch.is_some(),
             border,
         };
@@ -347,25 +361,25 @@ impl SamplingPlan {
     }
 
     /// [`SamplingPlan::with_border`] straight from a layer's [`Offsets`] (shared by the batch),
-    /// without copying them into a tensor first.
+    /// without copying them into a tensor first; `geom.kernel` must be the offsets' kernel
+    /// ([`ConvGeometry::for_offsets`]).
     pub fn from_offsets(
         offsets: &Offsets,
-        stride: [i64; 2],
-        padding: [i64; 2],
-        dilation: [i64; 2],
+        geom: ConvGeometry,
         kind: Kind,
         border: Border,
     ) -> Result<Self> {
         let input_size = offsets.input_size.map(|v| v as i64);
-        let kernel = offsets.kernel.map(|v| v as i64);
-        let out = output_size(input_size, kernel, stride, padding, dilation)?;
-        let taps = (kernel[0] * kernel[1]) as usize;
-        if out != offsets.output_size.map(|v| v as i64)
+        let out = geom.output_size(input_size)?;
+        let taps = (geom.kernel[0] * geom.kernel[1]) as usize;
+        if geom.kernel != offsets.kernel.map(|v| v as i64)
+            || out != offsets.output_size.map(|v| v as i64)
             || offsets.data.len() != 2 * taps * offsets.output_size[0] * offsets.output_size[1]
         {
             return Err(Error::InvalidArgument(format!(
-                "offsets of {} values for a {:?} output do not fit stride {stride:?}, padding \
-                 {padding:?}, dilation {dilation:?} on a {input_size:?} input (output {out:?})",
+                "offsets of a {:?} kernel, {} values for a {:?} output, do not fit {geom:?} on a \
+                 {input_size:?} input (output {out:?})",
+                offsets.kernel,
                 offsets.data.len(),
                 offsets.output_size
             )));
@@ -375,10 +389,7 @@ impl SamplingPlan {
             w: input_size[1],
             ho: out[0],
             wo: out[1],
-            kernel,
-            stride,
-            padding,
-            dilation,
+            geom,
             per_item: false,
             border,
         };

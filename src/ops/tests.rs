@@ -321,7 +321,8 @@ fn native_matches_aten_on_random_plans() {
             } else {
                 Tensor::randn([2 * taps, ho, wo], opts) * scale
             };
-            let plan = SamplingPlan::new(&off, [h, w], k, s, p, d, kind).unwrap();
+            let plan =
+                SamplingPlan::new(&off, [h, w], ConvGeometry::new(k, s, p, d), kind).unwrap();
             let x = Tensor::randn([b, ci, h, w], opts);
             let wt = Tensor::randn([co, ci / g, k[0], k[1]], opts);
             let bias = Tensor::randn([co], opts);
@@ -343,8 +344,13 @@ fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
     tch::manual_seed(3);
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 7, 9], opts) * 1.5;
-    let plan =
-        SamplingPlan::new(&off, [7, 9], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [7, 9],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let x = Tensor::randn([2, 6, 7, 9], opts);
     let (w, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
     let probe = Tensor::randn([2, 4, 7, 9], opts);
@@ -419,8 +425,13 @@ fn input_gradient_is_exact_with_far_reaching_offsets() {
     let dy = (rows.remainder(7.0) * 1.7 * sign).expand([9, h, w], false);
     let dx = Tensor::randn([9, h, w], opts) * 0.3;
     let off = Tensor::stack(&[dy, dx], 1).reshape([18, h, w]);
-    let plan =
-        SamplingPlan::new(&off, [h, w], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [h, w],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let x = Tensor::randn([2, 3, h, w], opts);
     let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
     let probe = Tensor::randn([2, 4, h, w], opts);
@@ -439,8 +450,13 @@ fn native_gradients_match_finite_differences_per_item_channels_last() {
     let w = Tensor::randn([6, 2, 3, 3], opts).set_requires_grad(true);
     let b = Tensor::randn([6], opts).set_requires_grad(true);
     let off = Tensor::randn([2, 18, 5, 6], opts) * 2.0;
-    let plan =
-        SamplingPlan::new(&off, [5, 6], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [5, 6],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let probe = Tensor::randn([2, 6, 5, 6], opts);
     // The op sees a channels-last input; the variables stay NCHW for perturbing.
     let loss = |x: &Tensor, w: &Tensor, b: &Tensor| -> Tensor {
@@ -475,8 +491,13 @@ fn native_results_are_deterministic() {
     tch::manual_seed(6);
     let opts = (Kind::Float, Device::Cpu);
     let off = Tensor::randn([18, 40, 40], opts) * 2.0;
-    let plan =
-        SamplingPlan::new(&off, [40, 40], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [40, 40],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap();
     let x = Tensor::randn([3, 16, 40, 40], opts);
     let (w, b) = (
         Tensor::randn([16, 16, 3, 3], opts),
@@ -497,8 +518,13 @@ fn native_results_are_deterministic() {
 fn double_backward_is_an_error_not_a_crash() {
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 4, 4], opts);
-    let plan =
-        SamplingPlan::new(&off, [4, 4], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [4, 4],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let x = Tensor::randn([1, 2, 4, 4], opts).set_requires_grad(true);
     let w = Tensor::randn([2, 2, 3, 3], opts).set_requires_grad(true);
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
@@ -513,10 +539,20 @@ fn double_backward_is_an_error_not_a_crash() {
 fn float32_plan_serves_a_float64_input() {
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 5, 5], opts);
-    let plan32 =
-        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
-    let plan64 =
-        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Double).unwrap();
+    let plan32 = SamplingPlan::new(
+        &off,
+        [5, 5],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap();
+    let plan64 = SamplingPlan::new(
+        &off,
+        [5, 5],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let x = Tensor::randn([1, 2, 5, 5], opts);
     let w = Tensor::randn([3, 2, 3, 3], opts);
     let a = deform_conv2d_planned(&x, &plan32, &w, None, 1).unwrap();
@@ -537,10 +573,7 @@ fn native_matches_aten_with_wrap_around() {
         let plan = SamplingPlan::with_border(
             &off,
             [h, w],
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
+            ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
             Kind::Double,
             Border::WrapX,
         )
@@ -575,12 +608,30 @@ fn plan_from_offsets_matches_plan_from_their_tensor() {
     };
     let off = compute_offsets(&camera, [24, 27], &geometry, &InputFrame::default()).unwrap();
     let (s, p, d) = ([2, 1], [1, 1], [1, 2]);
-    let direct = SamplingPlan::from_offsets(&off, s, p, d, Kind::Float, Border::Zeros).unwrap();
-    let via = SamplingPlan::new(&off.to_tensor(), [24, 27], [3, 3], s, p, d, Kind::Float).unwrap();
+    let direct = SamplingPlan::from_offsets(
+        &off,
+        ConvGeometry::for_offsets(&off, s, p, d),
+        Kind::Float,
+        Border::Zeros,
+    )
+    .unwrap();
+    let via = SamplingPlan::new(
+        &off.to_tensor(),
+        [24, 27],
+        ConvGeometry::new([3, 3], s, p, d),
+        Kind::Float,
+    )
+    .unwrap();
     let ((i1, f1), (i2, f2)) = (direct.samples(), via.samples());
     assert!(i1.equal(i2) && f1.equal(f2) && direct.rows().equal(via.rows()));
     // A geometry the offsets were not computed for is an error, not a wrong plan.
-    assert!(SamplingPlan::from_offsets(&off, [1, 1], p, d, Kind::Float, Border::Zeros).is_err());
+    assert!(SamplingPlan::from_offsets(
+        &off,
+        ConvGeometry::for_offsets(&off, [1, 1], p, d),
+        Kind::Float,
+        Border::Zeros
+    )
+    .is_err());
 }
 
 #[test]
@@ -590,8 +641,13 @@ fn plan_weights_are_the_bilinear_weights() {
     let off = Tensor::zeros([2, 4, 5], (Kind::Double, Device::Cpu));
     let _ = off.get(0).get(0).get(0).fill_(1.25);
     let _ = off.get(1).get(0).get(0).fill_(2.5);
-    let plan =
-        SamplingPlan::new(&off, [4, 5], [1, 1], [1, 1], [0, 0], [1, 1], Kind::Double).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [4, 5],
+        ConvGeometry::new([1, 1], [1, 1], [0, 0], [1, 1]),
+        Kind::Double,
+    )
+    .unwrap();
     let (index, _) = plan.samples();
     assert_eq!(
         Vec::<i32>::try_from(index.narrow(0, 0, 4)).unwrap(),
@@ -613,8 +669,13 @@ fn native_handles_an_empty_batch() {
     }
     let opts = (Kind::Float, Device::Cpu);
     let off = Tensor::randn([18, 5, 5], opts);
-    let plan =
-        SamplingPlan::new(&off, [5, 5], [3, 3], [1, 1], [1, 1], [1, 1], Kind::Float).unwrap();
+    let plan = SamplingPlan::new(
+        &off,
+        [5, 5],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap();
     let x = Tensor::randn([0, 2, 5, 5], opts).set_requires_grad(true);
     let w = Tensor::randn([3, 2, 3, 3], opts).set_requires_grad(true);
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
@@ -655,8 +716,13 @@ fn first_layer_without_input_gradient_matches_aten() {
             } else {
                 Tensor::randn([18, h, w], opts) * 2.0
             };
-            let plan =
-                SamplingPlan::new(&off, [h, w], [3, 3], [1, 1], [1, 1], [1, 1], kind).unwrap();
+            let plan = SamplingPlan::new(
+                &off,
+                [h, w],
+                ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+                kind,
+            )
+            .unwrap();
             let x = Tensor::randn([b, c, h, w], opts);
             let probe = Tensor::randn([b, 8, h, w], opts);
             let run = |backend| {
@@ -696,10 +762,7 @@ fn functional_plans_are_cached_by_tensor_identity_and_version() {
         super::tensor_plan(
             off,
             [6, 7],
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
+            ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
             Kind::Float,
             Device::Cpu,
         )
