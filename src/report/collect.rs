@@ -25,7 +25,7 @@ use crate::error::{Error, Result};
 use crate::eval::metrics::{Averaging, Metric, ALL_METRICS};
 use crate::eval::record::{MetricsRecord, PerImageRecord};
 use crate::experiment;
-use crate::experiment::layout::{ResultsDir, RunDir, StudyRecord};
+use crate::experiment::layout::{ResultsDir, RunDir, StudyRecord, Timing};
 
 pub use crate::experiment::layout::Replicate;
 
@@ -54,6 +54,8 @@ pub struct RunInfo {
     /// records written before that field existed, the file's modification time (the sweep
     /// writes it as the run ends).
     pub sweep_finished: Option<f64>,
+    /// Where the training call's time went (`summary.json`).
+    pub timing: Option<Timing>,
     pub git: Option<String>,
     pub overrides: Vec<String>,
     pub profile: Option<String>,
@@ -113,6 +115,7 @@ fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
         block,
         text: text.clone(),
         train_seconds: summary.as_ref().map(|s| s.seconds),
+        timing: summary.as_ref().map(|s| s.timing.clone()),
         steps: summary.as_ref().map(|s| s.steps),
         sweep_seconds: sweep.as_ref().and_then(|s| s.seconds),
         sweep_finished: sweep

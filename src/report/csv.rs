@@ -50,6 +50,68 @@ impl CsvLog {
     }
 }
 
+/// A log read back: its column names (after `step`) and rows `(step, values)`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LogTable {
+    pub columns: Vec<String>,
+    pub rows: Vec<(u64, Vec<f64>)>,
+}
+
+impl LogTable {
+    /// The values of column `name` as `(step, value)`, if the log has it.
+    pub fn column(&self, name: &str) -> Option<Vec<(u64, f64)>> {
+        let i = self.columns.iter().position(|c| c == name)?;
+        Some(self.rows.iter().map(|(s, v)| (*s, v[i])).collect())
+    }
+}
+
+/// Reads a log written by [`CsvLog`]; `Ok(None)` if the file does not exist. A malformed row is
+/// an error naming the file and the line.
+pub fn read_log(path: &Path) -> Result<Option<LogTable>> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(path, e)),
+    };
+    let mut lines = text.lines();
+    let bad =
+        |n: usize, why: &str| Error::InvalidArgument(format!("{} line {n}: {why}", path.display()));
+    let header: Vec<String> = match lines.next() {
+        Some(h) => h.split(',').map(String::from).collect(),
+        None => return Ok(Some(LogTable::default())),
+    };
+    if header.first().map(String::as_str) != Some("step") {
+        return Err(bad(1, "the first column must be `step`"));
+    }
+    let mut table = LogTable {
+        columns: header[1..].to_vec(),
+        rows: Vec::new(),
+    };
+    for (i, line) in lines.enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let mut cells = line.split(',');
+        let step = cells
+            .next()
+            .and_then(|c| c.trim().parse::<u64>().ok())
+            .ok_or_else(|| bad(i + 2, "no step"))?;
+        let values = cells
+            .map(|c| c.trim().parse::<f64>())
+            .collect::<std::result::Result<Vec<f64>, _>>()
+            .map_err(|e| bad(i + 2, &e.to_string()))?;
+        if values.len() != table.columns.len() {
+            return Err(bad(
+                i + 2,
+                &format!(
+                    "{} values for {} columns",
+                    values.len(),
+                    table.columns.len()
+                ),
+            ));
+        }
+        table.rows.push((step, values));
+    }
+    Ok(Some(table))
+}
+
 fn truncate_after(path: &Path, step: u64) -> Result<()> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let mut out = String::new();
@@ -120,6 +182,27 @@ impl Reporter for CsvLog {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_log_reads_back_and_a_bad_row_names_its_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut log = CsvLog::create(dir.path(), None).unwrap();
+        for step in [10, 20] {
+            let values = [
+                ("rmse".to_string(), step as f64 / 10.0),
+                ("mae".into(), 0.5),
+            ];
+            log.scalars("val", step, &values).unwrap();
+        }
+        let t = read_log(&log.path("val")).unwrap().unwrap();
+        assert_eq!(t.columns, ["rmse", "mae"]);
+        assert_eq!(t.column("rmse").unwrap(), [(10, 1.0), (20, 2.0)]);
+        assert!(read_log(&dir.path().join("none.csv")).unwrap().is_none());
+        let bad = dir.path().join("bad.csv");
+        std::fs::write(&bad, "step,rmse\n10,1.0\n20,x\n").unwrap();
+        let e = read_log(&bad).unwrap_err().to_string();
+        assert!(e.contains("bad.csv line 3"), "{e}");
+    }
 
     #[test]
     fn rows_append_and_resume_drops_later_steps() {

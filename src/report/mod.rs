@@ -11,6 +11,7 @@
 
 pub mod collect;
 pub mod csv;
+pub mod curves;
 pub mod draw;
 pub mod fov;
 pub mod kernels;

@@ -405,6 +405,7 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
             );
         }
     }
+    report += &super::curves::training_section(&study, out, &mut files)?;
     report += &runs_section(&study, out);
     let report_file = out.join("REPORT.md");
     write_bytes_atomic(&report_file, report.as_bytes())?;
