@@ -41,7 +41,7 @@ mod ocamcalib;
 mod opencv;
 mod tree;
 
-use super::geometry::angle_to_axis;
+use crate::vec3::angle_to_axis;
 use super::{
     Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
     Pinhole, PinholeRadTan, Scaramuzza, Unified,
