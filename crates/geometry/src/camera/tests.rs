@@ -202,3 +202,26 @@ fn only_the_panorama_wraps() {
     let wraps: Vec<bool> = cams.iter().map(|c| c.wraps_horizontally()).collect();
     assert_eq!(wraps, [false, false, true]);
 }
+
+#[test]
+fn command_line_names_parse_and_list_the_choices() {
+    use crate::camera::import::{Format, OpenCvModel};
+    assert_eq!("paper".parse(), Ok(PixelConvention::Paper));
+    assert_eq!(
+        "x".parse::<PixelConvention>(),
+        Err("unknown pixel convention `x` (expected half-pixel or paper)".to_string())
+    );
+    assert_eq!(
+        "x".parse::<Format>(),
+        Err(
+            "unknown format `x` (expected kalibr, opencv, basalt, colmap or ocamcalib)".to_string()
+        )
+    );
+    assert_eq!(
+        "x".parse::<OpenCvModel>(),
+        Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
+    );
+    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+        assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
+    }
+}

@@ -42,8 +42,8 @@ mod opencv;
 mod tree;
 
 use super::{
-    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
-    Pinhole, PinholeRadTan, Scaramuzza, Unified,
+    from_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
+    KannalaBrandt, Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
 use crate::vec3::angle_to_axis;
@@ -63,31 +63,31 @@ pub enum Format {
     OcamCalib,
 }
 
+impl Format {
+    /// Every format with its name on the command line (`--from`).
+    const NAMES: [(&'static str, Format); 5] = [
+        ("kalibr", Format::Kalibr),
+        ("opencv", Format::OpenCv),
+        ("basalt", Format::Basalt),
+        ("colmap", Format::Colmap),
+        ("ocamcalib", Format::OcamCalib),
+    ];
+}
+
 impl std::str::FromStr for Format {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "kalibr" => Ok(Format::Kalibr),
-            "opencv" => Ok(Format::OpenCv),
-            "basalt" => Ok(Format::Basalt),
-            "colmap" => Ok(Format::Colmap),
-            "ocamcalib" => Ok(Format::OcamCalib),
-            other => Err(format!(
-                "unknown format `{other}` (expected kalibr, opencv, basalt, colmap or ocamcalib)"
-            )),
-        }
+        from_name("format", s, &Format::NAMES)
     }
 }
 
 impl std::fmt::Display for Format {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Format::Kalibr => "kalibr",
-            Format::OpenCv => "opencv",
-            Format::Basalt => "basalt",
-            Format::Colmap => "colmap",
-            Format::OcamCalib => "ocamcalib",
-        })
+        let (name, _) = Format::NAMES
+            .iter()
+            .find(|(_, v)| v == self)
+            .expect("every format");
+        f.write_str(name)
     }
 }
 
@@ -103,13 +103,11 @@ pub enum OpenCvModel {
 impl std::str::FromStr for OpenCvModel {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "fisheye" => Ok(OpenCvModel::Fisheye),
-            "standard" => Ok(OpenCvModel::Standard),
-            other => Err(format!(
-                "unknown OpenCV model `{other}` (expected fisheye or standard)"
-            )),
-        }
+        let names = [
+            ("fisheye", OpenCvModel::Fisheye),
+            ("standard", OpenCvModel::Standard),
+        ];
+        from_name("OpenCV model", s, &names)
     }
 }
 
