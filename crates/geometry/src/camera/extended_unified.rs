@@ -28,7 +28,7 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::unified::unified_w;
+use super::unified::{unified_den, unified_w};
 use crate::vec3::{finite3, normalize};
 use super::intrinsics::{deref_intrinsics, fisheye_extent};
 use super::schema::{
@@ -125,11 +125,7 @@ impl ExtendedUnified {
         }
         let [x, y, z] = ray;
         let d = (self.beta * (x * x + y * y) + z * z).sqrt();
-        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
-            return None;
-        }
-        let den = self.alpha * d + (1.0 - self.alpha) * z;
-        (den > 0.0).then_some((d, den))
+        unified_den(self.alpha, d, z).map(|den| (d, den))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where

@@ -64,16 +64,29 @@ impl PixelConvention {
     }
 }
 
-impl std::str::FromStr for PixelConvention {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        let names = [
-            ("half-pixel", PixelConvention::HalfPixel),
-            ("paper", PixelConvention::Paper),
-        ];
-        from_name("pixel convention", s, &names)
-    }
+impl PixelConvention {
+    /// Every convention with its name on the command line and in experiment files.
+    const NAMES: [(&'static str, PixelConvention); 2] = [
+        ("half-pixel", PixelConvention::HalfPixel),
+        ("paper", PixelConvention::Paper),
+    ];
 }
+
+/// `FromStr` for a command-line enum from its `NAMES` table (name, value), through
+/// [`from_name`]; `$what` names the enum in the error.
+macro_rules! from_str_by_name {
+    ($ty:ty, $what:literal) => {
+        impl std::str::FromStr for $ty {
+            type Err = String;
+            fn from_str(s: &str) -> std::result::Result<Self, String> {
+                $crate::camera::from_name($what, s, &<$ty>::NAMES)
+            }
+        }
+    };
+}
+pub(crate) use from_str_by_name;
+
+from_str_by_name!(PixelConvention, "pixel convention");
 
 /// The value named `s` in `names` (a command-line value's `FromStr`), or the error that lists
 /// the names: ``unknown {what} `{s}` (expected a, b or c)``.

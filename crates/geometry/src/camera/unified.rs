@@ -35,6 +35,17 @@ use super::intrinsics::{deref_intrinsics, fisheye_extent};
 use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
 
+/// The denominator `den = alpha d + (1 - alpha) z` of the unified-model family's projection
+/// (Eqs. 14, 22) for a ray with `z` and norm `d` (the model's own: Euclidean, or with `beta`),
+/// or `None` outside its domain `z > -w d` (Eq. 20), for `d` zero or not finite, or `den <= 0`.
+pub(super) fn unified_den(alpha: f64, d: f64, z: f64) -> Option<f64> {
+    if d == 0.0 || !d.is_finite() || z <= -unified_w(alpha) * d {
+        return None;
+    }
+    let den = alpha * d + (1.0 - alpha) * z;
+    (den > 0.0).then_some(den)
+}
+
 /// `w(alpha)` of the unified-model family (Usenko et al. 2018, Eq. 20): a ray projects iff
 /// `z > -w d`, with `w = alpha / (1 - alpha)` for `alpha <= 0.5` (where the denominator
 /// `alpha d + (1 - alpha) z` vanishes) and `w = (1 - alpha) / alpha` above (where the projection
@@ -123,11 +134,7 @@ impl Unified {
         }
         let [x, y, z] = ray;
         let d = x.hypot(y).hypot(z);
-        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
-            return None;
-        }
-        let den = self.alpha * d + (1.0 - self.alpha) * z;
-        (den > 0.0).then_some((d, den))
+        unified_den(self.alpha, d, z).map(|den| (d, den))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where

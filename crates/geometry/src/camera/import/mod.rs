@@ -42,7 +42,7 @@ mod opencv;
 mod tree;
 
 use super::{
-    from_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
+    from_str_by_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
     KannalaBrandt, Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
@@ -74,12 +74,7 @@ impl Format {
     ];
 }
 
-impl std::str::FromStr for Format {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        from_name("format", s, &Format::NAMES)
-    }
-}
+from_str_by_name!(Format, "format");
 
 impl std::fmt::Display for Format {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -100,16 +95,15 @@ pub enum OpenCvModel {
     Standard,
 }
 
-impl std::str::FromStr for OpenCvModel {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        let names = [
-            ("fisheye", OpenCvModel::Fisheye),
-            ("standard", OpenCvModel::Standard),
-        ];
-        from_name("OpenCV model", s, &names)
-    }
+impl OpenCvModel {
+    /// Both models with their names on the command line (`--opencv-model`).
+    const NAMES: [(&'static str, OpenCvModel); 2] = [
+        ("fisheye", OpenCvModel::Fisheye),
+        ("standard", OpenCvModel::Standard),
+    ];
 }
+
+from_str_by_name!(OpenCvModel, "OpenCV model");
 
 /// Choices the source file may leave open.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
