@@ -26,7 +26,7 @@
 //! (`u = -0.5` and `u = width - 0.5`) on the principal row. Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::geometry::{finite3, normalize};
+use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;
@@ -357,7 +357,7 @@ impl CameraModel for PinholeRadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::tests::radtan;
+    use crate::camera::tests::{euroc, radtan};
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
@@ -365,19 +365,6 @@ mod tests {
     /// A bisected root or a sum of two atans: a few ulps; 1e-12 is margin.
     const ROUND_OFF_TOL: f64 = 1e-12;
 
-    /// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
-    fn euroc() -> PinholeRadTan {
-        radtan(
-            458.654,
-            457.296,
-            367.215,
-            248.375,
-            [-0.28340811, 0.07395907, 0.0],
-            [0.00019359, 1.76187114e-05],
-            752,
-            480,
-        )
-    }
 
     #[test]
     fn r_max_is_the_fold_of_the_radial_part() {

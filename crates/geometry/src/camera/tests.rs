@@ -13,8 +13,15 @@
 //!   unprojection at `xi = 1` gives the ray `[2 m, 1 - |m|^2]` with `m = rho / (2 f)`, i.e.
 //!   `[rho, f - rho^2 / (4 f)]`; this checks the Newton-based projection against a closed form.
 
-use super::geometry::angle_to_axis;
+use std::path::PathBuf;
+
 use super::*;
+use crate::vec3::{angle_to_axis, cross, dot};
+
+/// The repository's shipped camera files (`data/cameras/`, two floors above this crate).
+pub(super) fn cameras_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/cameras")
+}
 
 /// Different closed forms of the same map agree to round-off (~1e-15 relative); near the edge of
 /// the domain the inverse loses up to ~1e-16 / (theta_max - theta); 1e-10 is margin for both.
@@ -24,13 +31,41 @@ const EQUIV_PX_TOL: f64 = 1e-9;
 
 /// The angle between two rays, radians (`atan2(|a x b|, a . b)`, accurate at small angles).
 pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let cross = [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ];
-    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
+    let c = cross(a, b);
+    c[0].hypot(c[1]).hypot(c[2]).atan2(dot(a, b))
+}
+
+/// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
+pub(super) fn f195() -> KannalaBrandt {
+    kb(
+        287.0,
+        287.0,
+        540.0,
+        480.0,
+        [
+            3.37012024344156e-19,
+            -3.543830680552053e-05,
+            9.999999999924497e-08,
+            -6.883696004705416e-11,
+        ],
+        1080,
+        960,
+        195.0,
+    )
+}
+
+/// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
+pub(super) fn euroc() -> PinholeRadTan {
+    radtan(
+        458.654,
+        457.296,
+        367.215,
+        248.375,
+        [-0.28340811, 0.07395907, 0.0],
+        [0.00019359, 1.76187114e-05],
+        752,
+        480,
+    )
 }
 
 /// A Kannala-Brandt camera from positional parameters, unchecked (some tests need a folding
@@ -199,4 +234,27 @@ fn only_the_panorama_wraps() {
     ];
     let wraps: Vec<bool> = cams.iter().map(|c| c.wraps_horizontally()).collect();
     assert_eq!(wraps, [false, false, true]);
+}
+
+#[test]
+fn command_line_names_parse_and_list_the_choices() {
+    use crate::camera::import::{Format, OpenCvModel};
+    assert_eq!("paper".parse(), Ok(PixelConvention::Paper));
+    assert_eq!(
+        "x".parse::<PixelConvention>(),
+        Err("unknown pixel convention `x` (expected half-pixel or paper)".to_string())
+    );
+    assert_eq!(
+        "x".parse::<Format>(),
+        Err(
+            "unknown format `x` (expected kalibr, opencv, basalt, colmap or ocamcalib)".to_string()
+        )
+    );
+    assert_eq!(
+        "x".parse::<OpenCvModel>(),
+        Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
+    );
+    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+        assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
+    }
 }
