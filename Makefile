@@ -26,7 +26,7 @@ setup: .venv/.complete
 
 test: setup
 	cargo build --release --all-targets
-	cargo test --release
+	cargo test --release --workspace
 
 # The paper's experiments end to end on the embedded data (`quick` profile): synthesise the data
 # sets (data/synth-quick.toml: 64 px, 160 test images per set from panoramas not used in
@@ -62,5 +62,5 @@ fixtures: setup
 	.venv/bin/python tools/make_unet_fixture.py tests/golden
 
 lint: setup
-	cargo fmt --check
-	cargo clippy --release --all-targets -- -D warnings
+	cargo fmt --all --check
+	cargo clippy --release --all-targets --workspace -- -D warnings

@@ -16,20 +16,13 @@ pub enum Error {
     /// A TOML file did not parse (syntax error, unknown key, wrong type).
     #[error("{path}: {message}")]
     Toml { path: PathBuf, message: String },
-    /// A camera file parsed but one of its fields is invalid.
-    #[error("{path}: field `{field}`: {message}")]
-    Camera {
-        path: PathBuf,
-        field: String,
-        message: String,
-    },
-    /// A calibration file of another tool (Kalibr, OpenCV, Basalt, COLMAP, OCamCalib) did not
-    /// parse as that tool writes it.
+    /// A file did not parse as the format it claims (a record, a data set file).
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
-    /// A camera built in code (not read from a file) has an invalid parameter.
+    /// A camera file, a calibration import or a kernel's offsets failed (camera models and
+    /// offsets live in the `calibconv-geometry` crate); its message unchanged.
     #[error(transparent)]
-    InvalidCamera(#[from] crate::camera::Invalid),
+    Geometry(#[from] calibconv_geometry::Error),
     /// A function argument is outside what the operation supports.
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
@@ -86,6 +79,14 @@ pub enum Error {
 
 /// Result with the library's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// A camera built in code with an invalid parameter (a model's `new`), through
+/// [`Error::Geometry`].
+impl From<crate::camera::Invalid> for Error {
+    fn from(e: crate::camera::Invalid) -> Self {
+        Error::Geometry(e.into())
+    }
+}
 
 impl Error {
     /// An [`Error::Io`] for `path`.

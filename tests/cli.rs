@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use calibconv::camera;
-use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry};
+use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, OffsetsTensor};
 use common::calibconv;
 
 fn camera_file(name: &str) -> String {

@@ -7,7 +7,7 @@ use tch::nn::{Module, VarStore};
 use tch::{Device, Kind, Tensor};
 
 use calibconv::camera::{self, Camera, CameraModel, Equirectangular};
-use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, Offsets};
+use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, Offsets, OffsetsTensor};
 use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
 use calibconv::ops::{deform_conv2d_planned, Border, ConvGeometry, SamplingPlan};
 

@@ -7,7 +7,7 @@ use tch::{Device, Kind, Tensor};
 use super::proc::{cpu_seconds, peak_mib, pin_malloc_threshold};
 use super::*;
 use crate::camera::CameraModel;
-use crate::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry};
+use crate::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, OffsetsTensor};
 use crate::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, UNet, UpMode};
 use crate::ops::{
     deform_conv2d, deform_conv2d_planned_with, Backend, Border, ConvGeometry, SamplingPlan,

@@ -7,7 +7,9 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::camera::CameraModel;
 use calibconv::io::write_bytes_atomic;
-use calibconv::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, Offsets};
+use calibconv::kernel::{
+    compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, Offsets, OffsetsTensor,
+};
 use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
 use calibconv::report::kernels::{draw_kernels, image_circle, KernelFigure};
 

@@ -4,7 +4,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Result};
 
-use calibconv::kernel::{compute_offsets, LayerGeometry};
+use calibconv::kernel::{compute_offsets, LayerGeometry, OffsetsTensor};
 
 use super::{frame, load_camera, write_safetensors};
 use crate::cli::OffsetsArgs;

@@ -67,3 +67,26 @@ pub fn cached_offsets(
 pub fn clear_offsets_cache() {
     cache().lock().expect("offset cache poisoned").clear();
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Intrinsics, KannalaBrandt};
+
+    /// The cache's half of `calibconv_geometry`'s `kernel::tests::deterministic`.
+    #[test]
+    fn deterministic_and_cached() {
+        let intrinsics = Intrinsics::from_parts([40.0, 40.0, 63.5, 47.5], [128, 96]);
+        let cam = Camera::KannalaBrandt(
+            KannalaBrandt::new(intrinsics, [0.0, -0.01, 0.0, 0.0], 195.0).unwrap(),
+        );
+        let g = LayerGeometry::same(5);
+        let a = compute_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
+        let b = compute_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
+        assert_eq!(a, b);
+        let c1 = cached_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
+        let c2 = cached_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
+        assert!(std::sync::Arc::ptr_eq(&c1, &c2));
+        assert_eq!(*c1, a);
+    }
+}

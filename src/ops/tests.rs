@@ -594,7 +594,7 @@ fn native_matches_aten_with_wrap_around() {
 
 #[test]
 fn plan_from_offsets_matches_plan_from_their_tensor() {
-    use crate::kernel::{compute_offsets, InputFrame, LayerGeometry};
+    use crate::kernel::{compute_offsets, InputFrame, LayerGeometry, OffsetsTensor};
     let camera = crate::camera::load(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/data/cameras/f195.toml"

@@ -46,51 +46,12 @@
 use std::path::Path;
 
 use super::schema::CameraFile;
-use super::{
-    Camera, DoubleSphere, Equirectangular, ExtendedUnified, KannalaBrandt, Pinhole, PinholeRadTan,
-    Scaramuzza, Unified,
-};
+use super::{Camera, MODELS};
 use crate::error::{Error, Result};
-
-/// A camera file's reader: its text and the path that names it in errors.
-type Reader = fn(&str, &Path) -> Result<Camera>;
-
-/// Every model with its reader: the one line a new model adds here.
-const READERS: [(&str, Reader); 8] = [
-    (KannalaBrandt::MODEL, |t, p| {
-        read(t, p).map(Camera::KannalaBrandt)
-    }),
-    (Pinhole::MODEL, |t, p| read(t, p).map(Camera::Pinhole)),
-    (PinholeRadTan::MODEL, |t, p| {
-        read(t, p).map(Camera::PinholeRadTan)
-    }),
-    (DoubleSphere::MODEL, |t, p| {
-        read(t, p).map(Camera::DoubleSphere)
-    }),
-    (Unified::MODEL, |t, p| read(t, p).map(Camera::Unified)),
-    (ExtendedUnified::MODEL, |t, p| {
-        read(t, p).map(Camera::ExtendedUnified)
-    }),
-    (Scaramuzza::MODEL, |t, p| read(t, p).map(Camera::Scaramuzza)),
-    (Equirectangular::MODEL, |t, p| {
-        read(t, p).map(Camera::Equirectangular)
-    }),
-];
-
-/// The values of `model` this module reads.
-pub const MODELS: [&str; READERS.len()] = {
-    let mut names = [""; READERS.len()];
-    let mut i = 0;
-    while i < names.len() {
-        names[i] = READERS[i].0;
-        i += 1;
-    }
-    names
-};
 
 /// The model's `Raw` (deserialised from the text, not a table, so that errors point at the
 /// line), then its validating constructor.
-fn read<M: CameraFile>(text: &str, path: &Path) -> Result<M> {
+pub(super) fn read<M: CameraFile>(text: &str, path: &Path) -> Result<M> {
     let raw: M::Raw = toml::from_str(text).map_err(|e| toml_error(path, e))?;
     M::from_raw(raw).map_err(|e| e.in_file(path))
 }
@@ -126,8 +87,8 @@ pub fn parse(text: &str, path: &Path) -> Result<Camera> {
             ))
         }
     };
-    match READERS.iter().find(|(name, _)| *name == model) {
-        Some((_, reader)) => reader(text, path),
+    match Camera::read_model(model, text, path) {
+        Some(camera) => camera,
         None => Err(camera_error(
             path,
             format!("unknown model `{model}`; expected one of {}", known()),
@@ -157,7 +118,7 @@ pub fn to_toml(
         out.push_str(&format!("description = {}\n", quote(description)));
     }
     out.push_str(&format!("model = {}\n", quote(camera.model_name())));
-    dispatch!(camera, m => m.write_fields(&mut out));
+    camera.write_fields(&mut out);
     out
 }
 
@@ -184,8 +145,10 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
-    use crate::camera::tests::{angle, kb, radtan};
-    use crate::camera::{load, CameraModel, Intrinsics, PixelConvention};
+    use crate::camera::tests::{angle, cameras_dir, kb, radtan};
+    use crate::camera::{
+        load, CameraModel, DoubleSphere, Equirectangular, Intrinsics, Pinhole, PixelConvention,
+    };
 
     /// Pixel round trips: the iterative inverses (Kannala-Brandt, radial-tangential, Scaramuzza)
     /// stop at quadratically shrinking steps below 1e-10 px or less, the closed forms are exact,
@@ -206,9 +169,7 @@ mod tests {
     const SEAM_MARGIN: f64 = 1e-3;
 
     fn shipped(name: &str) -> PathBuf {
-        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-            .join("data/cameras")
-            .join(name)
+        cameras_dir().join(name)
     }
 
     fn f195_text() -> String {
@@ -304,8 +265,7 @@ mod tests {
 
     /// Every camera file in `data/cameras/`, sorted by name.
     fn shipped_cameras() -> Vec<(String, Camera)> {
-        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/cameras");
-        let mut names: Vec<String> = std::fs::read_dir(&dir)
+        let mut names: Vec<String> = std::fs::read_dir(cameras_dir())
             .unwrap()
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
             .filter(|n| n.ends_with(".toml"))

@@ -13,8 +13,15 @@
 //!   unprojection at `xi = 1` gives the ray `[2 m, 1 - |m|^2]` with `m = rho / (2 f)`, i.e.
 //!   `[rho, f - rho^2 / (4 f)]`; this checks the Newton-based projection against a closed form.
 
-use super::geometry::angle_to_axis;
+use std::path::PathBuf;
+
 use super::*;
+use crate::vec3::{angle_to_axis, cross, dot};
+
+/// The repository's shipped camera files (`data/cameras/`, two floors above this crate).
+pub(super) fn cameras_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/cameras")
+}
 
 /// Different closed forms of the same map agree to round-off (~1e-15 relative); near the edge of
 /// the domain the inverse loses up to ~1e-16 / (theta_max - theta); 1e-10 is margin for both.
@@ -24,13 +31,8 @@ const EQUIV_PX_TOL: f64 = 1e-9;
 
 /// The angle between two rays, radians (`atan2(|a x b|, a . b)`, accurate at small angles).
 pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let cross = [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ];
-    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
+    let c = cross(a, b);
+    c[0].hypot(c[1]).hypot(c[2]).atan2(dot(a, b))
 }
 
 /// A Kannala-Brandt camera from positional parameters, unchecked (some tests need a folding

@@ -26,7 +26,7 @@
 //! (`u = -0.5` and `u = width - 0.5`) on the principal row. Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::geometry::{finite3, normalize};
+use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;

@@ -32,7 +32,8 @@
 //! Parameters: `xi in (-1, 1]`, `alpha in [0, 1]` (checked by the camera file reader). Pixels are
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
-use super::geometry::{finite3, normalize, unified_w};
+use super::unified::unified_w;
+use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
@@ -212,7 +213,7 @@ impl CameraModel for DoubleSphere {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::geometry::angle_to_axis;
+    use crate::vec3::angle_to_axis;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
     const ANGLE_TOL: f64 = 1e-12;

@@ -30,10 +30,22 @@
 //! cross-check each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
-use super::geometry::{finite3, normalize, unified_w};
+use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
+
+/// `w(alpha)` of the unified-model family (Usenko et al. 2018, Eq. 20): a ray projects iff
+/// `z > -w d`, with `w = alpha / (1 - alpha)` for `alpha <= 0.5` (where the denominator
+/// `alpha d + (1 - alpha) z` vanishes) and `w = (1 - alpha) / alpha` above (where the projection
+/// folds).
+pub(super) fn unified_w(alpha: f64) -> f64 {
+    if alpha <= 0.5 {
+        alpha / (1.0 - alpha)
+    } else {
+        (1.0 - alpha) / alpha
+    }
+}
 
 /// A Unified Camera Model camera (Usenko's `alpha` form). Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
@@ -190,7 +202,7 @@ impl CameraModel for Unified {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::geometry::angle_to_axis;
+    use crate::vec3::angle_to_axis;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
     const ANGLE_TOL: f64 = 1e-12;
@@ -251,5 +263,13 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn unified_w_is_continuous_at_one_half() {
+        assert_eq!(unified_w(0.5), 1.0);
+        assert!((unified_w(0.5 + 1e-12) - 1.0).abs() < 1e-11);
+        assert_eq!(unified_w(0.0), 0.0);
+        assert_eq!(unified_w(1.0), 0.0);
     }
 }

@@ -18,34 +18,19 @@
 //! `new` calls, so every camera in the program is checked) and its fields for [`to_toml`]. What
 //! the models share is written once: [`Intrinsics`] (`fx fy cx cy width height`: checks, size,
 //! rescaling), `schema` (the [`Invalid`] error, the checks, the header keys every file carries),
-//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only dispatches on
-//! `model =`. A new model is its file, plus here its `mod` / `pub use`, its [`Camera`] variant and
-//! its `dispatch!` arm, and its line in `file`'s reader table.
+//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only reads
+//! `model =` and hands the text to the model; the list of models is one table here
+//! (`camera_models!`): a new model is its file plus its line in that table (see the crate docs).
 
-mod double_sphere;
-mod equirectangular;
-mod extended_unified;
-mod geometry;
+mod file;
 pub mod import;
 mod intrinsics;
-mod kannala_brandt;
-mod pinhole;
-mod pinhole_radtan;
-mod scaramuzza;
 mod schema;
 mod solve;
-mod unified;
 
-pub use double_sphere::DoubleSphere;
-pub use equirectangular::Equirectangular;
-pub use extended_unified::ExtendedUnified;
+pub use file::{parse, to_toml};
 pub use intrinsics::Intrinsics;
-pub use kannala_brandt::KannalaBrandt;
-pub use pinhole::Pinhole;
-pub use pinhole_radtan::PinholeRadTan;
-pub use scaramuzza::Scaramuzza;
 pub use schema::Invalid;
-pub use unified::Unified;
 
 use std::path::Path;
 
@@ -136,91 +121,112 @@ pub enum KernelFrame {
     Upright,
 }
 
-/// A camera of any supported model, as read from a camera file.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Camera {
-    /// `model = "kannala-brandt"`.
-    KannalaBrandt(KannalaBrandt),
-    /// `model = "pinhole"`.
-    Pinhole(Pinhole),
-    /// `model = "pinhole-radtan"`.
-    PinholeRadTan(PinholeRadTan),
-    /// `model = "double-sphere"`.
-    DoubleSphere(DoubleSphere),
-    /// `model = "unified"`.
-    Unified(Unified),
-    /// `model = "extended-unified"`.
-    ExtendedUnified(ExtendedUnified),
-    /// `model = "scaramuzza"`.
-    Scaramuzza(Scaramuzza),
-    /// `model = "equirectangular"`.
-    Equirectangular(Equirectangular),
-}
+/// Declares every camera model from one table of `Variant(module::Type)` lines: the model's
+/// module and `pub use`, its [`Camera`] variant, its reader and `model =` name in [`MODELS`]
+/// (the name is the model's `CameraFile::MODEL`, in its own file), and the dispatch of
+/// [`CameraModel`], [`Camera::project_jacobian`], [`Camera::model_name`] and [`to_toml`]'s fields.
+macro_rules! camera_models {
+    ($($(#[$doc:meta])* $variant:ident($module:ident::$ty:ident),)*) => {
+        $(mod $module; pub use $module::$ty;)*
 
-macro_rules! dispatch {
-    ($self:ident, $m:ident => $e:expr) => {
-        match $self {
-            Camera::KannalaBrandt($m) => $e,
-            Camera::Pinhole($m) => $e,
-            Camera::PinholeRadTan($m) => $e,
-            Camera::DoubleSphere($m) => $e,
-            Camera::Unified($m) => $e,
-            Camera::ExtendedUnified($m) => $e,
-            Camera::Scaramuzza($m) => $e,
-            Camera::Equirectangular($m) => $e,
+        /// A camera of any supported model, as read from a camera file.
+        #[derive(Clone, Debug, PartialEq)]
+        pub enum Camera {
+            $($(#[$doc])* $variant($ty),)*
+        }
+
+        /// The values of `model` that camera files may hold, in table order.
+        pub const MODELS: [&str; [$(stringify!($variant)),*].len()] =
+            [$(<$ty as schema::CameraFile>::MODEL),*];
+
+        impl Camera {
+            /// The camera of the model named `model` (one of [`MODELS`]) read from `text`, or
+            /// `None` for an unknown model.
+            fn read_model(model: &str, text: &str, path: &Path) -> Option<Result<Camera>> {
+                $(if model == <$ty as schema::CameraFile>::MODEL {
+                    return Some(file::read::<$ty>(text, path).map(Camera::$variant));
+                })*
+                None
+            }
+        }
+
+        camera_models!(@dispatch [$($variant)*]);
+    };
+    // Every method of `Camera` that forwards to its model, written once over the variants.
+    (@dispatch [$($variant:ident)*]) => {
+        impl Camera {
+            /// The model's name in camera files (`model = "..."`).
+            pub fn model_name(&self) -> &'static str {
+                fn name<M: schema::CameraFile>(_: &M) -> &'static str {
+                    M::MODEL
+                }
+                match self { $(Camera::$variant(m) => name(m),)* }
+            }
+
+            /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] (each model's
+            /// `project_jacobian`), or `None` where `project` is `None` (and, for the
+            /// equirectangular camera, at the poles).
+            pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+                match self { $(Camera::$variant(m) => m.project_jacobian(ray),)* }
+            }
+
+            /// `width`, `height`, then the model's fields, one `key = value` line each.
+            fn write_fields(&self, out: &mut String) {
+                use schema::CameraFile;
+                match self { $(Camera::$variant(m) => m.write_fields(out),)* }
+            }
+        }
+
+        impl CameraModel for Camera {
+            fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
+                match self { $(Camera::$variant(m) => m.project(ray),)* }
+            }
+            fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
+                match self { $(Camera::$variant(m) => m.unproject(px),)* }
+            }
+            fn size(&self) -> [usize; 2] {
+                match self { $(Camera::$variant(m) => m.size(),)* }
+            }
+            fn fov(&self) -> f64 {
+                match self { $(Camera::$variant(m) => m.fov(),)* }
+            }
+            fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
+                match self { $(Camera::$variant(m) => m.rescaled(scale, convention),)* }
+            }
+            fn wraps_horizontally(&self) -> bool {
+                match self { $(Camera::$variant(m) => m.wraps_horizontally(),)* }
+            }
+            fn kernel_frame(&self) -> KernelFrame {
+                match self { $(Camera::$variant(m) => m.kernel_frame(),)* }
+            }
         }
     };
 }
 
-impl Camera {
-    /// The model's name in camera files (`model = "..."`).
-    pub fn model_name(&self) -> &'static str {
-        fn name<M: schema::CameraFile>(_: &M) -> &'static str {
-            M::MODEL
-        }
-        dispatch!(self, m => name(m))
-    }
-
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] (each model's
-    /// `project_jacobian`), or `None` where `project` is `None` (and, for the equirectangular
-    /// camera, at the poles).
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        dispatch!(self, m => m.project_jacobian(ray))
-    }
-}
-
-impl CameraModel for Camera {
-    fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        dispatch!(self, m => m.project(ray))
-    }
-    fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
-        dispatch!(self, m => m.unproject(px))
-    }
-    fn size(&self) -> [usize; 2] {
-        dispatch!(self, m => m.size())
-    }
-    fn fov(&self) -> f64 {
-        dispatch!(self, m => m.fov())
-    }
-    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        dispatch!(self, m => m.rescaled(scale, convention))
-    }
-    fn wraps_horizontally(&self) -> bool {
-        dispatch!(self, m => m.wraps_horizontally())
-    }
-    fn kernel_frame(&self) -> KernelFrame {
-        dispatch!(self, m => m.kernel_frame())
-    }
+// The one list of models: a new model is its file plus its line here (see the crate docs).
+camera_models! {
+    /// `model = "kannala-brandt"` (the paper's model, Section 3.1).
+    KannalaBrandt(kannala_brandt::KannalaBrandt),
+    /// `model = "pinhole"`.
+    Pinhole(pinhole::Pinhole),
+    /// `model = "pinhole-radtan"`.
+    PinholeRadTan(pinhole_radtan::PinholeRadTan),
+    /// `model = "double-sphere"`.
+    DoubleSphere(double_sphere::DoubleSphere),
+    /// `model = "unified"`.
+    Unified(unified::Unified),
+    /// `model = "extended-unified"`.
+    ExtendedUnified(extended_unified::ExtendedUnified),
+    /// `model = "scaramuzza"`.
+    Scaramuzza(scaramuzza::Scaramuzza),
+    /// `model = "equirectangular"`.
+    Equirectangular(equirectangular::Equirectangular),
 }
 
 /// Reads a camera file (TOML, see `data/cameras/`) and returns its model.
 pub fn load(path: impl AsRef<Path>) -> Result<Camera> {
     file::load(path.as_ref())
 }
-
-mod file;
-
-pub use file::{parse, to_toml, MODELS};
 
 #[cfg(test)]
 mod tests;

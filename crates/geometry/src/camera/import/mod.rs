@@ -41,12 +41,12 @@ mod ocamcalib;
 mod opencv;
 mod tree;
 
-use super::geometry::angle_to_axis;
 use super::{
     Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
     Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
+use crate::vec3::angle_to_axis;
 
 /// The source tools `calibconv camera import --from` reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -28,7 +28,7 @@
 
 use std::f64::consts::PI;
 
-use super::geometry::finite3;
+use crate::vec3::finite3;
 
 /// Relative slack on the latitude of the outer pixel edges `v = -0.5` and `v = height - 0.5`:
 /// `(cv + 0.5) / fv` is `pi / 2` only up to the rounding of `fv = height / pi` (an ulp or two), and

@@ -187,17 +187,17 @@ fn conventions_differ_by_the_half_pixel_shift() {
     assert!(asym(&paper) > 1e-3);
 }
 
+/// (The cache's half of this test, `deterministic_and_cached`, lives with the cache in
+/// `calibconv::kernel`.)
 #[test]
-fn deterministic_and_cached() {
+fn deterministic() {
     let cam = symmetric_kb();
     let g = LayerGeometry::same(5);
     let a = compute_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
     let b = compute_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
     assert_eq!(a, b);
-    let c1 = cached_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
-    let c2 = cached_offsets(&cam, [48, 64], &g, &InputFrame::default()).unwrap();
-    assert!(std::sync::Arc::ptr_eq(&c1, &c2));
-    assert_eq!(*c1, a);
+    assert_eq!(a.shape(), [50, 48, 64]);
+    assert_eq!(a.data.len(), a.shape().iter().product::<usize>());
 }
 
 #[test]

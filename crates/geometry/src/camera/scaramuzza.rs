@@ -33,7 +33,7 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
-use super::geometry::{finite3, normalize};
+use crate::vec3::{finite3, normalize};
 use super::schema::{
     check_finite, check_fov, check_fov_in_domain, check_size, checked, float_list, raw_camera_file,
     write_fields, CameraFile, Checked, Invalid,
@@ -427,7 +427,7 @@ mod tests {
     ) -> Scaramuzza {
         Scaramuzza::unchecked(poly, inv_poly, [cx, cy], cde, [width, height], fov_deg)
     }
-    use crate::camera::geometry::angle_to_axis;
+    use crate::vec3::angle_to_axis;
 
     /// Newton to |step| < 1e-10 px with quadratic convergence: round-off only (~1e-13 px);
     /// 1e-9 px is margin.

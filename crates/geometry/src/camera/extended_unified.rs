@@ -28,7 +28,8 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::geometry::{finite3, normalize, unified_w};
+use super::unified::unified_w;
+use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
@@ -204,7 +205,7 @@ impl CameraModel for ExtendedUnified {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::geometry::angle_to_axis;
+    use crate::vec3::angle_to_axis;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); near a fold the inverse loses
     /// ~1e-16 / (theta_max - theta) (<= 1e-12 at the 1e-4 rad margin used); 1e-11 rad is margin.
