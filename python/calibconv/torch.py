@@ -107,6 +107,7 @@ class CalibratedConv2d(nn.Conv2d):
     def set_offsets(self, offsets, input_size: Sequence[int]) -> None:
         """Sets the offsets (see :meth:`from_conv`), on the device of the weights."""
         off = torch.as_tensor(np.asarray(offsets) if not isinstance(offsets, Tensor) else offsets)
+        given = list(off.shape)
         if off.dim() == 3:
             off = off.unsqueeze(0)
         h, w = (int(s) for s in input_size)
@@ -119,7 +120,7 @@ class CalibratedConv2d(nn.Conv2d):
         want = (1, 2 * kh * kw, ho, wo)
         if tuple(off.shape) != want:
             raise ValueError(
-                f"offsets of shape {list(off.shape)} do not fit a {kh}x{kw} kernel (stride "
+                f"offsets of shape {given} do not fit a {kh}x{kw} kernel (stride "
                 f"{self.stride}, padding {(ph, pw)}, dilation {self.dilation}) on a {h}x{w} input: "
                 f"expected {list(want[1:])} or {list(want)}"
             )
