@@ -189,9 +189,14 @@ enum CameraArg<'py> {
 fn pair(obj: &Bound<'_, PyAny>, name: &str, min: i64) -> PyResult<[usize; 2]> {
     let v: [i64; 2] = match obj.extract::<i64>() {
         Ok(n) => [n, n],
-        Err(_) => obj.extract::<(i64, i64)>().map(|(a, b)| [a, b]).map_err(|_| {
-            PyValueError::new_err(format!("{name} must be an int or a pair of ints, got {obj}"))
-        })?,
+        Err(_) => obj
+            .extract::<(i64, i64)>()
+            .map(|(a, b)| [a, b])
+            .map_err(|_| {
+                PyValueError::new_err(format!(
+                    "{name} must be an int or a pair of ints, got {obj}"
+                ))
+            })?,
     };
     if v.iter().any(|&n| n < min) {
         return Err(PyValueError::new_err(format!(
