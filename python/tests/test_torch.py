@@ -125,8 +125,9 @@ def test_calibrate_unet_transposed():
 
 
 def test_feature_map_too_small_names_the_layer():
+    # At 64x64, layer4.0.conv1 sees 4x4 (146 deg for F195, fine) and layer4.0.conv2 2x2.
     model = torchvision.models.resnet18(num_classes=10)
-    with pytest.raises(ValueError, match=r"layer4\.0\.conv1 \(input feature map 2x2\).*field of view"):
+    with pytest.raises(ValueError, match=r"layer4\.0\.conv2 \(input feature map 2x2\).*field of view"):
         calibrate(model, F195, (64, 64))
 
 
