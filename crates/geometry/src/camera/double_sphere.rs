@@ -34,12 +34,12 @@
 
 use super::unified::unified_w;
 use crate::vec3::{finite3, normalize};
-use super::intrinsics::deref_intrinsics;
+use super::intrinsics::{deref_intrinsics, fisheye_extent};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
     Invalid,
 };
-use super::{Camera, CameraModel, Intrinsics, PixelConvention};
+use super::{CameraModel, Intrinsics};
 
 /// A Double Sphere camera. All fields are plain parameters (nothing derived is cached).
 #[derive(Clone, Debug, PartialEq)]
@@ -151,13 +151,7 @@ impl DoubleSphere {
         let dk = [self.xi * x / d1, self.xi * y / d1, self.xi * z / d1 + 1.0];
         let dd2 = [(x + k * dk[0]) / d2, (y + k * dk[1]) / d2, k * dk[2] / d2];
         let dden: [f64; 3] = [0, 1, 2].map(|i| self.alpha * dd2[i] + (1.0 - self.alpha) * dk[i]);
-        let row = |f: f64, c: f64, axis: usize| {
-            [0, 1, 2].map(|i| {
-                let e = if i == axis { 1.0 } else { 0.0 };
-                f * (e / den - c * dden[i] / (den * den))
-            })
-        };
-        Some([row(self.fx, x, 0), row(self.fy, y, 1)])
+        Some(self.intrinsics.divided_jacobian(ray, den, dden))
     }
 }
 
@@ -165,10 +159,7 @@ impl CameraModel for DoubleSphere {
     /// Eqs. 40-42 (module docs), or `None` outside `z > -w2 |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
         let (_, _, _, den) = self.parts(ray)?;
-        Some([
-            self.fx * ray[0] / den + self.cx,
-            self.fy * ray[1] / den + self.cy,
-        ])
+Some(self.intrinsics.project_divided(ray, den))
     }
 
     /// Eqs. 44-47 (module docs), normalised; `None` outside the disc `r^2 <= 1 / (2 alpha - 1)`,
@@ -192,22 +183,7 @@ impl CameraModel for DoubleSphere {
         (ray[2] > -self.w2()).then_some(ray)
     }
 
-    fn size(&self) -> [usize; 2] {
-        self.intrinsics.size()
-    }
-
-    /// `fov_deg` in radians.
-    fn fov(&self) -> f64 {
-        self.fov_deg.to_radians()
-    }
-
-    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `xi` and `alpha` and `fov_deg` unchanged.
-    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        Camera::DoubleSphere(DoubleSphere {
-            intrinsics: self.intrinsics.rescaled(scale, convention),
-            ..self.clone()
-        })
-    }
+    fisheye_extent!(DoubleSphere);
 }
 
 #[cfg(test)]

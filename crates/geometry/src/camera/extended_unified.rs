@@ -28,14 +28,14 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::unified::unified_w;
+use super::unified::{unified_den, unified_w};
 use crate::vec3::{finite3, normalize};
-use super::intrinsics::deref_intrinsics;
+use super::intrinsics::{deref_intrinsics, fisheye_extent};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
     Invalid,
 };
-use super::{Camera, CameraModel, Intrinsics, PixelConvention};
+use super::{CameraModel, Intrinsics};
 
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
@@ -125,11 +125,7 @@ impl ExtendedUnified {
         }
         let [x, y, z] = ray;
         let d = (self.beta * (x * x + y * y) + z * z).sqrt();
-        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
-            return None;
-        }
-        let den = self.alpha * d + (1.0 - self.alpha) * z;
-        (den > 0.0).then_some((d, den))
+        unified_den(self.alpha, d, z).map(|den| (d, den))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
@@ -147,13 +143,7 @@ impl ExtendedUnified {
             a * b * ray[1] / d,
             a * ray[2] / d + (1.0 - a),
         ];
-        let row = |f: f64, c: f64, axis: usize| {
-            [0, 1, 2].map(|i| {
-                let e = if i == axis { 1.0 } else { 0.0 };
-                f * (e / den - c * dden[i] / (den * den))
-            })
-        };
-        Some([row(self.fx, ray[0], 0), row(self.fy, ray[1], 1)])
+        Some(self.intrinsics.divided_jacobian(ray, den, dden))
     }
 }
 
@@ -161,10 +151,7 @@ impl CameraModel for ExtendedUnified {
     /// Eqs. 22-24 (module docs), or `None` outside `z > -w d`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
         let (_, den) = self.parts(ray)?;
-        Some([
-            self.fx * ray[0] / den + self.cx,
-            self.fy * ray[1] / den + self.cy,
-        ])
+Some(self.intrinsics.project_divided(ray, den))
     }
 
     /// Eqs. 26-29 (module docs); `None` outside the disc `r^2 <= 1 / (beta (2 alpha - 1))`, for a
@@ -184,22 +171,7 @@ impl CameraModel for ExtendedUnified {
         (ray[2] > -unified_w(a) * d).then_some(ray)
     }
 
-    fn size(&self) -> [usize; 2] {
-        self.intrinsics.size()
-    }
-
-    /// `fov_deg` in radians.
-    fn fov(&self) -> f64 {
-        self.fov_deg.to_radians()
-    }
-
-    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `alpha` and `beta` and `fov_deg` unchanged.
-    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        Camera::ExtendedUnified(ExtendedUnified {
-            intrinsics: self.intrinsics.rescaled(scale, convention),
-            ..self.clone()
-        })
-    }
+    fisheye_extent!(ExtendedUnified);
 }
 
 #[cfg(test)]

@@ -145,7 +145,7 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
-    use crate::camera::tests::{angle, cameras_dir, kb, radtan};
+    use crate::camera::tests::{self, angle, cameras_dir, kb};
     use crate::camera::{
         load, CameraModel, DoubleSphere, Equirectangular, Intrinsics, Pinhole, PixelConvention,
     };
@@ -190,24 +190,7 @@ mod tests {
     #[test]
     fn shipped_files_hold_the_documented_values() {
         let f195 = load(shipped("f195.toml")).unwrap();
-        assert_eq!(
-            f195,
-            Camera::KannalaBrandt(kb(
-                287.0,
-                287.0,
-                540.0,
-                480.0,
-                [
-                    3.37012024344156e-19,
-                    -3.543830680552053e-05,
-                    9.999999999924497e-08,
-                    -6.883696004705416e-11,
-                ],
-                1080,
-                960,
-                195.0,
-            ))
-        );
+        assert_eq!(f195, Camera::KannalaBrandt(tests::f195()));
         let f165 = load(shipped("f165.toml")).unwrap();
         assert_eq!(
             f165,
@@ -234,16 +217,7 @@ mod tests {
         // EuRoC MAV cam0 (sensor.yaml, Kalibr pinhole-radtan, k3 = 0).
         assert_eq!(
             load(shipped("radtan_example.toml")).unwrap(),
-            Camera::PinholeRadTan(radtan(
-                458.654,
-                457.296,
-                367.215,
-                248.375,
-                [-0.28340811, 0.07395907, 0.0],
-                [0.00019359, 1.76187114e-05],
-                752,
-                480
-            ))
+            Camera::PinholeRadTan(tests::euroc())
         );
         assert_eq!(
             load(shipped("equirect.toml")).unwrap(),

@@ -98,6 +98,67 @@ impl Intrinsics {
     }
 }
 
+impl Intrinsics {
+    /// `[fx x / den + cx, fy y / den + cy]`: the pixel of the ray `[x, y, z]` for a model that
+    /// divides by a denominator `den` (the unified family: Usenko et al. 2018 Eqs. 14, 22, 40).
+    pub(crate) fn project_divided(&self, ray: [f64; 3], den: f64) -> [f64; 2] {
+        [
+            self.fx * ray[0] / den + self.cx,
+            self.fy * ray[1] / den + self.cy,
+        ]
+    }
+
+    /// The Jacobian `d[u, v] / d[x, y, z]` of [`Intrinsics::project_divided`] given the gradient
+    /// `dden` of the denominator: `du/dp = fx (e_x / den - x dden / den^2)`,
+    /// `dv/dp = fy (e_y / den - y dden / den^2)`.
+    pub(crate) fn divided_jacobian(
+        &self,
+        ray: [f64; 3],
+        den: f64,
+        dden: [f64; 3],
+    ) -> [[f64; 3]; 2] {
+        let row = |f: f64, c: f64, axis: usize| {
+            [0, 1, 2].map(|i| {
+                let e = if i == axis { 1.0 } else { 0.0 };
+                f * (e / den - c * dden[i] / (den * den))
+            })
+        };
+        [row(self.fx, ray[0], 0), row(self.fy, ray[1], 1)]
+    }
+}
+
+/// The [`super::CameraModel`] methods every fisheye model with fields `intrinsics` and
+/// `fov_deg` (and nothing derived from the intrinsics) writes alike: `size`, `fov` (`fov_deg` in
+/// radians) and `rescaled` (the intrinsics rescaled, the model's parameters unchanged: they are
+/// angular). Expands inside the model's `impl CameraModel`; `$variant` is its [`super::Camera`]
+/// variant.
+macro_rules! fisheye_extent {
+    ($variant:ident) => {
+        fn size(&self) -> [usize; 2] {
+            self.intrinsics.size()
+        }
+
+        /// `fov_deg` in radians.
+        fn fov(&self) -> f64 {
+            self.fov_deg.to_radians()
+        }
+
+        /// The intrinsics rescaled ([`Intrinsics::rescaled`]); the model's parameters and
+        /// `fov_deg` unchanged.
+        fn rescaled(
+            &self,
+            scale: [f64; 2],
+            convention: $crate::camera::PixelConvention,
+        ) -> $crate::camera::Camera {
+            $crate::camera::Camera::$variant(Self {
+                intrinsics: self.intrinsics.rescaled(scale, convention),
+                ..self.clone()
+            })
+        }
+    };
+}
+pub(crate) use fisheye_extent;
+
 /// Lets a model read its intrinsics as its own fields (`cam.fx`); they are set only through
 /// the model's validating constructor.
 macro_rules! deref_intrinsics {

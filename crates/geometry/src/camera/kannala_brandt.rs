@@ -290,7 +290,7 @@ impl CameraModel for KannalaBrandt {
 mod tests {
     use super::*;
     use crate::camera::solve::MAX_ITER;
-    use crate::camera::tests::{angle, kb};
+    use crate::camera::tests::{angle, f195, kb};
 
     /// Round trips are exact up to a few ulps of theta times fx (~1e-13 px); 1e-9 px leaves
     /// margin for sin/cos/atan2 rounding without hiding a real error (the Newton EPS is 1e-12 rad).
@@ -306,24 +306,6 @@ mod tests {
     /// d' >= 2e-6 on the grid of the test below (measured worst: 8e-11 rad).
     const NEAR_FOLD_ANGLE_TOL: f64 = 1e-9;
 
-    /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
-    fn f195() -> KannalaBrandt {
-        kb(
-            287.0,
-            287.0,
-            540.0,
-            480.0,
-            [
-                3.37012024344156e-19,
-                -3.543830680552053e-05,
-                9.999999999924497e-08,
-                -6.883696004705416e-11,
-            ],
-            1080,
-            960,
-            195.0,
-        )
-    }
 
     /// A made-up lens whose polynomial turns back: d' = 1 - 1.5 theta^2 = 0 at theta = sqrt(2/3).
     fn folding() -> KannalaBrandt {

@@ -64,17 +64,46 @@ impl PixelConvention {
     }
 }
 
-impl std::str::FromStr for PixelConvention {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "half-pixel" => Ok(PixelConvention::HalfPixel),
-            "paper" => Ok(PixelConvention::Paper),
-            other => Err(format!(
-                "unknown pixel convention `{other}` (expected half-pixel or paper)"
-            )),
+impl PixelConvention {
+    /// Every convention with its name on the command line and in experiment files.
+    const NAMES: [(&'static str, PixelConvention); 2] = [
+        ("half-pixel", PixelConvention::HalfPixel),
+        ("paper", PixelConvention::Paper),
+    ];
+}
+
+/// `FromStr` for a command-line enum from its `NAMES` table (name, value), through
+/// [`from_name`]; `$what` names the enum in the error.
+macro_rules! from_str_by_name {
+    ($ty:ty, $what:literal) => {
+        impl std::str::FromStr for $ty {
+            type Err = String;
+            fn from_str(s: &str) -> std::result::Result<Self, String> {
+                $crate::camera::from_name($what, s, &<$ty>::NAMES)
+            }
         }
+    };
+}
+pub(crate) use from_str_by_name;
+
+from_str_by_name!(PixelConvention, "pixel convention");
+
+/// The value named `s` in `names` (a command-line value's `FromStr`), or the error that lists
+/// the names: ``unknown {what} `{s}` (expected a, b or c)``.
+pub(crate) fn from_name<T: Copy>(
+    what: &str,
+    s: &str,
+    names: &[(&str, T)],
+) -> std::result::Result<T, String> {
+    if let Some((_, value)) = names.iter().find(|(name, _)| *name == s) {
+        return Ok(*value);
     }
+    let list: Vec<&str> = names.iter().map(|(name, _)| *name).collect();
+    let expected = match list.split_last() {
+        Some((last, rest)) if !rest.is_empty() => format!("{} or {last}", rest.join(", ")),
+        _ => list.join(""),
+    };
+    Err(format!("unknown {what} `{s}` (expected {expected})"))
 }
 
 /// What every camera model offers.

@@ -357,7 +357,7 @@ impl CameraModel for PinholeRadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::tests::radtan;
+    use crate::camera::tests::{euroc, radtan};
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
@@ -365,19 +365,6 @@ mod tests {
     /// A bisected root or a sum of two atans: a few ulps; 1e-12 is margin.
     const ROUND_OFF_TOL: f64 = 1e-12;
 
-    /// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
-    fn euroc() -> PinholeRadTan {
-        radtan(
-            458.654,
-            457.296,
-            367.215,
-            248.375,
-            [-0.28340811, 0.07395907, 0.0],
-            [0.00019359, 1.76187114e-05],
-            752,
-            480,
-        )
-    }
 
     #[test]
     fn r_max_is_the_fold_of_the_radial_part() {

@@ -35,6 +35,39 @@ pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     c[0].hypot(c[1]).hypot(c[2]).atan2(dot(a, b))
 }
 
+/// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
+pub(super) fn f195() -> KannalaBrandt {
+    kb(
+        287.0,
+        287.0,
+        540.0,
+        480.0,
+        [
+            3.37012024344156e-19,
+            -3.543830680552053e-05,
+            9.999999999924497e-08,
+            -6.883696004705416e-11,
+        ],
+        1080,
+        960,
+        195.0,
+    )
+}
+
+/// EuRoC MAV data set, cam0 `sensor.yaml` (Kalibr pinhole-radtan, k3 = 0), 752x480.
+pub(super) fn euroc() -> PinholeRadTan {
+    radtan(
+        458.654,
+        457.296,
+        367.215,
+        248.375,
+        [-0.28340811, 0.07395907, 0.0],
+        [0.00019359, 1.76187114e-05],
+        752,
+        480,
+    )
+}
+
 /// A Kannala-Brandt camera from positional parameters, unchecked (some tests need a folding
 /// polynomial).
 #[allow(clippy::too_many_arguments)]
@@ -201,4 +234,27 @@ fn only_the_panorama_wraps() {
     ];
     let wraps: Vec<bool> = cams.iter().map(|c| c.wraps_horizontally()).collect();
     assert_eq!(wraps, [false, false, true]);
+}
+
+#[test]
+fn command_line_names_parse_and_list_the_choices() {
+    use crate::camera::import::{Format, OpenCvModel};
+    assert_eq!("paper".parse(), Ok(PixelConvention::Paper));
+    assert_eq!(
+        "x".parse::<PixelConvention>(),
+        Err("unknown pixel convention `x` (expected half-pixel or paper)".to_string())
+    );
+    assert_eq!(
+        "x".parse::<Format>(),
+        Err(
+            "unknown format `x` (expected kalibr, opencv, basalt, colmap or ocamcalib)".to_string()
+        )
+    );
+    assert_eq!(
+        "x".parse::<OpenCvModel>(),
+        Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
+    );
+    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+        assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
+    }
 }

@@ -31,9 +31,20 @@
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
 use crate::vec3::{finite3, normalize};
-use super::intrinsics::deref_intrinsics;
+use super::intrinsics::{deref_intrinsics, fisheye_extent};
 use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
-use super::{Camera, CameraModel, Intrinsics, PixelConvention};
+use super::{CameraModel, Intrinsics};
+
+/// The denominator `den = alpha d + (1 - alpha) z` of the unified-model family's projection
+/// (Eqs. 14, 22) for a ray with `z` and norm `d` (the model's own: Euclidean, or with `beta`),
+/// or `None` outside its domain `z > -w d` (Eq. 20), for `d` zero or not finite, or `den <= 0`.
+pub(super) fn unified_den(alpha: f64, d: f64, z: f64) -> Option<f64> {
+    if d == 0.0 || !d.is_finite() || z <= -unified_w(alpha) * d {
+        return None;
+    }
+    let den = alpha * d + (1.0 - alpha) * z;
+    (den > 0.0).then_some(den)
+}
 
 /// `w(alpha)` of the unified-model family (Usenko et al. 2018, Eq. 20): a ray projects iff
 /// `z > -w d`, with `w = alpha / (1 - alpha)` for `alpha <= 0.5` (where the denominator
@@ -123,11 +134,7 @@ impl Unified {
         }
         let [x, y, z] = ray;
         let d = x.hypot(y).hypot(z);
-        if d == 0.0 || !d.is_finite() || z <= -unified_w(self.alpha) * d {
-            return None;
-        }
-        let den = self.alpha * d + (1.0 - self.alpha) * z;
-        (den > 0.0).then_some((d, den))
+        unified_den(self.alpha, d, z).map(|den| (d, den))
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
@@ -141,13 +148,7 @@ impl Unified {
         let (d, den) = self.parts(ray)?;
         let a = self.alpha;
         let dden = [a * ray[0] / d, a * ray[1] / d, a * ray[2] / d + (1.0 - a)];
-        let row = |f: f64, c: f64, axis: usize| {
-            [0, 1, 2].map(|i| {
-                let e = if i == axis { 1.0 } else { 0.0 };
-                f * (e / den - c * dden[i] / (den * den))
-            })
-        };
-        Some([row(self.fx, ray[0], 0), row(self.fy, ray[1], 1)])
+        Some(self.intrinsics.divided_jacobian(ray, den, dden))
     }
 }
 
@@ -155,10 +156,7 @@ impl CameraModel for Unified {
     /// Eq. 14 (module docs), or `None` outside `z > -w |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
         let (_, den) = self.parts(ray)?;
-        Some([
-            self.fx * ray[0] / den + self.cx,
-            self.fy * ray[1] / den + self.cy,
-        ])
+Some(self.intrinsics.project_divided(ray, den))
     }
 
     /// Mei's closed form (module docs), normalised; `None` where its square root is imaginary,
@@ -181,22 +179,7 @@ impl CameraModel for Unified {
         (ray[2] > -unified_w(a)).then_some(ray)
     }
 
-    fn size(&self) -> [usize; 2] {
-        self.intrinsics.size()
-    }
-
-    /// `fov_deg` in radians.
-    fn fov(&self) -> f64 {
-        self.fov_deg.to_radians()
-    }
-
-    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `alpha` and `fov_deg` unchanged.
-    fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
-        Camera::Unified(Unified {
-            intrinsics: self.intrinsics.rescaled(scale, convention),
-            ..self.clone()
-        })
-    }
+    fisheye_extent!(Unified);
 }
 
 #[cfg(test)]

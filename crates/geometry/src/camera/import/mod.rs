@@ -42,8 +42,8 @@ mod opencv;
 mod tree;
 
 use super::{
-    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
-    Pinhole, PinholeRadTan, Scaramuzza, Unified,
+    from_str_by_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
+    KannalaBrandt, Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
 use crate::vec3::angle_to_axis;
@@ -63,31 +63,26 @@ pub enum Format {
     OcamCalib,
 }
 
-impl std::str::FromStr for Format {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "kalibr" => Ok(Format::Kalibr),
-            "opencv" => Ok(Format::OpenCv),
-            "basalt" => Ok(Format::Basalt),
-            "colmap" => Ok(Format::Colmap),
-            "ocamcalib" => Ok(Format::OcamCalib),
-            other => Err(format!(
-                "unknown format `{other}` (expected kalibr, opencv, basalt, colmap or ocamcalib)"
-            )),
-        }
-    }
+impl Format {
+    /// Every format with its name on the command line (`--from`).
+    const NAMES: [(&'static str, Format); 5] = [
+        ("kalibr", Format::Kalibr),
+        ("opencv", Format::OpenCv),
+        ("basalt", Format::Basalt),
+        ("colmap", Format::Colmap),
+        ("ocamcalib", Format::OcamCalib),
+    ];
 }
+
+from_str_by_name!(Format, "format");
 
 impl std::fmt::Display for Format {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Format::Kalibr => "kalibr",
-            Format::OpenCv => "opencv",
-            Format::Basalt => "basalt",
-            Format::Colmap => "colmap",
-            Format::OcamCalib => "ocamcalib",
-        })
+        let (name, _) = Format::NAMES
+            .iter()
+            .find(|(_, v)| v == self)
+            .expect("every format");
+        f.write_str(name)
     }
 }
 
@@ -100,18 +95,15 @@ pub enum OpenCvModel {
     Standard,
 }
 
-impl std::str::FromStr for OpenCvModel {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "fisheye" => Ok(OpenCvModel::Fisheye),
-            "standard" => Ok(OpenCvModel::Standard),
-            other => Err(format!(
-                "unknown OpenCV model `{other}` (expected fisheye or standard)"
-            )),
-        }
-    }
+impl OpenCvModel {
+    /// Both models with their names on the command line (`--opencv-model`).
+    const NAMES: [(&'static str, OpenCvModel); 2] = [
+        ("fisheye", OpenCvModel::Fisheye),
+        ("standard", OpenCvModel::Standard),
+    ];
 }
+
+from_str_by_name!(OpenCvModel, "OpenCV model");
 
 /// Choices the source file may leave open.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
