@@ -24,9 +24,13 @@ setup: .venv/.complete
 	@rm -rf .venv; ln -sfn "$(VENV_CACHE)" .venv
 	@test -f .venv/.complete
 
+# Then the Python package (python/): built from this checkout into the venv (maturin from
+# requirements.txt, no download), and its pytest suite against the binary built above.
 test: setup
 	cargo build --release --all-targets
 	cargo test --release --workspace
+	PATH="$(CURDIR)/.venv/bin:$$PATH" .venv/bin/pip install --quiet --no-build-isolation ./python
+	.venv/bin/python -m pytest -q python/tests
 
 # The paper's experiments end to end on the embedded data (`quick` profile): synthesise the data
 # sets (data/synth-quick.toml: 64 px, 160 test images per set from panoramas not used in

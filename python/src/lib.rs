@@ -1,0 +1,286 @@
+//! `calibconv._native`: the Python binding (PyO3) of `calibconv-geometry`, no libtorch inside.
+//!
+//! - [`Camera`]: a camera of any model, read from a camera file ([`Camera::load`]) or imported
+//!   from another tool's calibration ([`Camera::import_`]); [`Camera::project`] and
+//!   [`Camera::unproject`] map numpy `[N, 3]` rays to `[N, 2]` pixels and back, in Rust, one row
+//!   at a time, NaN rows where the model has no answer (the crate's `None`).
+//! - [`offsets`]: one layer's calibrated offsets as a float32 numpy `[2*kh*kw, H_out, W_out]`
+//!   array, from the same `compute_offsets` as `calibconv offsets` (so bit-identical to it).
+//!
+//! Conventions are the geometry crate's: pixels `[u, v]` = (column, row), top-left pixel centre
+//! at `(0, 0)`; rays `[x, y, z]` (x right, y down, z forward); layer pairs `(y, x)`; the input
+//! padding `(p_w, p_h)`, right and bottom.
+//!
+//! Errors: a missing file is `FileNotFoundError`, other I/O `OSError`, everything else
+//! (a camera file's field, an import, a shape, a layer geometry, a feature map too small for the
+//! field of view) `ValueError`, with the crate's message (file and field named).
+
+use std::path::PathBuf;
+
+use numpy::ndarray::{Array2, Array3};
+use numpy::{AllowTypeChange, IntoPyArray, PyArray2, PyArray3, PyArrayLikeDyn};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
+use pyo3::prelude::*;
+
+use calibconv_geometry::camera::import::{import_file, Format, ImportOptions, OpenCvModel};
+use calibconv_geometry::camera::{self, CameraModel, PixelConvention};
+use calibconv_geometry::kernel::{compute_offsets, InputFrame, LayerGeometry};
+use calibconv_geometry::Error;
+
+/// The geometry crate's error as the Python exception that fits it.
+fn py_err(e: Error) -> PyErr {
+    match &e {
+        Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
+        Error::Io { .. } => PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(e.to_string()),
+    }
+}
+
+/// A camera model (Kannala-Brandt, pinhole, radial-tangential, double sphere, unified, extended
+/// unified, Scaramuzza, equirectangular) with its image size and field of view.
+#[pyclass(name = "Camera", module = "calibconv", frozen)]
+struct Camera {
+    inner: camera::Camera,
+}
+
+/// A `[N, C]` float64 array from any array-like (lists, float32 arrays are converted), or a
+/// `ValueError` naming `what` and the shape it got.
+fn rows<'py>(
+    arr: &'py PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    what: &str,
+    cols: usize,
+) -> PyResult<numpy::ndarray::ArrayView2<'py, f64>> {
+    let view = arr.as_array();
+    let shape = view.shape().to_vec();
+    if shape.len() != 2 || shape[1] != cols {
+        return Err(PyValueError::new_err(format!(
+            "{what} must have shape [N, {cols}], got {shape:?}"
+        )));
+    }
+    view.into_dimensionality()
+        .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))
+}
+
+#[pymethods]
+impl Camera {
+    /// Reads a camera file (TOML, see `data/cameras/`).
+    ///
+    /// Raises `FileNotFoundError` for a missing file and `ValueError` for an invalid one (the
+    /// message names the file and the field).
+    #[staticmethod]
+    fn load(path: PathBuf) -> PyResult<Self> {
+        let inner = camera::load(&path).map_err(py_err)?;
+        Ok(Camera { inner })
+    }
+
+    /// Imports another tool's calibration: `tool` is `kalibr`, `opencv`, `basalt`, `colmap` or
+    /// `ocamcalib` (as `calibconv camera import --from`). `camera` picks one camera of a
+    /// multi-camera file (Kalibr `camN`, Basalt `intrinsics[N]`, COLMAP `CAMERA_ID`), `fov_deg`
+    /// sets a fisheye's field of view (default: the angle spanned by the image width),
+    /// `opencv_model` is `fisheye` or `standard` for OpenCV files that do not say.
+    #[staticmethod]
+    #[pyo3(signature = (tool, path, *, camera=None, fov_deg=None, opencv_model=None))]
+    fn import_(
+        tool: &str,
+        path: PathBuf,
+        camera: Option<usize>,
+        fov_deg: Option<f64>,
+        opencv_model: Option<&str>,
+    ) -> PyResult<Self> {
+        let format: Format = tool.parse().map_err(PyValueError::new_err)?;
+        let opencv_model = opencv_model
+            .map(|m| m.parse::<OpenCvModel>())
+            .transpose()
+            .map_err(PyValueError::new_err)?;
+        let options = ImportOptions {
+            camera,
+            fov_deg,
+            opencv_model,
+        };
+        let imported = import_file(format, &path, &options).map_err(py_err)?;
+        Ok(Camera {
+            inner: imported.camera,
+        })
+    }
+
+    /// Image width in pixels.
+    #[getter]
+    fn width(&self) -> usize {
+        self.inner.size()[0]
+    }
+
+    /// Image height in pixels.
+    #[getter]
+    fn height(&self) -> usize {
+        self.inner.size()[1]
+    }
+
+    /// Full horizontal field of view in degrees.
+    #[getter]
+    fn fov_deg(&self) -> f64 {
+        self.inner.fov().to_degrees()
+    }
+
+    /// The model's name in camera files (`model = "..."`).
+    #[getter]
+    fn model(&self) -> &'static str {
+        self.inner.model_name()
+    }
+
+    /// The camera as a camera file (TOML text, `calibconv camera import`'s format).
+    fn to_toml(&self) -> String {
+        camera::to_toml(&self.inner, &[], None, None)
+    }
+
+    /// Pixels `[N, 2]` (`u`, `v`) of rays `[N, 3]` (any length > 0); NaN rows outside the
+    /// model's domain.
+    fn project<'py>(
+        &self,
+        py: Python<'py>,
+        rays: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let rays = rows(&rays, "rays", 3)?;
+        let mut out = Array2::from_elem((rays.nrows(), 2), f64::NAN);
+        for (r, mut o) in rays.outer_iter().zip(out.outer_iter_mut()) {
+            if let Some(px) = self.inner.project([r[0], r[1], r[2]]) {
+                o[0] = px[0];
+                o[1] = px[1];
+            }
+        }
+        Ok(out.into_pyarray(py))
+    }
+
+    /// Unit rays `[N, 3]` of pixels `[N, 2]` (`u`, `v`); NaN rows where the model has no inverse.
+    fn unproject<'py>(
+        &self,
+        py: Python<'py>,
+        px: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let px = rows(&px, "pixels", 2)?;
+        let mut out = Array2::from_elem((px.nrows(), 3), f64::NAN);
+        for (p, mut o) in px.outer_iter().zip(out.outer_iter_mut()) {
+            if let Some(ray) = self.inner.unproject([p[0], p[1]]) {
+                o.assign(&numpy::ndarray::arr1(&ray));
+            }
+        }
+        Ok(out.into_pyarray(py))
+    }
+
+    fn __repr__(&self) -> String {
+        let [w, h] = self.inner.size();
+        format!(
+            "Camera(model={:?}, width={w}, height={h}, fov_deg={})",
+            self.inner.model_name(),
+            self.inner.fov().to_degrees()
+        )
+    }
+}
+
+/// A camera argument: a [`Camera`] or the path of a camera file.
+#[derive(FromPyObject)]
+enum CameraArg<'py> {
+    Camera(PyRef<'py, Camera>),
+    Path(PathBuf),
+}
+
+/// An int or a pair of ints (`(y, x)`), each at least `min`, or a `ValueError` naming `name`.
+fn pair(obj: &Bound<'_, PyAny>, name: &str, min: i64) -> PyResult<[usize; 2]> {
+    let v: [i64; 2] = match obj.extract::<i64>() {
+        Ok(n) => [n, n],
+        Err(_) => obj
+            .extract::<(i64, i64)>()
+            .map(|(a, b)| [a, b])
+            .map_err(|_| {
+                PyValueError::new_err(format!(
+                    "{name} must be an int or a pair of ints, got {obj}"
+                ))
+            })?,
+    };
+    if v.iter().any(|&n| n < min) {
+        return Err(PyValueError::new_err(format!(
+            "{name} must be >= {min}, got {v:?}"
+        )));
+    }
+    Ok(v.map(|n| n as usize))
+}
+
+/// One layer's calibrated offsets, float32 `[2*kh*kw, H_out, W_out]` (torchvision's layout:
+/// per tap, row-major, the pair `(dy, dx)`), for an input feature map `size = (H, W)`.
+///
+/// `kernel`, `stride`, `padding`, `dilation`: ints or `(y, x)` pairs as in `nn.Conv2d`;
+/// `padding=None` is "same", `dilation * (kernel - 1) // 2`. `input_padding = (p_w, p_h)`: pixels
+/// added right and bottom of the camera image to form the network input. `convention`:
+/// `half-pixel` or `paper` (how intrinsics scale to the feature map). Equal bit for bit to
+/// `calibconv offsets --camera F --size HxW --kernel K --stride S --dilation D
+/// --conv-padding P --padding PW,PH --convention C`.
+#[pyfunction]
+#[pyo3(signature = (cam, size, kernel=None, stride=None, padding=None, dilation=None,
+                    input_padding=(0, 0), convention="half-pixel"))]
+#[allow(clippy::too_many_arguments)]
+fn offsets<'py>(
+    py: Python<'py>,
+    cam: CameraArg<'py>,
+    size: &Bound<'py, PyAny>,
+    kernel: Option<&Bound<'py, PyAny>>,
+    stride: Option<&Bound<'py, PyAny>>,
+    padding: Option<&Bound<'py, PyAny>>,
+    dilation: Option<&Bound<'py, PyAny>>,
+    input_padding: (usize, usize),
+    convention: &str,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let loaded;
+    let cam = match &cam {
+        CameraArg::Camera(c) => &c.inner,
+        CameraArg::Path(p) => {
+            loaded = camera::load(p).map_err(py_err)?;
+            &loaded
+        }
+    };
+    let opt = |v: Option<&Bound<'py, PyAny>>, name: &str, default: usize, min: i64| match v {
+        Some(v) => pair(v, name, min),
+        None => Ok([default; 2]),
+    };
+    let input_size = pair(size, "size", 1)?;
+    let kernel = opt(kernel, "kernel", 3, 1)?;
+    let stride = opt(stride, "stride", 1, 1)?;
+    let dilation = opt(dilation, "dilation", 1, 1)?;
+    if kernel.iter().any(|k| k % 2 == 0) {
+        return Err(PyValueError::new_err(format!(
+            "kernel {kernel:?}: calibrated kernels need odd sizes"
+        )));
+    }
+    let padding = match padding {
+        Some(p) => pair(p, "padding", 0)?,
+        None => [0, 1].map(|a| dilation[a] * (kernel[a] - 1) / 2),
+    };
+    let convention: PixelConvention = convention.parse().map_err(PyValueError::new_err)?;
+    let geometry = LayerGeometry {
+        kernel,
+        stride,
+        padding,
+        dilation,
+    };
+    let frame = InputFrame {
+        padding: [input_padding.0, input_padding.1],
+        convention,
+    };
+    let off = py
+        .detach(|| compute_offsets(cam, input_size, &geometry, &frame))
+        .map_err(py_err)?;
+    let [c, ho, wo] = off.shape();
+    let arr = Array3::from_shape_vec((c, ho, wo), off.data)
+        .map_err(|e| PyValueError::new_err(format!("offsets: {e}")))?;
+    Ok(arr.into_pyarray(py))
+}
+
+/// The module: `Camera`, `offsets`, `MODELS` (the camera-file model names), `__version__`.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Camera>()?;
+    m.add_function(wrap_pyfunction!(offsets, m)?)?;
+    m.add("MODELS", camera::MODELS.to_vec())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
