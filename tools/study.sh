@@ -2,11 +2,17 @@
 # The study (issue "The study"): render the data sets, run the paper sweep and the field-of-view
 # series with the `study` profile, build the report into docs/study. Every step resumes where it
 # stopped (complete runs are skipped), so re-running this script after an interruption continues.
+# The FOV series runs lens-major in two stages (KB120, KB180, KB240 first, then KB150, KB210), so
+# that a study cut short still has every seed of the lenses it reached.
 # Wall-clock of each step is appended to results/study/wall.tsv (step, start, end, seconds).
+#   STUDY_BIN   the calibconv binary (default ./target/release/calibconv; a copy keeps a rebuild
+#               from changing the binary under a running study)
+#   STUDY_JOBS  runs at a time (default 2, one libtorch thread each)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${STUDY_BIN:-./target/release/calibconv}
 JOBS=${STUDY_JOBS:-2}
+PROFILE=experiments/paper/profiles/study.toml
 mkdir -p results/study
 step() {
   local name=$1; shift
@@ -17,5 +23,8 @@ step() {
 }
 step synth "$BIN" synth --config data/synth-study.toml
 step paper "$BIN" sweep experiments/paper --profile study --jobs "$JOBS" --threads 1
-step fov "$BIN" sweep experiments/fov --profile experiments/paper/profiles/study.toml --jobs "$JOBS" --threads 1
+step fov-a "$BIN" sweep experiments/fov --profile "$PROFILE" --jobs "$JOBS" --threads 1 \
+  --only kb120 --only kb180 --only kb240
+step fov-b "$BIN" sweep experiments/fov --profile "$PROFILE" --jobs "$JOBS" --threads 1 \
+  --only kb150 --only kb210
 step report "$BIN" report results/study --out docs/study
