@@ -305,11 +305,25 @@ impl Study {
     /// (`--jobs 2`) count once and the time between two sessions of a resumed study counts not at
     /// all. Runs without a time are left out (see [`Self::wall_seconds`] for their count).
     pub fn elapsed_seconds(&self) -> f64 {
-        let spans = self.runs.iter().filter_map(|r| {
+        self.elapsed_seconds_of(|_| true)
+    }
+
+    /// [`Self::elapsed_seconds`] of the runs `keep` selects.
+    pub fn elapsed_seconds_of(&self, keep: impl Fn(&RunInfo) -> bool) -> f64 {
+        let spans = self.runs.iter().filter(|r| keep(r)).filter_map(|r| {
             let (s, end) = (r.sweep_seconds?, r.sweep_finished?);
             Some((end - s, end))
         });
         union_length(spans)
+    }
+
+    /// Whether `run` has an evaluation on one of `datasets` (cell data set names).
+    pub fn evaluates_on(&self, run: &RunInfo, datasets: &[&str]) -> bool {
+        self.rows.iter().any(|row| {
+            row.seed == run.seed
+                && row.run == run.name
+                && datasets.contains(&row.cell.dataset.as_str())
+        })
     }
 
     /// Sum of the runs' own sweep wall seconds (every seed; parallel runs overlap, so this is

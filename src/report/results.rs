@@ -25,7 +25,7 @@ use super::tables::{
     cell_table, comparison_pairs, convention, difference_table, seed_values_csv,
     BOOTSTRAP_RESAMPLES,
 };
-use super::verdict::{markdown, verdict, Meta};
+use super::verdict::{markdown, verdict, Meta, CLAIM_DATASETS};
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Averaging, Metric, DEPTH_METRICS, SEGMENTATION_METRICS};
 use crate::io::{write_bytes_atomic, write_png_atomic};
@@ -181,14 +181,20 @@ fn verdict_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
         opts,
         out,
     } = *cx;
+    let in_claims = |r: &super::collect::RunInfo| study.evaluates_on(r, &CLAIM_DATASETS);
     let v = verdict(
         obs,
         &Meta {
             profile: study.profile(),
             test_images: study.test_images(),
             averaging: opts.averaging,
-            wall_s: study.elapsed_seconds(),
-            run_seconds: study.wall_seconds().0,
+            wall_s: study.elapsed_seconds_of(in_claims),
+            run_seconds: study
+                .runs
+                .iter()
+                .filter(|r| in_claims(r))
+                .filter_map(|r| r.sweep_seconds)
+                .sum(),
         },
     );
     let mut verdict_md = markdown(&v);
@@ -422,11 +428,15 @@ fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
         return Ok(String::new());
     }
     files.extend(written);
-    let mut md = String::from(
+    let others = cx
+        .study
+        .elapsed_seconds_of(|r| !cx.study.evaluates_on(r, &CLAIM_DATASETS));
+    let mut md = format!(
         "## Gain against the field of view\n\nFT rows, calibrated − standard per seed, mean and \
          95% Student-t interval over seeds, against the camera's field of view \
-         ([fov_gain.json](fov_gain.json)).\n\n| task | metric | FOV (deg) | data set | n | mean | \
-         95% CI |\n|---|---|---:|---|---:|---:|---|\n",
+         ([fov_gain.json](fov_gain.json)). Elapsed wall time of the runs outside the verdict's \
+         data sets (the field-of-view series): {others:.0} s.\n\n| task | metric | FOV (deg) | \
+         data set | n | mean | 95% CI |\n|---|---|---:|---|---:|---:|---|\n",
     );
     for r in &rows {
         let ci = r

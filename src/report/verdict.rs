@@ -31,6 +31,10 @@ use super::study::{
 };
 use crate::eval::metrics::{Averaging, Metric};
 
+/// The data sets the claims compare (a run that evaluates on none of them, such as a
+/// field-of-view series lens, has no part in the verdict, nor in its `wall_s`).
+pub const CLAIM_DATASETS: [&str; 2] = ["F195", "F165"];
+
 /// The sign a claim predicts for its difference.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -84,10 +88,11 @@ pub struct Verdict {
     /// Test images per evaluation.
     pub test_images: u64,
     pub averaging: Averaging,
-    /// Elapsed wall seconds of the runs (every seed): overlapping runs count once, the time
-    /// between the sessions of a resumed study not at all.
+    /// Elapsed wall seconds of the runs the claims read (every seed; runs that evaluate on a
+    /// [`CLAIM_DATASETS`] set): overlapping runs count once, the time between the sessions of a
+    /// resumed study not at all.
     pub wall_s: f64,
-    /// Sum of the runs' own wall seconds (more than `wall_s` when runs ran in parallel).
+    /// Sum of the same runs' own wall seconds (more than `wall_s` when runs ran in parallel).
     #[serde(default)]
     pub run_seconds: f64,
     pub claims: Vec<ClaimRow>,
@@ -371,7 +376,7 @@ pub fn markdown(v: &Verdict) -> String {
     let mut s = format!(
         "## Verdict on the paper's claims\n\nProfile `{}`, seeds {:?} (n = {}), {} test images \
          per evaluation, depth metrics averaged `{}` (segmentation: one confusion matrix over \
-         the test set), elapsed wall time of the runs {:.0} s (the sum of their own wall times: {:.0} s; parallel runs overlap). Differences are per seed, paired \
+         the test set), elapsed wall time of the runs on F195 and F165 {:.0} s (the sum of their own wall times: {:.0} s; parallel runs overlap). Differences are per seed, paired \
          (the same seed's rows, the same test images); mean and 95% Student-t interval over \
          seeds; ± is the half-width: the smallest difference this study could detect. \
          `holds` / `contradicted`: the whole interval on the predicted / the other side of 0.\n\n",
