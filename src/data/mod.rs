@@ -66,6 +66,26 @@ pub const CLASSES: [&str; 13] = [
     "table", "wall", "window",
 ];
 
+/// The id of the class `name`: its index in [`CLASSES`]. A `const` evaluated at compile time,
+/// so a constant naming no class is a compile error.
+pub const fn class_id(name: &str) -> u8 {
+    let mut i = 0;
+    while i < CLASSES.len() {
+        let (a, b) = (CLASSES[i].as_bytes(), name.as_bytes());
+        if a.len() == b.len() {
+            let mut k = 0;
+            while k < a.len() && a[k] == b[k] {
+                k += 1;
+            }
+            if k == a.len() {
+                return i as u8;
+            }
+        }
+        i += 1;
+    }
+    panic!("not a class name");
+}
+
 /// Number of semantic classes (unknown excluded).
 pub const NUM_CLASSES: usize = CLASSES.len();
 
