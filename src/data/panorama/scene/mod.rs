@@ -449,6 +449,7 @@ impl Builder {
 
 #[cfg(test)]
 mod tests {
+    use super::class::*;
     use super::*;
     use crate::data::CLASSES;
 

@@ -234,6 +234,7 @@ impl Builder {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::f64::consts::FRAC_PI_2;
 
     #[test]
     fn obb_overlap_and_distance() {
