@@ -51,6 +51,7 @@ pub mod loader;
 pub mod memory;
 pub mod panorama;
 pub mod rng;
+pub mod source;
 pub mod stanford;
 pub mod synth;
 pub mod toy;
