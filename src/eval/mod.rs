@@ -8,7 +8,6 @@
 //! moved to the requested device. Radial distances are measured in network-input pixels from
 //! the principal point of the camera scaled to the input ([`principal_point`]).
 
-pub mod loss;
 pub mod metrics;
 pub mod record;
 pub mod visual;
@@ -25,8 +24,9 @@ use crate::data::BatchSource;
 use crate::error::{Error, Result};
 use crate::io::{write_bytes_atomic, write_png_atomic};
 use crate::kernel::InputFrame;
+use crate::loss::{depth_loss, segmentation_loss, DepthLoss};
 use crate::nn::{Head, UNet};
-use loss::{depth_loss, segmentation_loss, DepthLoss};
+use crate::util::{fmt_f64, progress_bar};
 use metrics::{
     confusions, depth_sums, ClassCounts, DepthSums, MeanStd, Metric, RadialBins, SegScores,
     DEPTH_METRICS, SEGMENTATION_METRICS,
@@ -172,15 +172,6 @@ pub fn class_names(n: usize) -> Vec<String> {
     }
 }
 
-/// A float for CSV: empty for NaN (spreadsheets and pandas read it as missing).
-pub fn fmt_f64(v: f64) -> String {
-    if v.is_nan() {
-        String::new()
-    } else {
-        format!("{v}")
-    }
-}
-
 fn sanitize(id: &str) -> String {
     id.chars()
         .map(|c| {
@@ -232,24 +223,6 @@ fn add_vec(a: &mut [u64], b: &[u64]) {
     for (x, y) in a.iter_mut().zip(b) {
         *x += *y;
     }
-}
-
-/// A progress bar on stderr with position, rate and ETA (hidden when `enabled` is false or
-/// stderr is not a terminal).
-pub fn progress_bar(len: u64, label: &str, enabled: bool) -> indicatif::ProgressBar {
-    if !enabled {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{prefix:>6} [{bar:30}] {pos}/{len} {msg} ({elapsed} < {eta})",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    bar.set_prefix(label.to_string());
-    bar
 }
 
 /// Evaluates `model` on every sample of `source` (epoch 0, in the source's order).
