@@ -120,6 +120,7 @@ pub fn describe(cfg: &UNetConfig) -> String {
 #[cfg(test)]
 mod tests {
     use tch::nn::VarStore;
+    use tch::{Device, Kind, Tensor};
 
     use super::*;
     use crate::nn::{ConvKind, Head, UNet};

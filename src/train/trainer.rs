@@ -213,16 +213,21 @@ impl<'a, 'c> Trainer<'a, 'c> {
                 seen += 1;
                 self.stats.train_secs += t0.elapsed().as_secs_f64();
                 let step = self.step;
-                if step % self.cfg.log_every == 0 || step == self.total {
+                if step.is_multiple_of(self.cfg.log_every) || step == self.total {
                     self.log(lr, grad_norm, seen)?;
                 }
                 self.bar.set_position(step);
-                let validate_now =
-                    step == self.total || self.cfg.val_every.is_some_and(|n| step % n == 0);
+                let validate_now = step == self.total
+                    || self.cfg.val_every.is_some_and(|n| step.is_multiple_of(n));
                 if validate_now && self.val.is_some() {
                     self.validate()?;
                 }
-                if validate_now || self.cfg.checkpoint_every.is_some_and(|n| step % n == 0) {
+                if validate_now
+                    || self
+                        .cfg
+                        .checkpoint_every
+                        .is_some_and(|n| step.is_multiple_of(n))
+                {
                     self.checkpoint(seen)?;
                 }
                 if step >= self.total {
