@@ -25,7 +25,9 @@
 //!   procedural indoor panoramas, fisheye / perspective / rectified view synthesis, the
 //!   Stanford 2D-3D-S loader, on-disk data sets and their prefetching loader; in-memory
 //!   sources ([`data::memory`]) and a toy task ([`data::toy`]) for tests and smoke runs.
-//! - [`eval`]: losses on valid pixels, the paper's metrics (depth MRE..delta3, segmentation
+//! - [`loss`]: the training losses on valid pixels (depth L1 / BerHu, segmentation
+//!   cross-entropy), which the trainer minimises and the evaluator reports.
+//! - [`eval`]: the paper's metrics (depth MRE..delta3, segmentation
 //!   mIoU / mAcc from one confusion matrix over the set; depth per image, the authors'
 //!   convention, and pooled), radial bins around the principal point, prediction pictures, and
 //!   the evaluator that writes `metrics.json` / `per_image.json` (typed records) and CSV.
@@ -49,6 +51,8 @@
 //! - [`bench`](mod@bench): the benchmark `calibconv bench` runs (paired, interleaved timings of the
 //!   calibrated convolution against `conv2d`, and a peak-memory pass).
 //! - [`io`]: atomic file output used by every writer.
+//! - [`util`]: CSV number formatting and progress bars, shared by training, evaluation and
+//!   reports.
 
 pub mod bench;
 pub mod camera;
@@ -58,9 +62,11 @@ pub mod eval;
 pub mod experiment;
 pub mod io;
 pub mod kernel;
+pub mod loss;
 pub mod nn;
 pub mod ops;
 pub mod report;
 pub mod train;
+pub mod util;
 
 pub use error::{Error, Result};

@@ -10,9 +10,9 @@ use serde_json::json;
 use tch::{Device, Kind, Tensor};
 
 use calibconv::data::memory::MemorySource;
-use calibconv::eval::loss::DepthLoss;
 use calibconv::eval::metrics::{Averaging, Metric, RadialBins};
 use calibconv::eval::{evaluate_with, EvalOptions};
+use calibconv::loss::DepthLoss;
 use calibconv::nn::Head;
 use calibconv::report::results::{write_report_with, ReportOptions};
 use calibconv::report::verdict::{Outcome, Sign, Verdict};

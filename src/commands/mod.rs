@@ -20,6 +20,7 @@ use anyhow::{Context, Result};
 use tch::Tensor;
 
 use calibconv::camera::Camera;
+use calibconv::data::synth::DEFAULT_CAMERAS;
 use calibconv::io::{write_atomic, write_png_atomic};
 use calibconv::kernel::InputFrame;
 
@@ -49,9 +50,19 @@ fn frame(args: &FrameArgs) -> InputFrame {
     }
 }
 
+/// A camera file. A path that does not exist from the working directory but names one of the
+/// shipped cameras as the defaults spell them (`data/cameras/f195.toml`, ...) reads the copy
+/// embedded in the binary ([`DEFAULT_CAMERAS`], the same bytes `synth`'s embedded default
+/// reads), so a default `--camera` works outside the repository too.
 fn load_camera(path: &Path) -> Result<Camera> {
-    calibconv::camera::load(path)
-        .with_context(|| format!("cannot use camera file {}", path.display()))
+    let embedded = DEFAULT_CAMERAS
+        .iter()
+        .find(|(name, _)| Path::new(name) == path);
+    match embedded {
+        Some((name, text)) if !path.exists() => calibconv::camera::parse(text, Path::new(name)),
+        _ => calibconv::camera::load(path),
+    }
+    .with_context(|| format!("cannot use camera file {}", path.display()))
 }
 
 fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {

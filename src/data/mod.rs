@@ -51,6 +51,7 @@ pub mod loader;
 pub mod memory;
 pub mod panorama;
 pub mod rng;
+pub mod source;
 pub mod stanford;
 pub mod synth;
 pub mod toy;
@@ -65,6 +66,26 @@ pub const CLASSES: [&str; 13] = [
     "beam", "board", "bookcase", "ceiling", "chair", "clutter", "column", "door", "floor", "sofa",
     "table", "wall", "window",
 ];
+
+/// The id of the class `name`: its index in [`CLASSES`]. A `const` evaluated at compile time,
+/// so a constant naming no class is a compile error.
+pub const fn class_id(name: &str) -> u8 {
+    let mut i = 0;
+    while i < CLASSES.len() {
+        let (a, b) = (CLASSES[i].as_bytes(), name.as_bytes());
+        if a.len() == b.len() {
+            let mut k = 0;
+            while k < a.len() && a[k] == b[k] {
+                k += 1;
+            }
+            if k == a.len() {
+                return i as u8;
+            }
+        }
+        i += 1;
+    }
+    panic!("not a class name");
+}
 
 /// Number of semantic classes (unknown excluded).
 pub const NUM_CLASSES: usize = CLASSES.len();

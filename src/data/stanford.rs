@@ -30,7 +30,7 @@ use image::DynamicImage;
 use crate::data::format::{decode, Split};
 use crate::data::panorama::Panorama;
 use crate::data::rng::tag;
-use crate::data::synth::{assign_splits, PanoramaSource};
+use crate::data::source::{assign_splits, PanoramaSource};
 use crate::data::{CLASSES, UNKNOWN_PNG_LABEL};
 use crate::error::{Error, Result};
 

@@ -8,7 +8,7 @@
 //! moved to the requested device. Radial distances are measured in network-input pixels from
 //! the principal point of the camera scaled to the input ([`principal_point`]).
 
-pub mod loss;
+mod accumulate;
 pub mod metrics;
 pub mod record;
 pub mod visual;
@@ -25,13 +25,12 @@ use crate::data::BatchSource;
 use crate::error::{Error, Result};
 use crate::io::{write_bytes_atomic, write_png_atomic};
 use crate::kernel::InputFrame;
+use crate::loss::DepthLoss;
 use crate::nn::{Head, UNet};
-use loss::{depth_loss, segmentation_loss, DepthLoss};
-use metrics::{
-    confusions, depth_sums, ClassCounts, DepthSums, MeanStd, Metric, RadialBins, SegScores,
-    DEPTH_METRICS, SEGMENTATION_METRICS,
-};
-use record::{metric_map as record_map, SampleRecord, METRICS_FILE, PER_IMAGE_FILE};
+use crate::util::{fmt_f64, progress_bar};
+use accumulate::{DepthTask, Pool, SegTask, Task};
+use metrics::{Metric, RadialBins, SegScores};
+use record::{SampleRecord, METRICS_FILE, PER_IMAGE_FILE};
 
 /// How to evaluate.
 #[derive(Clone, Debug)]
@@ -172,15 +171,6 @@ pub fn class_names(n: usize) -> Vec<String> {
     }
 }
 
-/// A float for CSV: empty for NaN (spreadsheets and pandas read it as missing).
-pub fn fmt_f64(v: f64) -> String {
-    if v.is_nan() {
-        String::new()
-    } else {
-        format!("{v}")
-    }
-}
-
 fn sanitize(id: &str) -> String {
     id.chars()
         .map(|c| {
@@ -211,47 +201,6 @@ pub fn principal_point(
         .project([0.0, 0.0, 1.0])
 }
 
-/// Accumulates one task's statistics.
-enum Acc {
-    Depth {
-        total: DepthSums,
-        bins: Vec<DepthSums>,
-        bin_stats: Vec<[MeanStd; 7]>,
-        image_stats: [MeanStd; 7],
-    },
-    Seg {
-        classes: usize,
-        total: Vec<u64>,
-        bins: Vec<Vec<u64>>,
-        bin_stats: Vec<[MeanStd; 3]>,
-        image_stats: [MeanStd; 3],
-    },
-}
-
-fn add_vec(a: &mut [u64], b: &[u64]) {
-    for (x, y) in a.iter_mut().zip(b) {
-        *x += *y;
-    }
-}
-
-/// A progress bar on stderr with position, rate and ETA (hidden when `enabled` is false or
-/// stderr is not a terminal).
-pub fn progress_bar(len: u64, label: &str, enabled: bool) -> indicatif::ProgressBar {
-    if !enabled {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{prefix:>6} [{bar:30}] {pos}/{len} {msg} ({elapsed} < {eta})",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    bar.set_prefix(label.to_string());
-    bar
-}
-
 /// Evaluates `model` on every sample of `source` (epoch 0, in the source's order).
 pub fn evaluate(model: &UNet, source: &dyn BatchSource, opts: &EvalOptions) -> Result<Evaluation> {
     let size = model.input_size();
@@ -274,168 +223,57 @@ pub fn evaluate_with(
     opts: &EvalOptions,
     predict: impl Fn(&Tensor) -> Result<Tensor>,
 ) -> Result<Evaluation> {
+    match head {
+        Head::Depth => evaluate_task(&DepthTask, head, source, opts, predict),
+        Head::Segmentation { classes } => {
+            let task = SegTask {
+                classes: classes as usize,
+            };
+            evaluate_task(&task, head, source, opts, predict)
+        }
+    }
+}
+
+/// [`evaluate_with`] for one task: every batch through `predict`, its statistics pooled per
+/// image and radial bin, the loss weighted by valid pixels.
+fn evaluate_task<T: Task>(
+    task: &T,
+    head: Head,
+    source: &dyn BatchSource,
+    opts: &EvalOptions,
+    predict: impl Fn(&Tensor) -> Result<Tensor>,
+) -> Result<Evaluation> {
     let start = Instant::now();
-    let size = source.input_size();
     let n_bins = opts.bins.len();
     let groups = n_bins + 1; // + overflow
-    let bin_map = opts.bins.index_map(size).to_device(opts.device);
-    let mut acc = match head {
-        Head::Depth => Acc::Depth {
-            total: DepthSums::default(),
-            bins: vec![DepthSums::default(); n_bins],
-            bin_stats: vec![Default::default(); n_bins],
-            image_stats: Default::default(),
-        },
-        Head::Segmentation { classes } => {
-            let c = classes as usize;
-            Acc::Seg {
-                classes: c,
-                total: vec![0; c * c],
-                bins: vec![vec![0; c * c]; n_bins],
-                bin_stats: vec![Default::default(); n_bins],
-                image_stats: Default::default(),
-            }
-        }
-    };
-    let (mut images, mut pixels, mut loss_sum, mut loss_weight) = (0u64, 0u64, 0.0f64, 0.0f64);
-    let mut bin_pixels = vec![0u64; n_bins];
-    let mut bin_images = vec![0u64; n_bins];
+    let bin_map = opts
+        .bins
+        .index_map(source.input_size())
+        .to_device(opts.device);
+    let mut pool = Pool::new(task, n_bins);
+    let (mut images, mut loss_sum, mut loss_weight) = (0u64, 0.0f64, 0.0f64);
     let mut panels = Vec::new();
-    let mut samples = Vec::new();
     let bar = progress_bar(source.len() as u64, "eval", opts.progress);
     let _guard = tch::no_grad_guard();
     for batch in source.batches(0, 0) {
         let batch = batch?;
         let b = batch.image.size()[0];
-        let image = batch.image.to_device(opts.device);
-        let mask = batch.mask.to_device(opts.device);
-        let out = predict(&image)?;
+        let out = predict(&batch.image.to_device(opts.device))?;
         let group = (Tensor::arange(b, (Kind::Int64, opts.device)).view([-1, 1, 1])
             * groups as i64)
             + bin_map.unsqueeze(0);
-        match &mut acc {
-            Acc::Depth {
-                total,
-                bins,
-                bin_stats,
-                image_stats,
-            } => {
-                let gt = batch.depth.to_device(opts.device);
-                let valid = mask.logical_and(&gt.gt(0.0));
-                let n_valid = valid.sum(Kind::Int64).int64_value(&[]) as f64;
-                let l = depth_loss(&out, &gt, &mask, opts.depth_loss)?.double_value(&[]);
-                if n_valid > 0.0 {
-                    loss_sum += l * n_valid;
-                    loss_weight += n_valid;
-                }
-                let sums = depth_sums(&out, &gt, &valid, &group.unsqueeze(1), b as usize * groups)?;
-                for (i, img) in sums.chunks(groups).enumerate() {
-                    let mut whole = DepthSums::default();
-                    img.iter().for_each(|s| whole.add(s));
-                    total.add(&whole);
-                    pixels += whole.count as u64;
-                    samples.push(SampleRecord {
-                        id: batch.ids[i].clone(),
-                        pixels: whole.count as u64,
-                        metrics: record_map(DEPTH_METRICS.iter().copied().zip(whole.metrics())),
-                        depth_sums: Some(whole),
-                        class_counts: None,
-                    });
-                    if whole.count > 0.0 {
-                        for (st, v) in image_stats.iter_mut().zip(whole.metrics()) {
-                            st.push(v);
-                        }
-                    }
-                    for k in 0..n_bins {
-                        if img[k].count > 0.0 {
-                            bins[k].add(&img[k]);
-                            bin_pixels[k] += img[k].count as u64;
-                            bin_images[k] += 1;
-                            for (st, v) in bin_stats[k].iter_mut().zip(img[k].metrics()) {
-                                st.push(v);
-                            }
-                        }
-                    }
-                }
-                for i in 0..b {
-                    if panels.len() < opts.panels {
-                        panels.push((
-                            batch.ids[i as usize].clone(),
-                            visual::depth_panel(
-                                &batch.image.get(i),
-                                &batch.depth.get(i),
-                                &out.get(i).to_device(Device::Cpu),
-                                &batch.mask.get(i),
-                            )?,
-                        ));
-                    }
-                }
-            }
-            Acc::Seg {
-                classes,
-                total,
-                bins,
-                bin_stats,
-                image_stats,
-            } => {
-                let labels = batch.labels.to_device(opts.device);
-                let c = *classes;
-                let valid = labels.ge(0).logical_and(&labels.lt(c as i64));
-                let n_valid = valid.sum(Kind::Int64).int64_value(&[]) as f64;
-                let l = segmentation_loss(&out, &labels)?.double_value(&[]);
-                if n_valid > 0.0 {
-                    loss_sum += l * n_valid;
-                    loss_weight += n_valid;
-                }
-                let pred = out.argmax(1, false);
-                let cms = confusions(&pred, &labels, &group, c, b as usize * groups)?;
-                for (i, img) in cms.chunks(groups).enumerate() {
-                    let mut whole = vec![0u64; c * c];
-                    img.iter().for_each(|cm| add_vec(&mut whole, cm));
-                    add_vec(total, &whole);
-                    let n: u64 = whole.iter().sum();
-                    pixels += n;
-                    let counts = ClassCounts::from_confusion(&whole, c);
-                    let own = SegScores::from_counts(&counts).metrics();
-                    if n > 0 {
-                        for (st, v) in image_stats.iter_mut().zip(own) {
-                            st.push(v);
-                        }
-                    }
-                    samples.push(SampleRecord {
-                        id: batch.ids[i].clone(),
-                        pixels: n,
-                        metrics: record_map(SEGMENTATION_METRICS.iter().copied().zip(own)),
-                        depth_sums: None,
-                        class_counts: Some(counts),
-                    });
-                    for k in 0..n_bins {
-                        let n: u64 = img[k].iter().sum();
-                        if n > 0 {
-                            add_vec(&mut bins[k], &img[k]);
-                            bin_pixels[k] += n;
-                            bin_images[k] += 1;
-                            let s = SegScores::from_confusion(&img[k], c).metrics();
-                            for (st, v) in bin_stats[k].iter_mut().zip(s) {
-                                st.push(v);
-                            }
-                        }
-                    }
-                }
-                let pred_cpu = pred.to_device(Device::Cpu);
-                for i in 0..b {
-                    if panels.len() < opts.panels {
-                        panels.push((
-                            batch.ids[i as usize].clone(),
-                            visual::segmentation_panel(
-                                &batch.image.get(i),
-                                &batch.labels.get(i),
-                                &pred_cpu.get(i),
-                                &batch.mask.get(i),
-                            )?,
-                        ));
-                    }
-                }
+        let stats = task.batch(&out, &batch, opts, &group, b as usize * groups)?;
+        if stats.valid > 0.0 {
+            loss_sum += stats.loss * stats.valid;
+            loss_weight += stats.valid;
+        }
+        for (i, img) in stats.sums.chunks(groups).enumerate() {
+            pool.add_image(task, &batch.ids[i], img);
+        }
+        for i in 0..b {
+            if panels.len() < opts.panels {
+                let panel = task.panel(&batch, &stats.shown, i)?;
+                panels.push((batch.ids[i as usize].clone(), panel));
             }
         }
         images += b as u64;
@@ -452,92 +290,18 @@ pub fn evaluate_with(
     } else {
         f64::NAN
     };
-    let row = |k: usize, values: Vec<(Metric, f64, f64, f64)>| RadialRow {
-        bin: k,
-        r_lo: opts.bins.edges[k],
-        r_hi: opts.bins.edges[k + 1],
-        pixels: bin_pixels[k],
-        images: bin_images[k],
-        values,
-    };
-    let (metrics, per_image_mean, classes, radial) = match acc {
-        Acc::Depth {
-            total,
-            bins,
-            bin_stats,
-            image_stats,
-        } => {
-            let m: Vec<(Metric, f64)> =
-                DEPTH_METRICS.iter().copied().zip(total.metrics()).collect();
-            let pim = DEPTH_METRICS
-                .iter()
-                .zip(&image_stats)
-                .map(|(m, s)| (*m, s.mean()))
-                .collect();
-            let radial = (0..n_bins)
-                .map(|k| {
-                    let pooled = bins[k].metrics();
-                    row(
-                        k,
-                        DEPTH_METRICS
-                            .iter()
-                            .enumerate()
-                            .map(|(i, m)| {
-                                (*m, pooled[i], bin_stats[k][i].mean(), bin_stats[k][i].std())
-                            })
-                            .collect(),
-                    )
-                })
-                .collect();
-            (m, pim, None, radial)
-        }
-        Acc::Seg {
-            classes,
-            total,
-            bins,
-            bin_stats,
-            image_stats,
-        } => {
-            let scores = SegScores::from_confusion(&total, classes);
-            let m: Vec<(Metric, f64)> = SEGMENTATION_METRICS
-                .iter()
-                .copied()
-                .zip(scores.metrics())
-                .collect();
-            let pim = SEGMENTATION_METRICS
-                .iter()
-                .zip(&image_stats)
-                .map(|(m, s)| (*m, s.mean()))
-                .collect();
-            let radial = (0..n_bins)
-                .map(|k| {
-                    let pooled = SegScores::from_confusion(&bins[k], classes).metrics();
-                    row(
-                        k,
-                        SEGMENTATION_METRICS
-                            .iter()
-                            .enumerate()
-                            .map(|(i, m)| {
-                                (*m, pooled[i], bin_stats[k][i].mean(), bin_stats[k][i].std())
-                            })
-                            .collect(),
-                    )
-                })
-                .collect();
-            (m, pim, Some(scores), radial)
-        }
-    };
+    let (metrics, per_image_mean, radial) = pool.finish(task, &opts.bins.edges);
     let mut all = vec![(Metric::Loss, loss)];
     all.extend(metrics);
     Ok(Evaluation {
         head,
         images,
-        pixels,
+        pixels: pool.pixels,
         metrics: all,
         per_image_mean,
-        classes,
+        classes: task.class_scores(&pool.total),
         radial,
-        samples,
+        samples: pool.samples,
         panels,
         seconds: start.elapsed().as_secs_f64(),
     })

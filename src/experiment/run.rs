@@ -22,7 +22,7 @@ use crate::data::BatchSource;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Metric, RadialBins, ALL_METRICS};
 use crate::eval::record::MetricsRecord;
-use crate::eval::{self, fmt_f64, principal_point, EvalOptions, Evaluation};
+use crate::eval::{self, principal_point, EvalOptions, Evaluation};
 use crate::io::write_bytes_atomic;
 use crate::nn::UNet;
 use crate::report::csv::CsvLog;
@@ -30,6 +30,7 @@ use crate::report::plots;
 use crate::report::tensorboard::TensorBoard;
 use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
 use crate::train::{self, Reporter, TrainConfig, TrainRun, TrainSummary};
+use crate::util::fmt_f64;
 
 /// How to run.
 #[derive(Clone, Copy)]

@@ -12,9 +12,9 @@ use std::path::{Path, PathBuf};
 use image::RgbImage;
 
 use crate::error::{Error, Result};
-use crate::eval::fmt_f64;
 use crate::io::write_bytes_atomic;
 use crate::train::Reporter;
+use crate::util::fmt_f64;
 
 /// CSV files in a folder, one per split.
 #[derive(Debug)]

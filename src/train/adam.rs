@@ -21,7 +21,8 @@ use serde::{Deserialize, Serialize};
 use tch::nn::VarStore;
 use tch::Tensor;
 
-use super::checkpoint::{write_tensors, TensorFile};
+use super::pytorch::dropped_on_import;
+use super::tensors::{write_tensors, TensorFile};
 use crate::error::{Error, Result};
 
 /// Optimiser settings.
@@ -182,7 +183,7 @@ impl Adam {
             targets.push((format!("m.{name}"), self.m[i].shallow_clone()));
             targets.push((format!("v.{name}"), self.v[i].shallow_clone()));
         }
-        file.copy_into(&targets)?;
+        file.copy_into(&targets, dropped_on_import)?;
         self.t = t;
         Ok(meta)
     }

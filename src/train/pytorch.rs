@@ -22,7 +22,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
-use super::checkpoint::{self, TensorFile};
+use super::tensors::{self, TensorFile};
 use crate::error::{Error, Result};
 use crate::nn::{Head, UNetConfig, UpMode};
 
@@ -282,7 +282,7 @@ pub fn export(checkpoint: &Path, out: &Path) -> Result<Exported> {
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
     .collect();
-    checkpoint::write_tensors(out, &state, meta)?;
+    tensors::write_tensors(out, &state, meta)?;
     Ok(Exported {
         architecture,
         keys: state.len(),
@@ -303,7 +303,7 @@ mod tests {
             let cfg = UNetConfig::preset(preset, Head::Segmentation { classes: 2 }).unwrap();
             let vs = VarStore::new(Device::Cpu);
             UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [64, 64]).unwrap();
-            let state = to_state_dict(&checkpoint::named_variables(&vs)).unwrap();
+            let state = to_state_dict(&tensors::named_variables(&vs)).unwrap();
             // milesial/Pytorch-UNet UNet(3, 2): 118 keys (transposed), 110 (bilinear).
             let want = if preset == "classic" { 118 } else { 110 };
             assert_eq!(state.len(), want, "{preset}");

@@ -1,0 +1,228 @@
+//! What sits flat on the walls (step 2 of the [module docs](super)): doors, windows and boards,
+//! each on a free stretch of wall that faces the room.
+
+use super::class::*;
+use super::placement::Obb;
+use super::Builder;
+use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+
+impl Builder {
+    pub(super) fn doors(&mut self) {
+        let n = self.rng.int(1, 3);
+        for _ in 0..n {
+            let double = self.rng.chance(0.2);
+            let width = if double {
+                self.rng.uniform(1.5, 1.9)
+            } else {
+                self.rng.uniform(0.82, 1.0)
+            };
+            let top = self.rng.uniform(2.0, 2.3).min(self.height - 0.15);
+            let frame_w = 0.06;
+            let Some((f, wi, s0)) = self.on_wall(width + 2.0 * frame_w, [0.0, top + frame_w], 20)
+            else {
+                continue;
+            };
+            // Keep the doorway clear of furniture: 0.9 m in front of it.
+            let w = self.walls[wi];
+            let [x, z] = w.point(s0 + width / 2.0 + frame_w, 0.45);
+            self.floor_used.push(Obb {
+                c: [x, z],
+                h: [width / 2.0 + frame_w, 0.45],
+                yaw: w.yaw(),
+            });
+            let r = &mut self.rng;
+            let leaf = *r.pick(&[
+                srgb(140, 92, 52),
+                srgb(190, 150, 100),
+                srgb(150, 155, 162),
+                srgb(62, 82, 122),
+                srgb(222, 220, 214),
+                srgb(140, 42, 36),
+            ]);
+            let leaf = vary(leaf, r, 0.06);
+            let leaf_mat = self.material(
+                leaf,
+                tint(leaf, 0.8),
+                Pattern::Planks {
+                    width: width as f32,
+                    length: 2.4,
+                },
+            );
+            let frame_colour = if self.rng.chance(0.5) {
+                tint(leaf, 0.75)
+            } else {
+                vary(srgb(200, 200, 198), &mut self.rng, 0.05)
+            };
+            let frame_mat = self.plain(frame_colour, 0.05);
+            let handle_mat = self.plain(srgb(180, 180, 185), 0.02);
+            self.begin();
+            let (hw, fw) = (width / 2.0, frame_w);
+            // Leaf: 4 cm thick, 2 cm proud of the wall; frame: 3 cm proud.
+            self.cuboid(&f, [0.0, 0.0], [0.0, top], [hw, 0.02], DOOR, leaf_mat);
+            self.cuboid(
+                &f,
+                [-hw - fw / 2.0, 0.0],
+                [0.0, top + fw],
+                [fw / 2.0, 0.03],
+                DOOR,
+                frame_mat,
+            );
+            self.cuboid(
+                &f,
+                [hw + fw / 2.0, 0.0],
+                [0.0, top + fw],
+                [fw / 2.0, 0.03],
+                DOOR,
+                frame_mat,
+            );
+            self.cuboid(
+                &f,
+                [0.0, 0.0],
+                [top, top + fw],
+                [hw + fw, 0.03],
+                DOOR,
+                frame_mat,
+            );
+            let handles: &[f64] = if double { &[-0.08, 0.08] } else { &[hw - 0.1] };
+            for &hx in handles {
+                self.cuboid(&f, [hx, 0.04], [1.0, 1.04], [0.06, 0.02], DOOR, handle_mat);
+            }
+            self.end();
+        }
+    }
+
+    pub(super) fn windows(&mut self) {
+        let corridor = self.rects.len() == 1
+            && (self.rects[0].x1 - self.rects[0].x0).min(self.rects[0].z1 - self.rects[0].z0) < 2.7;
+        let n = if corridor {
+            self.rng.int(0, 1)
+        } else {
+            self.rng.int(0, 4)
+        };
+        let frame_colour = *self.rng.pick(&[
+            srgb(232, 232, 230),
+            srgb(160, 165, 172),
+            srgb(40, 40, 42),
+            srgb(120, 82, 50),
+        ]);
+        for _ in 0..n {
+            let width = self.rng.uniform(0.8, 2.6);
+            let sill = self.rng.uniform(0.7, 1.1);
+            let top = (sill + self.rng.uniform(1.0, 1.8)).min(self.height - 0.2);
+            if top - sill < 0.6 {
+                continue;
+            }
+            let Some((f, _, _)) = self.on_wall(width, [sill, top], 20) else {
+                continue;
+            };
+            let panes = [
+                ((width / 0.7).round() as u8).clamp(1, 4),
+                self.rng.int(1, 2) as u8,
+            ];
+            let mat = self.material(
+                [1.0; 3],
+                frame_colour,
+                Pattern::Window {
+                    half: [(width / 2.0) as f32, ((top - sill) / 2.0) as f32],
+                    panes,
+                },
+            );
+            let sill_mat = self.plain(tint(self.wall_colour, 0.95), 0.05);
+            self.begin();
+            self.cuboid(
+                &f,
+                [0.0, 0.0],
+                [sill, top],
+                [width / 2.0, 0.02],
+                WINDOW,
+                mat,
+            );
+            // The sill belongs to the wall.
+            self.cuboid(
+                &f,
+                [0.0, 0.06],
+                [sill - 0.04, sill],
+                [width / 2.0 + 0.05, 0.06],
+                WALL,
+                sill_mat,
+            );
+            self.end();
+        }
+    }
+
+    pub(super) fn boards(&mut self) {
+        let n = self.rng.int(0, 2);
+        for _ in 0..n {
+            let width = self.rng.uniform(1.0, 3.0);
+            let bottom = self.rng.uniform(0.8, 1.05);
+            let top = (bottom + self.rng.uniform(0.8, 1.3)).min(self.height - 0.3);
+            let Some((f, _, _)) = self.on_wall(width, [bottom, top], 20) else {
+                continue;
+            };
+            let r = &mut self.rng;
+            let kind = r.below(3);
+            let (base, ink, pattern) = match kind {
+                0 => (
+                    vary(srgb(242, 242, 240), r, 0.02),
+                    *r.pick(&[srgb(30, 60, 160), srgb(170, 30, 30), srgb(25, 25, 25)]),
+                    Pattern::Board,
+                ),
+                1 => (
+                    vary(srgb(38, 58, 48), r, 0.06),
+                    srgb(215, 215, 205),
+                    Pattern::Board,
+                ),
+                _ => (
+                    vary(srgb(182, 142, 92), r, 0.06),
+                    srgb(182, 142, 92),
+                    Pattern::Fabric {
+                        freq: 60.0,
+                        amp: 0.2,
+                    },
+                ),
+            };
+            let mat = self.material(base, ink, pattern);
+            let rim = self.plain(srgb(175, 178, 182), 0.03);
+            self.begin();
+            let (hw, t) = (width / 2.0, 0.025);
+            self.cuboid(&f, [0.0, 0.0], [bottom, top], [hw, 0.015], BOARD, mat);
+            self.cuboid(
+                &f,
+                [0.0, 0.0],
+                [bottom - t, bottom],
+                [hw + t, 0.02],
+                BOARD,
+                rim,
+            );
+            self.cuboid(&f, [0.0, 0.0], [top, top + t], [hw + t, 0.02], BOARD, rim);
+            self.cuboid(
+                &f,
+                [-hw - t / 2.0, 0.0],
+                [bottom, top],
+                [t / 2.0, 0.02],
+                BOARD,
+                rim,
+            );
+            self.cuboid(
+                &f,
+                [hw + t / 2.0, 0.0],
+                [bottom, top],
+                [t / 2.0, 0.02],
+                BOARD,
+                rim,
+            );
+            // A marker tray on whiteboards.
+            if kind == 0 {
+                self.cuboid(
+                    &f,
+                    [0.0, 0.04],
+                    [bottom - 0.05, bottom - 0.03],
+                    [hw * 0.6, 0.04],
+                    BOARD,
+                    rim,
+                );
+            }
+            self.end();
+        }
+    }
+}

@@ -1,0 +1,315 @@
+//! Safetensors files: named tensors written atomically with string metadata, read back
+//! ([`TensorFile`]), and the metadata of calibconv checkpoints ([`CheckpointInfo`]). The file
+//! layer that [`super::checkpoint`] (calibconv checkpoints), [`super::pytorch`] (PyTorch
+//! `state_dict`s) and [`super::adam`] (optimiser state) share.
+
+use std::borrow::Cow;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::{Dtype, SafeTensors, View};
+use serde::{Deserialize, Serialize};
+use tch::nn::VarStore;
+use tch::{Device, Kind, Tensor};
+
+use crate::error::{Error, Result};
+use crate::io::write_atomic;
+use crate::nn::UNetConfig;
+
+/// Value of the `format` metadata key of calibconv model checkpoints.
+pub const FORMAT: &str = "calibconv-checkpoint";
+/// Version of [`CheckpointInfo`]'s layout.
+pub const FORMAT_VERSION: u32 = 1;
+/// How many mismatching names an error lists per category before "and N more".
+const MAX_LISTED: usize = 8;
+
+/// What a calibconv checkpoint says about itself (the `calibconv` metadata key, JSON).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointInfo {
+    /// [`FORMAT`].
+    pub format: String,
+    /// [`FORMAT_VERSION`].
+    pub version: u32,
+    /// The architecture.
+    pub model: UNetConfig,
+    /// Network input `[H, W]` the weights were trained at.
+    pub input_size: [i64; 2],
+    /// `standard` or `calibrated`.
+    pub kernel: String,
+    /// The camera file the network was built for, and its text.
+    pub camera_file: Option<PathBuf>,
+    pub camera_toml: Option<String>,
+    /// Input padding `[p_w, p_h]` of the camera image, camera pixels.
+    pub padding: [usize; 2],
+    /// The experiment that wrote it.
+    pub experiment: Option<String>,
+    /// Optimiser steps done.
+    pub step: u64,
+    /// Where the data order continues: epoch, and batches of it already used.
+    pub epoch: u64,
+    pub batch_in_epoch: u64,
+    /// Metrics at this step (validation metrics, the last training loss), finite values only.
+    pub metrics: BTreeMap<String, f64>,
+    /// `git describe`-like revision of the code that wrote it, if known.
+    pub git: Option<String>,
+}
+
+/// An owned tensor buffer for the `safetensors` writer.
+struct Buffer {
+    dtype: Dtype,
+    shape: Vec<usize>,
+    data: Vec<u8>,
+}
+
+impl View for &Buffer {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Borrowed(&self.data)
+    }
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
+}
+
+fn dtype_of(kind: Kind) -> Option<Dtype> {
+    Some(match kind {
+        Kind::Float => Dtype::F32,
+        Kind::Double => Dtype::F64,
+        Kind::Half => Dtype::F16,
+        Kind::BFloat16 => Dtype::BF16,
+        Kind::Int64 => Dtype::I64,
+        Kind::Int => Dtype::I32,
+        Kind::Uint8 => Dtype::U8,
+        Kind::Bool => Dtype::BOOL,
+        _ => return None,
+    })
+}
+
+fn kind_of(dtype: Dtype) -> Option<Kind> {
+    Some(match dtype {
+        Dtype::F32 => Kind::Float,
+        Dtype::F64 => Kind::Double,
+        Dtype::F16 => Kind::Half,
+        Dtype::BF16 => Kind::BFloat16,
+        Dtype::I64 => Kind::Int64,
+        Dtype::I32 => Kind::Int,
+        Dtype::U8 => Kind::Uint8,
+        Dtype::BOOL => Kind::Bool,
+        _ => return None,
+    })
+}
+
+pub(crate) fn ckpt_error(path: &Path, message: impl Into<String>) -> Error {
+    Error::Checkpoint {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// Writes named tensors and string metadata to `path` atomically (temporary file + rename).
+pub fn write_tensors(
+    path: &Path,
+    tensors: &[(String, Tensor)],
+    metadata: HashMap<String, String>,
+) -> Result<()> {
+    let mut buffers = Vec::with_capacity(tensors.len());
+    for (name, t) in tensors {
+        let t = t.detach().to_device(Device::Cpu).contiguous();
+        let dtype = dtype_of(t.kind()).ok_or_else(|| {
+            ckpt_error(
+                path,
+                format!("tensor `{name}` has unsupported kind {:?}", t.kind()),
+            )
+        })?;
+        let numel = t.numel();
+        let mut data = vec![0u8; numel * t.kind().elt_size_in_bytes()];
+        t.f_copy_data_u8(&mut data, numel)?;
+        let shape = t.size().iter().map(|&s| s as usize).collect();
+        buffers.push((name.clone(), Buffer { dtype, shape, data }));
+    }
+    let views: Vec<(&str, &Buffer)> = buffers.iter().map(|(n, b)| (n.as_str(), b)).collect();
+    write_atomic(path, |tmp| {
+        safetensors::serialize_to_file(views, &Some(metadata), tmp)
+            .map_err(|e| ckpt_error(path, e.to_string()))
+    })
+}
+
+/// A safetensors file read into memory.
+pub struct TensorFile {
+    path: PathBuf,
+    bytes: Vec<u8>,
+}
+
+impl TensorFile {
+    /// Reads `path`.
+    pub fn open(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let file = TensorFile {
+            path: path.to_path_buf(),
+            bytes,
+        };
+        file.parse()?;
+        Ok(file)
+    }
+
+    fn parse(&self) -> Result<SafeTensors<'_>> {
+        SafeTensors::deserialize(&self.bytes)
+            .map_err(|e| ckpt_error(&self.path, format!("not a readable safetensors file: {e}")))
+    }
+
+    /// The string metadata (empty if none).
+    pub fn metadata(&self) -> Result<HashMap<String, String>> {
+        let (_, meta) = SafeTensors::read_metadata(&self.bytes)
+            .map_err(|e| ckpt_error(&self.path, e.to_string()))?;
+        Ok(meta.metadata().clone().unwrap_or_default())
+    }
+
+    /// The calibconv [`CheckpointInfo`], or `None` for a file without it (a foreign state dict).
+    pub fn info(&self) -> Result<Option<CheckpointInfo>> {
+        match self.metadata()?.get("calibconv") {
+            None => Ok(None),
+            Some(json) => {
+                let info: CheckpointInfo = serde_json::from_str(json).map_err(|e| {
+                    ckpt_error(&self.path, format!("unreadable `calibconv` metadata: {e}"))
+                })?;
+                if info.format != FORMAT || info.version != FORMAT_VERSION {
+                    return Err(ckpt_error(
+                        &self.path,
+                        format!(
+                            "format {} version {}, this build reads {FORMAT} version \
+                             {FORMAT_VERSION}",
+                            info.format, info.version
+                        ),
+                    ));
+                }
+                Ok(Some(info))
+            }
+        }
+    }
+
+    /// Names and shapes of the tensors in the file, sorted by name.
+    pub fn shapes(&self) -> Result<BTreeMap<String, Vec<i64>>> {
+        Ok(self
+            .parse()?
+            .tensors()
+            .into_iter()
+            .map(|(n, v)| (n, v.shape().iter().map(|&s| s as i64).collect()))
+            .collect())
+    }
+
+    /// Every tensor of the file as a CPU tensor of its own dtype, sorted by name.
+    pub fn tensors(&self) -> Result<Vec<(String, Tensor)>> {
+        let st = self.parse()?;
+        let mut out = Vec::new();
+        for (name, view) in st.tensors() {
+            let kind = kind_of(view.dtype()).ok_or_else(|| {
+                ckpt_error(
+                    &self.path,
+                    format!("`{name}`: unsupported dtype {:?}", view.dtype()),
+                )
+            })?;
+            let shape: Vec<i64> = view.shape().iter().map(|&s| s as i64).collect();
+            out.push((name, Tensor::f_from_data_size(view.data(), &shape, kind)?));
+        }
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(out)
+    }
+
+    /// Copies the file's tensors into `targets` (name, variable), after checking that the names
+    /// and shapes match exactly (file names for which `skip` holds are left out, e.g.
+    /// [`crate::train::pytorch::dropped_on_import`]).
+    /// On any mismatch nothing is copied and the error lists all of them. Returns the names
+    /// that were skipped.
+    pub fn copy_into(
+        &self,
+        targets: &[(String, Tensor)],
+        skip: impl Fn(&str) -> bool,
+    ) -> Result<Vec<String>> {
+        let st = self.parse()?;
+        let mut file: BTreeMap<String, _> = st.tensors().into_iter().collect();
+        let ignored: Vec<String> = file.keys().filter(|n| skip(n)).cloned().collect();
+        for n in &ignored {
+            file.remove(n);
+        }
+        let mut sorted: Vec<&(String, Tensor)> = targets.iter().collect();
+        sorted.sort_by(|a, b| a.0.cmp(&b.0));
+        let (mut missing, mut shape, mut dtype) = (Vec::new(), Vec::new(), Vec::new());
+        for (name, var) in &sorted {
+            match file.get(name) {
+                None => missing.push(format!("`{name}` {:?}", var.size())),
+                Some(view) => {
+                    let s: Vec<i64> = view.shape().iter().map(|&x| x as i64).collect();
+                    if s != var.size() {
+                        shape.push(format!(
+                            "`{name}`: {s:?} in the file, {:?} in the network",
+                            var.size()
+                        ));
+                    } else if kind_of(view.dtype()).is_none() {
+                        dtype.push(format!("`{name}`: unsupported dtype {:?}", view.dtype()));
+                    }
+                }
+            }
+        }
+        let wanted: std::collections::HashSet<&str> =
+            targets.iter().map(|(n, _)| n.as_str()).collect();
+        let unexpected: Vec<String> = file
+            .iter()
+            .filter(|(n, _)| !wanted.contains(n.as_str()))
+            .map(|(n, v)| format!("`{n}` {:?}", v.shape()))
+            .collect();
+        if !(missing.is_empty() && shape.is_empty() && dtype.is_empty() && unexpected.is_empty()) {
+            let mut parts = Vec::new();
+            let mut list = |what: &str, items: &[String]| {
+                if items.is_empty() {
+                    return;
+                }
+                let shown = items
+                    .iter()
+                    .take(MAX_LISTED)
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                let more = items.len().saturating_sub(MAX_LISTED);
+                let more = if more > 0 {
+                    format!(" and {more} more")
+                } else {
+                    String::new()
+                };
+                parts.push(format!("{} {what}: {shown}{more}", items.len()));
+            };
+            list("with another shape", &shape);
+            list("missing from the file", &missing);
+            list("in the file but not in the network", &unexpected);
+            list("with an unsupported dtype", &dtype);
+            return Err(ckpt_error(
+                &self.path,
+                format!("does not fit this network: {}", parts.join("; ")),
+            ));
+        }
+        tch::no_grad(|| -> Result<()> {
+            for (name, var) in targets {
+                let view = &file[name];
+                let kind = kind_of(view.dtype()).expect("checked above");
+                let t = Tensor::f_from_data_size(view.data(), &var.size(), kind)?
+                    .to_kind(var.kind())
+                    .to_device(var.device());
+                let mut var = var.shallow_clone();
+                var.f_copy_(&t)?;
+            }
+            Ok(())
+        })?;
+        Ok(ignored)
+    }
+}
+
+/// The variables of `vs` by name, sorted.
+pub fn named_variables(vs: &VarStore) -> Vec<(String, Tensor)> {
+    let mut vars: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+    vars.sort_by(|a, b| a.0.cmp(&b.0));
+    vars
+}
