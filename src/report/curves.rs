@@ -21,9 +21,9 @@ use super::plots::{
 };
 use super::study::Task;
 use crate::error::Result;
-use crate::eval::fmt_f64;
 use crate::experiment::layout::{RunDir, Timing};
 use crate::io::write_bytes_atomic;
+use crate::util::fmt_f64;
 
 /// The group of a run (its name without the kernel suffix) and its kernel label.
 fn group_of(name: &str) -> (String, String) {
