@@ -1,5 +1,5 @@
 //! Where `synth`'s panoramas come from: the [`PanoramaSource`] trait, its split assignment
-//! and the procedural source ([`crate::data::stanford::StanfordSource`] is the other).
+//! and the procedural source (the Stanford 2D-3D-S source in `stanford.rs` is the other).
 
 use crate::data::format::Split;
 use crate::data::panorama::{render_procedural, Panorama};

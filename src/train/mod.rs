@@ -20,8 +20,8 @@
 //!
 //! All are written atomically, so a crash never leaves a truncated checkpoint. A non-finite
 //! loss or gradient norm stops training *before* the update with
-//! [`Error::NonFinite`], naming the step and the last good checkpoint
-//! (which the failed step never touched).
+//! [`Error::NonFinite`](crate::error::Error::NonFinite), naming the step and the last good
+//! checkpoint (which the failed step never touched).
 
 pub mod adam;
 pub mod checkpoint;

@@ -1,7 +1,7 @@
 //! Safetensors files: named tensors written atomically with string metadata, read back
 //! ([`TensorFile`]), and the metadata of calibconv checkpoints ([`CheckpointInfo`]). The file
-//! layer that [`super::checkpoint`] (calibconv checkpoints), [`super::pytorch`] (PyTorch
-//! `state_dict`s) and [`super::adam`] (optimiser state) share.
+//! layer that `checkpoint.rs` (calibconv checkpoints), `pytorch.rs` (PyTorch `state_dict`s) and
+//! `adam.rs` (optimiser state) share, so that none of them imports another for it.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
