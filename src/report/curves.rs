@@ -19,6 +19,7 @@ use super::csv::read_log;
 use super::plots::{
     line_band_plot, Curve, PlotSpec, CALIBRATED_BLUE, RECTIFIED_GREEN, STANDARD_RED,
 };
+use super::stats::{mean, sample_sd};
 use super::study::Task;
 use crate::error::Result;
 use crate::experiment::layout::{RunDir, Timing};
@@ -52,15 +53,10 @@ fn val_metric(task: Task) -> &'static str {
     }
 }
 
-/// Mean and standard deviation (n - 1; 0 for one value).
+/// Mean and sample standard deviation (0 for one value: no band).
 fn mean_std(v: &[f64]) -> (f64, f64) {
-    let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
-    if v.len() < 2 {
-        return (mean, 0.0);
-    }
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean, var.sqrt())
+    let sd = if v.len() < 2 { 0.0 } else { sample_sd(v) };
+    (mean(v), sd)
 }
 
 /// One kernel's curve of a group: per step, the values of the seeds that logged it.
@@ -248,10 +244,8 @@ fn kernel_ratios(runs: &[RunInfo]) -> BTreeMap<(String, String), (usize, f64, f6
     }
     acc.into_iter()
         .map(|(key, v)| {
-            let n = v.len();
-            let wall = v.iter().map(|x| x.0).sum::<f64>() / n as f64;
-            let steps = v.iter().map(|x| x.1).sum::<f64>() / n as f64;
-            (key, (n, wall, steps))
+            let (wall, steps): (Vec<f64>, Vec<f64>) = v.into_iter().unzip();
+            (key, (wall.len(), mean(&wall), mean(&steps)))
         })
         .collect()
 }
