@@ -9,9 +9,9 @@ STAMP := $(VENV_CACHE)/.complete
 
 .PHONY: setup test demo study bench fixtures lint
 
-setup: .venv/.complete
-
-.venv/.complete: requirements.txt
+# Always runs: builds the venv of this requirements.txt's hash if the cache lacks it, and points
+# .venv at it (a checkout whose .venv links an older venv switches when requirements.txt changes).
+setup:
 	@if [ ! -f "$(STAMP)" ]; then \
 	  echo "setup: creating $(VENV_CACHE) (pip install torch==2.13.0 and oracles; ~5 GB)"; \
 	  rm -rf "$(VENV_CACHE)"; mkdir -p "$(dir $(VENV_CACHE))"; \
@@ -21,16 +21,17 @@ setup: .venv/.complete
 	  ln -sfn "$$("$(VENV_CACHE)/bin/python" -c 'import os, torch; print(os.path.dirname(torch.__file__))')" "$(VENV_CACHE)/libtorch" && \
 	  touch "$(STAMP)"; \
 	fi
-	@rm -rf .venv; ln -sfn "$(VENV_CACHE)" .venv
+	@if [ "$$(readlink .venv)" != "$(VENV_CACHE)" ]; then rm -rf .venv; ln -sfn "$(VENV_CACHE)" .venv; fi
 	@test -f .venv/.complete
 
 # Then the Python package (python/): built from this checkout into the venv (maturin from
-# requirements.txt, no download), and its pytest suite against the binary built above.
+# requirements.txt, no download), and its pytest suite against the binary built above; then the
+# tests of the Python tools (tools/test_*.py).
 test: setup
 	cargo build --release --all-targets
 	cargo test --release --workspace
 	PATH="$(CURDIR)/.venv/bin:$$PATH" .venv/bin/pip install --quiet --no-build-isolation ./python
-	.venv/bin/python -m pytest -q python/tests
+	.venv/bin/python -m pytest -q python/tests tools/test_*.py
 
 # The paper's experiments end to end on the embedded data (`quick` profile): synthesise the data
 # sets (data/synth-quick.toml: 64 px, 160 test images per set from panoramas not used in

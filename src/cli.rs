@@ -120,6 +120,10 @@ pub struct ReportArgs {
     /// Seed of the paired bootstrap over test images.
     #[arg(long, default_value_t = 0)]
     pub bootstrap_seed: u64,
+    /// Leave the point clouds' PLY files out (about 1.5 MB; the top-view picture is still
+    /// drawn), removing those of an earlier report in OUT: for reports that are committed.
+    #[arg(long)]
+    pub no_ply: bool,
 }
 
 #[derive(Debug, Args)]

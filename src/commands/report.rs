@@ -19,7 +19,7 @@ pub fn run(args: ReportArgs) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| args.results.clone());
     warn_unused_runs(&args.results)?;
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
-    match point_cloud(&args.results, &out) {
+    match point_cloud(&args.results, &out, !args.no_ply) {
         Ok(Some(run)) => println!("point cloud of the first test image of {run}"),
         Ok(None) => {}
         Err(e) => eprintln!("warning: no point cloud: {e:#}"),
@@ -107,9 +107,10 @@ fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
     )?)
 }
 
-/// `pointcloud_{pred,true}.ply` and `pointcloud_top.png` in `out`; the run's name, or `None`
-/// when there is no fine-tuned calibrated depth run.
-fn point_cloud(results: &Path, out: &Path) -> Result<Option<String>> {
+/// `pointcloud_{pred,true}.ply` (unless `ply` is false: then earlier ones are removed) and
+/// `pointcloud_top.png` in `out`; the run's name, or `None` when there is no fine-tuned
+/// calibrated depth run.
+fn point_cloud(results: &Path, out: &Path, ply: bool) -> Result<Option<String>> {
     let Some(dir) = pick_run(results) else {
         return Ok(None);
     };
@@ -159,8 +160,16 @@ fn point_cloud(results: &Path, out: &Path) -> Result<Option<String>> {
     let cam = &exp.input.camera;
     let p = back_project(cam, [h, w], &predicted, &mask, &rgb);
     let t = back_project(cam, [h, w], &truth, &mask, &rgb);
-    write_ply(&out.join("pointcloud_pred.ply"), &p)?;
-    write_ply(&out.join("pointcloud_true.ply"), &t)?;
+    for (name, points) in [("pointcloud_pred.ply", &p), ("pointcloud_true.ply", &t)] {
+        let path = out.join(name);
+        if ply {
+            write_ply(&path, points)?;
+        } else if path.is_file() {
+            std::fs::remove_file(&path)
+                .with_context(|| format!("cannot remove {}", path.display()))?;
+            println!("removed {} (--no-ply)", path.display());
+        }
+    }
     top_view(
         &out.join("pointcloud_top.png"),
         &[(&t, [110, 110, 110]), (&p, [31, 119, 180])],

@@ -11,7 +11,7 @@ use plotters::prelude::*;
 use plotters::style::{register_font, FontStyle};
 
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
+use crate::io::write_png_atomic;
 
 /// Colour of standard kernels in every figure (the paper's red).
 pub const STANDARD_RED: [u8; 3] = [214, 39, 40];
@@ -162,10 +162,7 @@ pub fn line_band_plot(path: &Path, spec: &PlotSpec, curves: &[Curve]) -> Result<
         root.present().map_err(|e| plot_err(path, e))?;
     }
     let img = image::RgbImage::from_raw(w, h, buf).expect("buffer of w*h*3 bytes");
-    let mut png = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .map_err(|e| plot_err(path, e))?;
-    write_bytes_atomic(path, &png)
+    write_png_atomic(path, &img)
 }
 
 #[cfg(test)]

@@ -396,11 +396,15 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     report += &fov_section(&cx, &mut files)?;
     if out.join("pointcloud_top.png").is_file() {
         let about = std::fs::read_to_string(out.join("pointcloud.txt")).unwrap_or_default();
+        let ply = if out.join("pointcloud_pred.ply").is_file() {
+            "; [predicted](pointcloud_pred.ply), [true](pointcloud_true.ply) as PLY"
+        } else {
+            ""
+        };
         report += &format!(
             "## Point cloud\n\nPredicted (blue) and true (grey) depth of one test image \
              back-projected with the camera model (depth = distance along the ray), seen from \
-             above, camera at the black dot ({about}); [predicted](pointcloud_pred.ply), \
-             [true](pointcloud_true.ply) as PLY.\n\n![top view](pointcloud_top.png)\n\n"
+             above, camera at the black dot ({about}){ply}.\n\n![top view](pointcloud_top.png)\n\n"
         );
     }
     for k in ["kernels_f195.png", "kernels_f165.png"] {

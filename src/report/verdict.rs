@@ -367,6 +367,19 @@ fn row(obs: &Observations, spec: &ClaimSpec, cmp: &Compare, task: Task, m: Metri
     }
 }
 
+/// `n = N` when every row has all the seeds, else the range of the rows' seed counts (a study
+/// may add seeds to some experiments only: each row pairs the seeds both of its sides have).
+fn seed_counts(v: &Verdict) -> String {
+    let counts = v.claims.iter().map(|c| c.per_seed.len()).filter(|&n| n > 0);
+    let (lo, hi) = (counts.clone().min(), counts.max());
+    match (lo, hi) {
+        (Some(lo), Some(hi)) if lo != hi => {
+            format!("n = {lo}-{hi} per row: the seeds both sides of a row have, see *per seed*")
+        }
+        _ => format!("n = {}", v.seeds.len()),
+    }
+}
+
 fn fmt_opt(v: Option<f64>) -> String {
     v.map(|x| format!("{x:+.4}")).unwrap_or_else(|| "–".into())
 }
@@ -374,7 +387,7 @@ fn fmt_opt(v: Option<f64>) -> String {
 /// `verdict.md`: the claims, then one table row per verdict row.
 pub fn markdown(v: &Verdict) -> String {
     let mut s = format!(
-        "## Verdict on the paper's claims\n\nProfile `{}`, seeds {:?} (n = {}), {} test images \
+        "## Verdict on the paper's claims\n\nProfile `{}`, seeds {:?} ({}), {} test images \
          per evaluation, depth metrics averaged `{}` (segmentation: one confusion matrix over \
          the test set), elapsed wall time of the runs on F195 and F165 {:.0} s (the sum of their own wall times: {:.0} s; parallel runs overlap). Differences are per seed, paired \
          (the same seed's rows, the same test images); mean and 95% Student-t interval over \
@@ -382,7 +395,7 @@ pub fn markdown(v: &Verdict) -> String {
          `holds` / `contradicted`: the whole interval on the predicted / the other side of 0.\n\n",
         v.profile,
         v.seeds,
-        v.seeds.len(),
+        seed_counts(v),
         v.test_images,
         v.averaging,
         v.wall_s,
@@ -533,6 +546,21 @@ mod tests {
         assert!(r.mean.is_none() && r.ci95.is_none());
         // Depth only: no segmentation rows.
         assert!(v.claims.iter().all(|c| c.task == "depth"));
+        // Every row with results has the 3 seeds (rows without results do not count).
+        assert!(markdown(&v).contains("seeds [0, 1, 2] (n = 3)"));
+    }
+
+    #[test]
+    fn rows_with_fewer_seeds_give_the_range_of_counts() {
+        let mut v = verdict(&ft_f195(&[-0.10, -0.12, -0.08]), &meta());
+        let i = v
+            .claims
+            .iter()
+            .position(|c| c.metric == Metric::Delta1)
+            .unwrap();
+        v.claims[i].per_seed.truncate(2);
+        let md = markdown(&v);
+        assert!(md.contains("seeds [0, 1, 2] (n = 2-3 per row"), "{md}");
     }
 
     #[test]
