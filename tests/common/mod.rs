@@ -13,6 +13,8 @@ use std::process::{Command, Output};
 
 use tch::{Kind, Tensor};
 
+pub mod opencv;
+
 
 /// Floor of the scale in [`max_rel`], so that an all-zero reference does not divide by zero.
 pub const TINY: f64 = 1e-30;
