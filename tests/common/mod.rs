@@ -11,10 +11,12 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use calibconv::nn::UNetConfig;
+use calibconv::train::checkpoint::{self, CheckpointInfo};
 use tch::{Kind, Tensor};
 
+pub mod experiment;
 pub mod opencv;
-
 
 /// Floor of the scale in [`max_rel`], so that an all-zero reference does not divide by zero.
 pub const TINY: f64 = 1e-30;
@@ -137,6 +139,27 @@ pub fn synth_tiny_f195(out: &Path, width: u32) {
         &out,
     ]);
     ok(o);
+}
+
+/// The record of a checkpoint that a test writes itself, for `model` at `input_size`: standard
+/// kernels, no camera, no experiment, step 0, no metrics; set the fields a test needs.
+pub fn checkpoint_info(model: UNetConfig, input_size: [i64; 2]) -> CheckpointInfo {
+    CheckpointInfo {
+        format: checkpoint::FORMAT.into(),
+        version: checkpoint::FORMAT_VERSION,
+        model,
+        input_size,
+        kernel: "standard".into(),
+        camera_file: None,
+        camera_toml: None,
+        padding: [0, 0],
+        experiment: None,
+        step: 0,
+        epoch: 0,
+        batch_in_epoch: 0,
+        metrics: Default::default(),
+        git: None,
+    }
 }
 
 /// `tests/golden/`.
