@@ -8,13 +8,14 @@
 mod common;
 
 use std::path::{Path, PathBuf};
+use std::process::Output;
 
 use calibconv::camera::import::{
     import_file, import_text, Format, FovSource, ImportOptions, Imported, OpenCvModel,
 };
 use calibconv::camera::{self, Camera, CameraModel};
 
-use common::{calibconv, golden};
+use common::{assert_contains, calibconv, failed, golden, ok, s};
 
 /// Two closed forms of Mei's projection in float64: round-off only (~1e-13 px at these radii).
 const MEI_PX_TOL: f64 = 1e-9;
@@ -122,26 +123,6 @@ fn kalibr_omni_is_the_unified_model() {
 }
 
 #[test]
-fn kalibr_unsupported_models_and_missing_cameras_are_named() {
-    let fov = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(5));
-    assert!(
-        fov.contains("pinhole-fov") && fov.contains("not supported") && fov.contains("cam5"),
-        "{fov}"
-    );
-    let omni = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(6));
-    assert!(
-        omni.contains("omni-radtan") && omni.contains("non-zero"),
-        "{omni}"
-    );
-    let missing = import_err(Format::Kalibr, "kalibr_camchain.yaml", Some(9));
-    assert!(
-        missing.contains("cam9") && missing.contains("cam0"),
-        "{missing}"
-    );
-    assert!(missing.contains("kalibr_camchain.yaml"), "{missing}");
-}
-
-#[test]
 fn opencv_filestorage_yaml_fisheye_is_f195() {
     let f195 = import(Format::OpenCv, "opencv_fisheye.yaml", None, Some(195.0));
     assert_eq!(f195.camera, shipped("f195.toml"));
@@ -219,26 +200,69 @@ fn opencv_four_coefficients_need_the_model() {
     assert!(e.to_string().contains("skew"), "{e}");
 }
 
+/// The cameras of the Basalt and COLMAP fixtures that are shipped camera files.
 #[test]
-fn basalt_calibration_models() {
-    let file = "basalt_calibration.json";
-    let ds = import(Format::Basalt, file, None, Some(153.4));
-    assert_eq!(ds.camera, shipped("ds_example.toml"));
-    let kb4 = import(Format::Basalt, file, Some(1), Some(195.0));
-    assert_eq!(kb4.camera, shipped("f195.toml"));
-    let eucm = import(Format::Basalt, file, Some(2), Some(190.0));
-    assert_eq!(eucm.camera, shipped("eucm_example.toml"));
-    let ucm = import(Format::Basalt, file, Some(3), Some(185.0));
-    assert_eq!(ucm.camera, shipped("ucm_example.toml"));
-    let pinhole = import(Format::Basalt, file, Some(4), None);
-    assert_eq!(pinhole.camera, shipped("pers.toml"));
-    let radtan8 = import_err(Format::Basalt, file, Some(5));
-    assert!(
-        radtan8.contains("pinhole-radtan8") && radtan8.contains("not supported"),
-        "{radtan8}"
-    );
-    let missing = import_err(Format::Basalt, file, Some(6));
-    assert!(missing.contains("6 camera(s)"), "{missing}");
+fn basalt_and_colmap_cameras_are_the_shipped_files() {
+    let (basalt, colmap) = ("basalt_calibration.json", "colmap_cameras.txt");
+    for (format, name, camera, fov_deg, file) in [
+        (Format::Basalt, basalt, None, Some(153.4), "ds_example.toml"),
+        (Format::Basalt, basalt, Some(1), Some(195.0), "f195.toml"),
+        (
+            Format::Basalt,
+            basalt,
+            Some(2),
+            Some(190.0),
+            "eucm_example.toml",
+        ),
+        (
+            Format::Basalt,
+            basalt,
+            Some(3),
+            Some(185.0),
+            "ucm_example.toml",
+        ),
+        (Format::Basalt, basalt, Some(4), None, "pers.toml"),
+        (Format::Colmap, colmap, Some(2), None, "radtan_example.toml"),
+        (Format::Colmap, colmap, Some(6), None, "radtan_example.toml"),
+        (Format::Colmap, colmap, Some(3), None, "pers.toml"),
+        (Format::Colmap, colmap, Some(4), None, "pers.toml"),
+    ] {
+        let imported = import(format, name, camera, fov_deg).camera;
+        assert_eq!(imported, shipped(file), "{name} camera {camera:?}");
+    }
+}
+
+/// Models a camera file cannot hold, and cameras a file does not have: errors naming them.
+#[test]
+fn unsupported_models_and_missing_cameras_are_named() {
+    let kalibr = "kalibr_camchain.yaml";
+    let (basalt, colmap) = ("basalt_calibration.json", "colmap_cameras.txt");
+    for (format, name, camera, parts) in [
+        (
+            Format::Kalibr,
+            kalibr,
+            5,
+            &["pinhole-fov", "not supported", "cam5"][..],
+        ),
+        (Format::Kalibr, kalibr, 6, &["omni-radtan", "non-zero"]),
+        (
+            Format::Kalibr,
+            kalibr,
+            9,
+            &["cam9", "cam0", "kalibr_camchain.yaml"],
+        ),
+        (
+            Format::Basalt,
+            basalt,
+            5,
+            &["pinhole-radtan8", "not supported"],
+        ),
+        (Format::Basalt, basalt, 6, &["6 camera(s)"]),
+        (Format::Colmap, colmap, 7, &["`FOV`", "not supported"]),
+        (Format::Colmap, colmap, 42, &["CAMERA_ID 42"]),
+    ] {
+        assert_contains(&import_err(format, name, Some(camera)), parts);
+    }
 }
 
 #[test]
@@ -248,18 +272,6 @@ fn colmap_cameras_txt_models_and_half_pixel_centres() {
     let fisheye = import(Format::Colmap, file, None, Some(195.0));
     assert_eq!(fisheye.camera, shipped("f195.toml"));
     assert!(fisheye.notes.iter().any(|n| n.contains("0.5")));
-    let opencv = import(Format::Colmap, file, Some(2), None);
-    assert_eq!(opencv.camera, shipped("radtan_example.toml"));
-    let full = import(Format::Colmap, file, Some(6), None);
-    assert_eq!(full.camera, shipped("radtan_example.toml"));
-    assert_eq!(
-        import(Format::Colmap, file, Some(3), None).camera,
-        shipped("pers.toml")
-    );
-    assert_eq!(
-        import(Format::Colmap, file, Some(4), None).camera,
-        shipped("pers.toml")
-    );
     let Camera::PinholeRadTan(radial) = import(Format::Colmap, file, Some(5), None).camera else {
         panic!("SIMPLE_RADIAL is not radtan")
     };
@@ -267,13 +279,6 @@ fn colmap_cameras_txt_models_and_half_pixel_centres() {
         (radial.fx, radial.cx, radial.cy, radial.k),
         (500.0, 319.5, 239.5, [-0.1, 0.0, 0.0])
     );
-    let fov = import_err(Format::Colmap, file, Some(7));
-    assert!(
-        fov.contains("`FOV`") && fov.contains("not supported"),
-        "{fov}"
-    );
-    let missing = import_err(Format::Colmap, file, Some(42));
-    assert!(missing.contains("CAMERA_ID 42"), "{missing}");
 }
 
 #[test]
@@ -344,18 +349,7 @@ fn cli_writes_a_camera_file_that_reads_back() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("euroc.toml");
     let source = calib("kalibr_camchain.yaml");
-    let o = calibconv(&[
-        "camera",
-        "import",
-        "--from",
-        "kalibr",
-        source.to_str().unwrap(),
-        "--camera",
-        "1",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(import_cli("kalibr", &source, "1", &out));
     assert_eq!(camera::load(&out).unwrap(), shipped("radtan_example.toml"));
     let text = std::fs::read_to_string(&out).unwrap();
     assert!(
@@ -365,14 +359,19 @@ fn cli_writes_a_camera_file_that_reads_back() {
     assert!(text.contains("name = \"euroc\""), "{text}");
     // The written file works with the other commands.
     let png = dir.path().join("k.png");
-    let o = calibconv(&[
+    ok(calibconv(&[
         "kernels",
         "--camera",
-        out.to_str().unwrap(),
+        s(&out),
         "--out",
-        png.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        s(&png),
+    ]));
+}
+
+/// `calibconv camera import --from FORMAT SOURCE --camera CAMERA --out OUT`.
+fn import_cli(format: &str, source: &Path, camera: &str, out: &Path) -> Output {
+    let from = ["camera", "import", "--from", format, s(source)];
+    calibconv(&[&from[..], &["--camera", camera, "--out", s(out)]].concat())
 }
 
 #[test]
@@ -380,29 +379,13 @@ fn cli_unsupported_model_fails_naming_it_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("fov.toml");
     let source = calib("colmap_cameras.txt");
-    let o = calibconv(&[
-        "camera",
-        "import",
-        "--from",
-        "colmap",
-        source.to_str().unwrap(),
-        "--camera",
-        "7",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("`FOV`") && err.contains("colmap_cameras.txt"),
-        "{err}"
-    );
+    let err = failed(import_cli("colmap", &source, "7", &out));
+    assert_contains(&err, &["`FOV`", "colmap_cameras.txt"]);
     assert!(!out.exists());
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
     // An unknown source format is a usage error listing the formats.
-    let o = calibconv(&[
+    let err = failed(calibconv(&[
         "camera", "import", "--from", "matlab", "x", "--out", "y.toml",
-    ]);
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("ocamcalib"));
+    ]));
+    assert!(err.contains("ocamcalib"), "{err}");
 }

@@ -2,19 +2,28 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
-use std::process::Output;
+use std::path::Path;
 
 use calibconv::camera;
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, OffsetsTensor};
-use common::calibconv;
+use common::{assert_contains, calibconv, failed, ok, s, words};
 
 fn camera_file(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))
 }
 
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
+/// `calibconv offsets` of `camera` at `size` to `out`, with `extra` flags.
+fn offsets(camera: &str, size: &str, extra: &[&str], out: &Path) -> std::process::Output {
+    let args = [
+        "offsets",
+        "--camera",
+        camera,
+        "--size",
+        size,
+        "--out",
+        s(out),
+    ];
+    calibconv(&[&args[..], extra].concat())
 }
 
 fn read_offsets(path: &Path) -> tch::Tensor {
@@ -29,20 +38,8 @@ fn read_offsets(path: &Path) -> tch::Tensor {
 fn offsets_writes_the_library_offsets_in_torchvision_layout() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("o.safetensors");
-    let o = calibconv(&[
-        "offsets",
-        "--camera",
-        &camera_file("f195.toml"),
-        "--size",
-        "240x272",
-        "--kernel",
-        "3",
-        "--padding",
-        "8,0",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let extra = ["--kernel", "3", "--padding", "8,0"];
+    ok(offsets(&camera_file("f195.toml"), "240x272", &extra, &out));
     let t = read_offsets(&out);
     assert_eq!(t.size(), [18, 240, 272]);
     let cam = camera::load(camera_file("f195.toml")).unwrap();
@@ -57,25 +54,9 @@ fn offsets_writes_the_library_offsets_in_torchvision_layout() {
 #[test]
 fn offsets_with_stride_dilation_and_paper_convention() {
     let dir = tempfile::tempdir().unwrap();
-    let out: PathBuf = dir.path().join("s2.safetensors");
-    let o = calibconv(&[
-        "offsets",
-        "--camera",
-        &camera_file("f165.toml"),
-        "--size",
-        "60x68",
-        "--kernel",
-        "5",
-        "--stride",
-        "2",
-        "--dilation",
-        "2",
-        "--convention",
-        "paper",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let out = dir.path().join("s2.safetensors");
+    let extra = words("--kernel 5 --stride 2 --dilation 2 --convention paper");
+    ok(offsets(&camera_file("f165.toml"), "60x68", &extra, &out));
     // Same padding 4 with dilation 2: (60 + 8 - 9) / 2 + 1 = 30, (68 + 8 - 9) / 2 + 1 = 34.
     assert_eq!(read_offsets(&out).size(), [50, 30, 34]);
 }
@@ -89,70 +70,26 @@ fn bad_camera_file_is_a_clear_error_and_writes_nothing() {
         .replace("fx =", "fxx =");
     std::fs::write(&cam, text).unwrap();
     let out = dir.path().join("o.safetensors");
-    let o = calibconv(&[
-        "offsets",
-        "--camera",
-        cam.to_str().unwrap(),
-        "--size",
-        "24x27",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let err = stderr(&o);
-    assert!(err.contains("typo.toml") && err.contains("fxx"), "{err}");
+    let err = failed(offsets(s(&cam), "24x27", &[], &out));
+    assert_contains(&err, &["typo.toml", "fxx"]);
     assert!(!out.exists());
 }
 
 #[test]
 fn bad_arguments_exit_non_zero() {
-    for args in [
-        vec![
-            "offsets",
-            "--camera",
-            "data/cameras/f195.toml",
-            "--size",
-            "24by27",
-            "--out",
-            "x",
-        ],
-        vec![
-            "offsets",
-            "--camera",
-            "data/cameras/f195.toml",
-            "--size",
-            "24x27",
-            "--kernel",
-            "4",
-            "--out",
-            "x",
-        ],
-        vec![
-            "offsets",
-            "--camera",
-            "data/cameras/missing.toml",
-            "--size",
-            "24x27",
-            "--out",
-            "x",
-        ],
-        vec![
-            "offsets",
-            "--camera",
-            "data/cameras/f195.toml",
-            "--size",
-            "24x27",
-            "--convention",
-            "corner",
-            "--out",
-            "x",
-        ],
+    let f195 = "data/cameras/f195.toml";
+    for (camera, size, extra) in [
+        (f195, "24by27", &[][..]),
+        (f195, "24x27", &["--kernel", "4"][..]),
+        ("data/cameras/missing.toml", "24x27", &[][..]),
+        (f195, "24x27", &["--convention", "corner"][..]),
     ] {
-        let o = calibconv(&args);
-        assert!(!o.status.success(), "{args:?} should fail");
-        assert!(!stderr(&o).is_empty());
+        let o = offsets(camera, size, extra, Path::new("x"));
+        let args = format!("--camera {camera} --size {size} {extra:?}");
+        assert!(!o.status.success(), "{args} should fail");
+        assert!(!common::stderr(&o).is_empty(), "{args}");
     }
-    assert!(!Path::new(env!("CARGO_MANIFEST_DIR")).join("x").exists());
+    assert!(!common::root().join("x").exists());
 }
 
 /// A size whose offsets cannot be held is a clear error before anything is allocated, not an
@@ -161,22 +98,11 @@ fn bad_arguments_exit_non_zero() {
 fn offsets_too_large_to_allocate_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("huge.safetensors");
-    let o = calibconv(&[
-        "offsets",
-        "--camera",
-        "data/cameras/f195.toml",
-        "--size",
-        "100000x100000",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let err = stderr(&o);
+    let o = offsets("data/cameras/f195.toml", "100000x100000", &[], &out);
+    let err = common::stderr(&o);
     // Exit status 1 (an error), not a signal (SIGABRT).
     assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(
-        err.contains("100000x100000") && err.contains("too large"),
-        "{err}"
-    );
+    assert_contains(&err, &["100000x100000", "too large"]);
     assert!(!err.contains("memory allocation"), "{err}");
     assert!(!out.exists());
 }
@@ -184,15 +110,9 @@ fn offsets_too_large_to_allocate_is_a_clear_error() {
 #[test]
 fn kernels_draws_a_png_of_the_camera_size_and_rejects_a_wrong_image() {
     let dir = tempfile::tempdir().unwrap();
+    let f195 = camera_file("f195.toml");
     let png = dir.path().join("k.png");
-    let o = calibconv(&[
-        "kernels",
-        "--camera",
-        &camera_file("f195.toml"),
-        "--out",
-        png.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    ok(calibconv(&["kernels", "--camera", &f195, "--out", s(&png)]));
     let img = image::open(&png).unwrap().to_rgb8();
     assert_eq!(img.dimensions(), (1080, 960));
     // Kernel taps are drawn in colour on the grey/black background.
@@ -200,33 +120,33 @@ fn kernels_draws_a_png_of_the_camera_size_and_rejects_a_wrong_image() {
 
     let small = dir.path().join("small.png");
     image::RgbImage::new(64, 48).save(&small).unwrap();
-    let o = calibconv(&[
+    let png2 = dir.path().join("k2.png");
+    let args = [
         "kernels",
         "--camera",
-        &camera_file("f195.toml"),
+        &f195,
         "--image",
-        small.to_str().unwrap(),
+        s(&small),
         "--out",
-        dir.path().join("k2.png").to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let err = stderr(&o);
-    assert!(err.contains("small.png") && err.contains("64x48"), "{err}");
+        s(&png2),
+    ];
+    let err = failed(calibconv(&args));
+    assert_contains(&err, &["small.png", "64x48"]);
 }
 
 #[test]
 fn demo_writes_pyramid_offsets_figure_and_summary() {
     let dir = tempfile::tempdir().unwrap();
-    let o = calibconv(&[
+    let f165 = camera_file("f165.toml");
+    ok(calibconv(&[
         "demo",
         "--camera",
-        &camera_file("f165.toml"),
+        &f165,
         "--depth",
         "3",
         "--out",
-        dir.path().to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
+        s(dir.path()),
+    ]));
     let tensors =
         tch::Tensor::read_safetensors(dir.path().join("pyramid_offsets.safetensors")).unwrap();
     let mut names: Vec<_> = tensors.iter().map(|(n, t)| (n.clone(), t.size())).collect();

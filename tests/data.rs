@@ -12,15 +12,16 @@ use calibconv::camera::{self, CameraModel};
 use calibconv::data::format::{Manifest, Split, MANIFEST, SAMPLE_DIRS};
 use calibconv::data::loader::{Dataset, InputSize, LoaderConfig};
 use calibconv::data::{BatchSource, CLASSES, IGNORE_LABEL};
-use common::{calibconv, calibconv_in};
+use common::{assert_contains, calibconv, calibconv_in, s, words};
 use tch::Kind;
 
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
+/// What the command printed (stdout, then stderr), after checking that it succeeded or, with
+/// `success` false, that it failed.
+#[track_caller]
+fn printed(o: Output, success: bool) -> String {
+    let text = format!("{}{}", common::stdout(&o), common::stderr(&o));
+    assert_eq!(o.status.success(), success, "{}: {text}", o.status);
+    text
 }
 
 /// A tiny run of the default configuration: 3 panoramas 16 px high, 2 views each, 16 px wide;
@@ -67,9 +68,7 @@ fn tree(root: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
 fn synth_writes_the_documented_layout_byte_identically() {
     let tmp = tempfile::tempdir().unwrap();
     let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
-    let o = synth(&a, &[]);
-    assert!(o.status.success(), "{}", text(&o));
-    assert!(text(&o).contains("wrote 24 views"), "{}", text(&o));
+    assert_contains(&printed(synth(&a, &[]), true), &["wrote 24 views"]);
     for set in ["f195", "f165", "pers", "rect-f165"] {
         let dir = a.join(set);
         let m = Manifest::read(&dir).unwrap();
@@ -94,19 +93,13 @@ fn synth_writes_the_documented_layout_byte_identically() {
     assert!(rect.contains("model = \"pinhole\""), "{rect}");
 
     // Same seed, another folder: the same bytes, file for file.
-    let o = synth(&b, &[]);
-    assert!(o.status.success(), "{}", text(&o));
+    printed(synth(&b, &[]), true);
     let (ta, tb) = (tree(&a), tree(&b));
     assert_eq!(ta.len(), 4 * (2 + 5 * 6));
     assert_eq!(ta, tb);
 
     // Again in place: nothing to do, nothing changed.
-    let o = synth(&a, &[]);
-    assert!(
-        o.status.success() && text(&o).contains("nothing to do"),
-        "{}",
-        text(&o)
-    );
+    assert_contains(&printed(synth(&a, &[]), true), &["nothing to do"]);
     assert_eq!(tree(&a), ta);
 }
 
@@ -118,22 +111,13 @@ fn the_embedded_default_runs_outside_the_repository() {
     let elsewhere = tmp.path().join("elsewhere");
     std::fs::create_dir(&elsewhere).unwrap();
     let in_root = tmp.path().join("from-root");
-    let args = [
-        "synth",
-        "--panoramas",
-        "3",
-        "--pano-height",
-        "16",
-        "--views-per-panorama",
-        "1",
-        "--width",
-        "16",
-        "--out",
-    ];
-    let o = calibconv(&[&args[..], &[in_root.to_str().unwrap()]].concat());
-    assert!(o.status.success(), "{}", text(&o));
-    let o = calibconv_in(&elsewhere, &[&args[..], &["out"]].concat());
-    assert!(o.status.success(), "{}", text(&o));
+    let args =
+        words("synth --panoramas 3 --pano-height 16 --views-per-panorama 1 --width 16 --out");
+    printed(calibconv(&[&args[..], &[s(&in_root)]].concat()), true);
+    printed(
+        calibconv_in(&elsewhere, &[&args[..], &["out"]].concat()),
+        true,
+    );
     let out = elsewhere.join("out");
     for set in ["f195", "f165", "pers", "rect-f165"] {
         let m = Manifest::read(&out.join(set)).unwrap();
@@ -148,7 +132,7 @@ fn the_embedded_default_runs_outside_the_repository() {
 fn interrupted_runs_resume_and_foreign_folders_are_refused() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("d");
-    assert!(synth(&out, &["--set", "f195"]).status.success());
+    printed(synth(&out, &["--set", "f195"]), true);
     let before = tree(&out);
     let dir = out.join("f195");
 
@@ -165,60 +149,38 @@ fn interrupted_runs_resume_and_foreign_folders_are_refused() {
     .unwrap();
     let e = Dataset::open(&dir, Split::Train, LoaderConfig::default()).unwrap_err();
     assert!(e.to_string().contains("complete"), "{e}");
-    let o = synth(&out, &["--set", "f195"]);
-    assert!(o.status.success(), "{}", text(&o));
-    assert!(
-        text(&o).contains("wrote 1 views from 1 panoramas"),
-        "{}",
-        text(&o)
-    );
+    let msg = printed(synth(&out, &["--set", "f195"]), true);
+    assert_contains(&msg, &["wrote 1 views from 1 panoramas"]);
     assert_eq!(tree(&out), before);
 
     // Another seed or camera width: refused, nothing touched.
     for extra in [&["--seed", "9"][..], &["--width", "20"][..]] {
         let mut args = vec!["--set", "f195"];
         args.extend_from_slice(extra);
-        let o = synth(&out, &args);
-        assert!(!o.status.success());
-        let msg = text(&o);
-        assert!(msg.contains("refusing") && msg.contains("--force"), "{msg}");
-        assert!(
-            msg.contains(&dir.join(MANIFEST).display().to_string()),
-            "{msg}"
-        );
+        let msg = printed(synth(&out, &args), false);
+        let manifest = dir.join(MANIFEST).display().to_string();
+        assert_contains(&msg, &["refusing", "--force", &manifest]);
         assert_eq!(tree(&out), before);
     }
     // A manifest from another generator version: refused by synth and by the loader.
     let old = manifest.replace("\"generator_version\": 1", "\"generator_version\": 0");
     std::fs::write(dir.join(MANIFEST), &old).unwrap();
-    let o = synth(&out, &["--set", "f195"]);
-    assert!(
-        !o.status.success() && text(&o).contains("generator version 0"),
-        "{}",
-        text(&o)
-    );
+    let msg = printed(synth(&out, &["--set", "f195"]), false);
+    assert_contains(&msg, &["generator version 0"]);
     let e = Dataset::open(&dir, Split::Train, LoaderConfig::default())
         .unwrap_err()
         .to_string();
-    assert!(
-        e.contains("manifest.json") && e.contains("version 0"),
-        "{e}"
-    );
+    assert_contains(&e, &["manifest.json", "version 0"]);
     // --force regenerates (same seed: the same bytes again).
-    let o = synth(&out, &["--set", "f195", "--force"]);
-    assert!(o.status.success(), "{}", text(&o));
+    printed(synth(&out, &["--set", "f195", "--force"]), true);
     assert_eq!(tree(&out), before);
 
     // A non-empty folder that is not a data set.
     let foreign = tmp.path().join("mine");
     std::fs::create_dir_all(foreign.join("f195")).unwrap();
     std::fs::write(foreign.join("f195/notes.txt"), b"keep me").unwrap();
-    let o = synth(&foreign, &["--set", "f195"]);
-    assert!(
-        !o.status.success() && text(&o).contains("without a manifest"),
-        "{}",
-        text(&o)
-    );
+    let msg = printed(synth(&foreign, &["--set", "f195"]), false);
+    assert_contains(&msg, &["without a manifest"]);
     assert_eq!(
         std::fs::read(foreign.join("f195/notes.txt")).unwrap(),
         b"keep me"
@@ -230,40 +192,24 @@ fn bad_requests_are_clear_errors() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().to_str().unwrap();
     let f195 = "data/cameras/f195.toml";
-    let o = calibconv(&[
-        "synth",
-        "--out",
-        out,
-        "--kind",
-        "rectified",
-        "--camera",
-        f195,
-    ]);
-    assert!(!o.status.success());
-    assert!(
-        text(&o).contains("195") && text(&o).contains("180"),
-        "{}",
-        text(&o)
-    );
-    let o = calibconv(&["synth", "--out", out, "--kind", "pers", "--camera", f195]);
-    assert!(
-        !o.status.success() && text(&o).contains("pinhole"),
-        "{}",
-        text(&o)
-    );
-    let o = calibconv(&["synth", "--out", out, "--set", "f999"]);
-    assert!(
-        !o.status.success() && text(&o).contains("f195"),
-        "{}",
-        text(&o)
-    );
-    // --dry-run writes nothing.
-    let o = calibconv(&["synth", "--out", out, "--dry-run"]);
-    assert!(
-        o.status.success() && text(&o).contains("rect-f165"),
-        "{}",
-        text(&o)
-    );
+    // (flags, whether it succeeds, what it prints)
+    for (flags, success, parts) in [
+        (
+            &["--kind", "rectified", "--camera", f195][..],
+            false,
+            &["195", "180"][..],
+        ),
+        (&["--kind", "pers", "--camera", f195], false, &["pinhole"]),
+        (&["--set", "f999"], false, &["f195"]),
+        // --dry-run writes nothing.
+        (&["--dry-run"], true, &["rect-f165"]),
+    ] {
+        let msg = printed(
+            calibconv(&[&["synth", "--out", out][..], flags].concat()),
+            success,
+        );
+        assert_contains(&msg, parts);
+    }
     assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 0);
 }
 
@@ -284,7 +230,7 @@ fn a_single_kind_set_loads_as_contract_batches() {
             "8",
         ],
     );
-    assert!(o.status.success(), "{}", text(&o));
+    printed(o, true);
     let dir = out.join("mine");
     let config = LoaderConfig {
         batch_size: 2,
@@ -319,22 +265,9 @@ fn a_single_kind_set_loads_as_contract_batches() {
     // Depth in metres where valid, 0 in the padding rows; labels ignored there.
     let d = b.depth.masked_select(&b.mask);
     assert!(d.min().double_value(&[]) > 0.1 && d.max().double_value(&[]) < 30.0);
-    assert_eq!(
-        b.depth
-            .narrow(2, 14, 2)
-            .abs()
-            .sum(Kind::Float)
-            .double_value(&[]),
-        0.0
-    );
-    assert_eq!(
-        b.labels
-            .narrow(1, 14, 2)
-            .ne(IGNORE_LABEL)
-            .any()
-            .int64_value(&[]),
-        0
-    );
+    let (pad_depth, pad_labels) = (b.depth.narrow(2, 14, 2), b.labels.narrow(1, 14, 2));
+    assert_eq!(pad_depth.abs().sum(Kind::Float).double_value(&[]), 0.0);
+    assert_eq!(pad_labels.ne(IGNORE_LABEL).any().int64_value(&[]), 0);
     // The same (seed, epoch) gives the same order; another epoch another one.
     let order =
         |epoch| -> Vec<String> { src.batches(epoch, 0).flat_map(|b| b.unwrap().ids).collect() };
@@ -350,23 +283,22 @@ fn stanford_panoramas_run_through_the_same_synthesis() {
     let root = tmp.path().join("2D-3D-S");
     calibconv::data::stanford::write_fake_tree(&root, &["area_1", "area_3", "area_5a"], 2, 16)
         .unwrap();
+    // F195 views of the tree's panoramas, scaled to 8 px high, in `out`.
+    let stanford = |out: &Path, extra: &[&str]| {
+        let args = [
+            "synth",
+            "--stanford",
+            s(&root),
+            "--pano-height",
+            "8",
+            "--set",
+            "f195",
+        ];
+        calibconv(&[&args[..], &["--out", s(out)], extra].concat())
+    };
     let out = tmp.path().join("out");
-    let o = calibconv(&[
-        "synth",
-        "--stanford",
-        root.to_str().unwrap(),
-        "--pano-height",
-        "8",
-        "--views-per-panorama",
-        "2",
-        "--width",
-        "16",
-        "--set",
-        "f195",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", text(&o));
+    let views = ["--views-per-panorama", "2", "--width", "16"];
+    printed(stanford(&out, &views), true);
     let m = Manifest::read(&out.join("f195")).unwrap();
     assert_eq!(m.counts.panoramas, 6);
     // Fold 1: area 5 is the test split, the other areas train and val.
@@ -395,21 +327,6 @@ fn stanford_panoramas_run_through_the_same_synthesis() {
     let mut img = image::open(&sem).unwrap().to_rgb8();
     img.put_pixel(0, 0, image::Rgb([0, 2, 0]));
     img.save(&sem).unwrap();
-    let o = calibconv(&[
-        "synth",
-        "--stanford",
-        root.to_str().unwrap(),
-        "--pano-height",
-        "8",
-        "--set",
-        "f195",
-        "--out",
-        tmp.path().join("out2").to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let msg = text(&o);
-    assert!(
-        msg.contains(&sem.display().to_string()) && msg.contains("index 512"),
-        "{msg}"
-    );
+    let msg = printed(stanford(&tmp.path().join("out2"), &[]), false);
+    assert_contains(&msg, &[&sem.display().to_string(), "index 512"]);
 }

@@ -9,6 +9,7 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use calibconv::experiment::layout::RunDir;
+use common::experiment::ExperimentFile;
 
 /// How long the holder may take to start training and write its first checkpoint (a loaded
 /// 2-core machine builds the binary's libtorch state in a few seconds).
@@ -16,37 +17,14 @@ const START_TIMEOUT: Duration = Duration::from_secs(120);
 /// "At once": a refused process exits well before it could have built a network.
 const REFUSAL_TIMEOUT: Duration = Duration::from_secs(20);
 
-fn experiment(dir: &Path) -> String {
-    format!(
-        r#"name = "locked"
-task = "depth"
-device = "cpu"
-output = "{out}"
-
-[model]
-preset = "tiny"
-kernel = "standard"
-
-[input]
-camera = "{root}/data/cameras/f195.toml"
-padding = [8, 0]
-size = [16, 16]
-
-[data]
-train = {{ toy = 8, split = "train" }}
-test = {{ toy = 4, split = "test" }}
-
-[train]
-steps = 100000000
-batch_size = 2
-checkpoint_every = 2
-
-[optimizer]
-lr = 1e-3
-"#,
-        out = dir.join("runs").display(),
-        root = env!("CARGO_MANIFEST_DIR"),
-    )
+/// A toy experiment that trains for as long as it is let, with a checkpoint every 2 steps.
+fn experiment(dir: &Path) -> ExperimentFile {
+    ExperimentFile::tiny("locked")
+        .set_path("output", &dir.join("runs"))
+        .set_toml("data.train", r#"{ toy = 8, split = "train" }"#)
+        .set_toml("data.test", r#"{ toy = 4, split = "test" }"#)
+        .set("train.steps", 100000000)
+        .set("train.checkpoint_every", 2)
 }
 
 /// The binary with `args`, on one OpenMP thread.
@@ -59,8 +37,7 @@ fn calibconv(args: &[&str]) -> Command {
 #[test]
 fn a_second_process_is_refused_naming_the_holder_and_kill_9_leaves_no_stale_lock() {
     let tmp = tempfile::tempdir().unwrap();
-    let file = tmp.path().join("locked.toml");
-    std::fs::write(&file, experiment(tmp.path())).unwrap();
+    let file = experiment(tmp.path()).write(&tmp.path().join("locked.toml"));
     let f = file.display().to_string();
     let run = RunDir::new(tmp.path().join("runs/locked"));
 
@@ -88,12 +65,10 @@ fn a_second_process_is_refused_naming_the_holder_and_kill_9_leaves_no_stale_lock
     for cmd in ["train", "eval"] {
         let t = Instant::now();
         let o = calibconv(&[cmd, &f, "-q"]).output().unwrap();
-        let err = String::from_utf8_lossy(&o.stderr);
+        let err = common::stderr(&o);
         assert!(!o.status.success(), "{cmd}: {err}");
-        assert!(
-            err.contains(&format!("in use by process {pid}")),
-            "{cmd}: {err}"
-        );
+        let holder = format!("in use by process {pid}");
+        assert!(err.contains(&holder), "{cmd}: {err}");
         assert!(
             t.elapsed() < REFUSAL_TIMEOUT,
             "{cmd} took {:?}",
@@ -108,7 +83,6 @@ fn a_second_process_is_refused_naming_the_holder_and_kill_9_leaves_no_stale_lock
         std::fs::read_to_string(run.lock_file()).unwrap().trim(),
         pid.to_string()
     );
-    let o = calibconv(&["eval", &f, "-q"]).output().unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    common::ok(calibconv(&["eval", &f, "-q"]).output().unwrap());
     assert!(run.metrics_json("test").is_file());
 }

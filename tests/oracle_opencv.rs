@@ -8,16 +8,14 @@
 //!
 //! Each fixture camera is written as a camera file and read with the library's loader, so the
 //! file format, the loader and the model are tested together; only the trait
-//! [`CameraModel`] is used to project and unproject.
+//! `CameraModel` is used to project and unproject (see `common::opencv`).
 
 mod common;
 
-use std::io::Write;
-
-use calibconv::camera::{self, Camera, CameraModel};
+use calibconv::camera::{self, Camera};
 use serde::Deserialize;
 
-use common::{golden, read_text};
+use common::opencv::{self, Distortion};
 
 /// Projection: OpenCV and the library evaluate the same polynomial in float64 and differ only in
 /// round-off (atan(r) vs atan2(rho, z), evaluation order), ~1e-13 px at these radii; 1e-9 px is
@@ -38,196 +36,55 @@ const CAMERAS: usize = 2;
 /// an ulp or two: 1e-15 relative.
 const PARAM_REL_TOL: f64 = 1e-15;
 
+/// Kannala-Brandt's four coefficients.
 #[derive(Deserialize)]
-struct Fixture {
-    generator: String,
-    cameras: Vec<FixtureCamera>,
-}
-
-#[derive(Deserialize)]
-struct FixtureCamera {
-    name: String,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
+struct KannalaBrandt {
     k: [f64; 4],
-    width: usize,
-    height: usize,
-    project: Projections,
-    unproject: Unprojections,
 }
 
-#[derive(Deserialize)]
-struct Projections {
-    rays: Vec<[f64; 3]>,
-    pixels: Vec<[f64; 2]>,
+impl Distortion for KannalaBrandt {
+    const MODEL: &'static str = "kannala-brandt";
+    /// `fov_deg = 180`: the fixture only covers the front hemisphere, and the loader checks that
+    /// d(theta) increases up to fov_deg / 2 = 90 deg.
+    fn fields(&self) -> String {
+        let [k1, k2, k3, k4] = self.k;
+        format!("fov_deg = 180.0\nk1 = {k1:?}\nk2 = {k2:?}\nk3 = {k3:?}\nk4 = {k4:?}\n")
+    }
 }
 
-#[derive(Deserialize)]
-struct Unprojections {
-    pixels: Vec<[f64; 2]>,
-    normalized: Vec<[f64; 2]>,
-}
+type Fixture = opencv::Fixture<KannalaBrandt>;
 
 fn fixture() -> Fixture {
-    let path = golden("opencv_fisheye.json");
-    let fixture: Fixture = serde_json::from_str(&read_text(&path))
-        .unwrap_or_else(|e| panic!("parsing {}: {e}", path.display()));
-    assert!(
-        fixture.generator.contains("OpenCV"),
-        "{}",
-        fixture.generator
-    );
-    assert_eq!(fixture.cameras.len(), CAMERAS, "cameras in the fixture");
-    for cam in &fixture.cameras {
-        let (p, u) = (&cam.project, &cam.unproject);
-        assert_eq!(p.rays.len(), p.pixels.len(), "{}: rays vs pixels", cam.name);
-        assert_eq!(
-            u.pixels.len(),
-            u.normalized.len(),
-            "{}: pixels vs normalized",
-            cam.name
-        );
-        assert!(
-            p.rays.len() >= MIN_POINTS,
-            "{}: {} rays",
-            cam.name,
-            p.rays.len()
-        );
-        assert!(
-            u.pixels.len() >= MIN_POINTS,
-            "{}: {} pixels",
-            cam.name,
-            u.pixels.len()
-        );
-    }
-    fixture
-}
-
-/// The camera file text for a fixture camera. `fov_deg = 180`: the fixture only covers the front
-/// hemisphere, and the loader checks that d(theta) increases up to fov_deg / 2 = 90 deg.
-fn camera_file(cam: &FixtureCamera) -> String {
-    let [k1, k2, k3, k4] = cam.k;
-    // `{:?}` prints the shortest text that reads back to the same f64, always a valid TOML float.
-    format!(
-        "model = \"kannala-brandt\"\nwidth = {}\nheight = {}\nfov_deg = 180.0\n\
-         fx = {:?}\nfy = {:?}\ncx = {:?}\ncy = {:?}\nk1 = {k1:?}\nk2 = {k2:?}\nk3 = {k3:?}\nk4 = {k4:?}\n",
-        cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy
-    )
-}
-
-/// Writes the fixture camera to a temporary camera file and reads it through the library.
-fn load_fixture_camera(cam: &FixtureCamera) -> Camera {
-    let mut file = tempfile::Builder::new()
-        .suffix(".toml")
-        .tempfile()
-        .expect("temporary camera file");
-    file.write_all(camera_file(cam).as_bytes()).unwrap();
-    file.flush().unwrap();
-    camera::load(file.path())
-        .unwrap_or_else(|e| panic!("{}: loading the camera file: {e:#}", cam.name))
+    opencv::read_fixture("opencv_fisheye.json", CAMERAS, MIN_POINTS)
 }
 
 fn f195_file() -> std::path::PathBuf {
-    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/cameras/f195.toml")
+    common::root().join("data/cameras/f195.toml")
 }
 
 /// Every camera to check: each fixture camera through a temporary file, and F195 also through the
 /// shipped `data/cameras/f195.toml`.
-fn cameras_under_test(fixture: &Fixture) -> Vec<(String, Camera, &FixtureCamera)> {
-    let mut out = Vec::new();
-    for cam in &fixture.cameras {
-        out.push((
-            format!("{} (temp file)", cam.name),
-            load_fixture_camera(cam),
-            cam,
-        ));
-        if cam.name == "F195" {
-            let shipped = camera::load(f195_file()).expect("data/cameras/f195.toml");
-            out.push(("F195 (data/cameras/f195.toml)".to_string(), shipped, cam));
-        }
+fn cameras_under_test(fixture: &Fixture) -> Vec<opencv::Case<'_, KannalaBrandt>> {
+    let mut out = opencv::cases(fixture);
+    let f195 = fixture.cameras.iter().find(|c| c.name == "F195");
+    if let Some(cam) = f195 {
+        let shipped = camera::load(f195_file()).expect("data/cameras/f195.toml");
+        out.push(("F195 (data/cameras/f195.toml)".to_string(), shipped, cam));
     }
     assert_eq!(out.len(), CAMERAS + 1, "F195 missing from the fixture");
     out
 }
 
-#[test]
-fn projection_matches_opencv_project_points() {
-    let fixture = fixture();
-    let mut failures = Vec::new();
-    for (label, cam, fx) in cameras_under_test(&fixture) {
-        let mut worst = 0.0f64;
-        for (i, (ray, want)) in fx.project.rays.iter().zip(&fx.project.pixels).enumerate() {
-            let Some(got) = cam.project(*ray) else {
-                failures.push(format!("{label} ray {i} {ray:?}: None, OpenCV {want:?}"));
-                continue;
-            };
-            let err = (got[0] - want[0]).hypot(got[1] - want[1]);
-            worst = worst.max(err);
-            if err.is_nan() || err >= PROJECT_TOL_PX {
-                failures.push(format!(
-                    "{label} ray {i} {ray:?}: {got:?} vs OpenCV {want:?} ({err:.3e} px)"
-                ));
-            }
-        }
-        println!("{label}: worst projection error {worst:.3e} px");
-    }
-    assert!(
-        failures.is_empty(),
-        "{} projections differ from OpenCV beyond {PROJECT_TOL_PX:e} px:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
-}
+opencv::fixture_tests!(
+    cameras_under_test(&fixture()),
+    PROJECT_TOL_PX,
+    UNPROJECT_REL_TOL
+);
 
-#[test]
-fn unprojection_matches_opencv_undistort_points() {
-    let fixture = fixture();
-    let mut failures = Vec::new();
-    for (label, cam, fx) in cameras_under_test(&fixture) {
-        let mut worst = 0.0f64;
-        let pairs = fx.unproject.pixels.iter().zip(&fx.unproject.normalized);
-        for (i, (px, want)) in pairs.enumerate() {
-            let Some(ray) = cam.unproject(*px) else {
-                failures.push(format!("{label} pixel {i} {px:?}: None, OpenCV {want:?}"));
-                continue;
-            };
-            let norm = ray[0].hypot(ray[1]).hypot(ray[2]);
-            if !((norm - 1.0).abs() < 1e-12 && ray[2] > 0.0) {
-                failures.push(format!(
-                    "{label} pixel {i} {px:?}: ray {ray:?} not a front unit ray"
-                ));
-                continue;
-            }
-            let got = [ray[0] / ray[2], ray[1] / ray[2]];
-            let err = (got[0] - want[0]).hypot(got[1] - want[1]) / want[0].hypot(want[1]).max(1.0);
-            worst = worst.max(err);
-            if err.is_nan() || err >= UNPROJECT_REL_TOL {
-                failures.push(format!(
-                    "{label} pixel {i} {px:?}: {got:?} vs OpenCV {want:?} (rel {err:.3e})"
-                ));
-            }
-        }
-        println!("{label}: worst unprojection error {worst:.3e} (relative)");
-    }
-    assert!(
-        failures.is_empty(),
-        "{} unprojections differ from OpenCV beyond {UNPROJECT_REL_TOL:e}:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
-}
-
-/// The fixture's F195 is the calibration shipped in `data/cameras/f195.toml`.
 #[test]
 fn f195_file_holds_the_fixture_calibration() {
     let fixture = fixture();
-    let want = fixture
-        .cameras
-        .iter()
-        .find(|c| c.name == "F195")
-        .expect("F195 in the fixture");
+    let want = fixture.camera("F195");
     let Camera::KannalaBrandt(kb) = camera::load(f195_file()).expect("data/cameras/f195.toml")
     else {
         panic!("data/cameras/f195.toml is not a Kannala-Brandt camera");
@@ -238,10 +95,10 @@ fn f195_file_holds_the_fixture_calibration() {
         ("fy", kb.fy, want.fy),
         ("cx", kb.cx, want.cx),
         ("cy", kb.cy, want.cy),
-        ("k1", kb.k[0], want.k[0]),
-        ("k2", kb.k[1], want.k[1]),
-        ("k3", kb.k[2], want.k[2]),
-        ("k4", kb.k[3], want.k[3]),
+        ("k1", kb.k[0], want.distortion.k[0]),
+        ("k2", kb.k[1], want.distortion.k[1]),
+        ("k3", kb.k[2], want.distortion.k[2]),
+        ("k4", kb.k[3], want.distortion.k[3]),
     ];
     for (field, file, fixture) in pairs {
         assert!(

@@ -9,16 +9,15 @@
 //! `data/cameras/radtan_example.toml`) and a made-up camera with all five coefficients non-zero.
 //!
 //! Each fixture camera is written as a camera file and read with the library's loader, so the
-//! file format, the loader and the model are tested together; only [`CameraModel`] is used.
+//! file format, the loader and the model are tested together; only `CameraModel` is used (see
+//! `common::opencv`).
 
 mod common;
 
-use std::io::Write;
-
-use calibconv::camera::{self, Camera, CameraModel};
+use calibconv::camera;
 use serde::Deserialize;
 
-use common::{golden, read_text};
+use common::opencv::{self, Distortion};
 
 /// Projection: both evaluate the same polynomial in float64 (round-off ~1e-13 px); 1e-9 px is
 /// margin, and a modelling slip (p1 and p2 swapped, k3 on r^4) moves pixels by >= 1e-3 px.
@@ -32,137 +31,29 @@ const MIN_POINTS: usize = 150;
 /// Cameras in the fixture.
 const CAMERAS: usize = 2;
 
+/// The radial `k1, k2, k3` and tangential `p1, p2` coefficients.
 #[derive(Deserialize)]
-struct Fixture {
-    generator: String,
-    cameras: Vec<FixtureCamera>,
-}
-
-#[derive(Deserialize)]
-struct FixtureCamera {
-    name: String,
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
+struct RadTan {
     k: [f64; 3],
     p: [f64; 2],
-    width: usize,
-    height: usize,
-    project: Projections,
-    unproject: Unprojections,
 }
 
-#[derive(Deserialize)]
-struct Projections {
-    rays: Vec<[f64; 3]>,
-    pixels: Vec<[f64; 2]>,
-}
-
-#[derive(Deserialize)]
-struct Unprojections {
-    pixels: Vec<[f64; 2]>,
-    normalized: Vec<[f64; 2]>,
-}
-
-fn fixture() -> Fixture {
-    let path = golden("opencv_radtan.json");
-    let fixture: Fixture = serde_json::from_str(&read_text(&path))
-        .unwrap_or_else(|e| panic!("parsing {}: {e}", path.display()));
-    assert!(
-        fixture.generator.contains("OpenCV"),
-        "{}",
-        fixture.generator
-    );
-    assert_eq!(fixture.cameras.len(), CAMERAS);
-    for cam in &fixture.cameras {
-        assert_eq!(cam.project.rays.len(), cam.project.pixels.len());
-        assert_eq!(cam.unproject.pixels.len(), cam.unproject.normalized.len());
-        assert!(cam.project.rays.len() >= MIN_POINTS, "{}", cam.name);
-        assert!(cam.unproject.pixels.len() >= MIN_POINTS, "{}", cam.name);
+impl Distortion for RadTan {
+    const MODEL: &'static str = "pinhole-radtan";
+    fn fields(&self) -> String {
+        let ([k1, k2, k3], [p1, p2]) = (self.k, self.p);
+        format!("k1 = {k1:?}\nk2 = {k2:?}\np1 = {p1:?}\np2 = {p2:?}\nk3 = {k3:?}\n")
     }
-    fixture
 }
 
-/// The fixture camera as a camera file, read by the library.
-fn load(cam: &FixtureCamera) -> Camera {
-    let [k1, k2, k3] = cam.k;
-    let [p1, p2] = cam.p;
-    let text = format!(
-        "model = \"pinhole-radtan\"\nwidth = {}\nheight = {}\nfx = {:?}\nfy = {:?}\ncx = {:?}\n\
-         cy = {:?}\nk1 = {k1:?}\nk2 = {k2:?}\np1 = {p1:?}\np2 = {p2:?}\nk3 = {k3:?}\n",
-        cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy
-    );
-    let mut file = tempfile::Builder::new().suffix(".toml").tempfile().unwrap();
-    file.write_all(text.as_bytes()).unwrap();
-    file.flush().unwrap();
-    camera::load(file.path()).unwrap_or_else(|e| panic!("{}: {e:#}", cam.name))
+fn fixture() -> opencv::Fixture<RadTan> {
+    opencv::read_fixture("opencv_radtan.json", CAMERAS, MIN_POINTS)
 }
 
-#[test]
-fn projection_matches_opencv_project_points() {
-    let mut failures = Vec::new();
-    for cam in &fixture().cameras {
-        let model = load(cam);
-        let mut worst = 0.0f64;
-        for (ray, want) in cam.project.rays.iter().zip(&cam.project.pixels) {
-            let Some(got) = model.project(*ray) else {
-                failures.push(format!("{} {ray:?}: None, OpenCV {want:?}", cam.name));
-                continue;
-            };
-            let err = (got[0] - want[0]).hypot(got[1] - want[1]);
-            worst = worst.max(err);
-            if err.is_nan() || err >= PROJECT_TOL_PX {
-                failures.push(format!("{} {ray:?}: {got:?} vs {want:?}", cam.name));
-            }
-        }
-        println!("{}: worst projection error {worst:.3e} px", cam.name);
-    }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
-}
+opencv::fixture_tests!(opencv::cases(&fixture()), PROJECT_TOL_PX, UNPROJECT_REL_TOL);
 
-#[test]
-fn unprojection_matches_opencv_undistort_points() {
-    let mut failures = Vec::new();
-    for cam in &fixture().cameras {
-        let model = load(cam);
-        let mut worst = 0.0f64;
-        for (px, want) in cam.unproject.pixels.iter().zip(&cam.unproject.normalized) {
-            let Some(ray) = model.unproject(*px) else {
-                failures.push(format!("{} {px:?}: None, OpenCV {want:?}", cam.name));
-                continue;
-            };
-            let got = [ray[0] / ray[2], ray[1] / ray[2]];
-            let err = (got[0] - want[0]).hypot(got[1] - want[1]) / want[0].hypot(want[1]).max(1.0);
-            worst = worst.max(err);
-            if err.is_nan() || err >= UNPROJECT_REL_TOL {
-                failures.push(format!(
-                    "{} {px:?}: {got:?} vs {want:?} ({err:.3e})",
-                    cam.name
-                ));
-            }
-        }
-        println!(
-            "{}: worst unprojection error {worst:.3e} (relative)",
-            cam.name
-        );
-    }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
-}
-
-/// The fixture's EuRoC camera is the shipped `data/cameras/radtan_example.toml`.
 #[test]
 fn euroc_file_holds_the_fixture_calibration() {
-    let fixture = fixture();
-    let euroc = fixture
-        .cameras
-        .iter()
-        .find(|c| c.name == "EuRoC cam0")
-        .unwrap();
-    let shipped = camera::load(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/data/cameras/radtan_example.toml"
-    ))
-    .unwrap();
-    assert_eq!(shipped, load(euroc));
+    let shipped = camera::load(common::root().join("data/cameras/radtan_example.toml")).unwrap();
+    assert_eq!(shipped, fixture().camera("EuRoC cam0").load());
 }

@@ -212,54 +212,69 @@ fn fixture_has_enough_cases_covering_the_geometries() {
     );
 }
 
-#[test]
-fn output_matches_torchvision() {
-    check("output", REL_TOL, Kind::Float, |c, r| {
-        Some((r.output.shallow_clone(), c.output.shallow_clone()))
-    });
+/// What [`check`] compares: the output or one of the gradients.
+#[derive(Clone, Copy, Debug)]
+enum Quantity {
+    Output,
+    GradInput,
+    GradWeight,
+    /// Only in cases with a bias.
+    GradBias,
 }
 
-#[test]
-fn grad_input_matches_torchvision() {
-    check("grad_input", REL_TOL, Kind::Float, |c, r| {
-        Some((r.grad_input.shallow_clone(), c.grad_input.shallow_clone()))
-    });
+impl Quantity {
+    const ALL: [Quantity; 4] = [
+        Quantity::Output,
+        Quantity::GradInput,
+        Quantity::GradWeight,
+        Quantity::GradBias,
+    ];
+
+    fn name(self) -> &'static str {
+        match self {
+            Quantity::Output => "output",
+            Quantity::GradInput => "grad_input",
+            Quantity::GradWeight => "grad_weight",
+            Quantity::GradBias => "grad_bias",
+        }
+    }
+
+    /// The library's and torchvision's values, or `None` where the case has none.
+    fn pick(self, c: &Case, r: &Run) -> Option<(Tensor, Tensor)> {
+        let (ours, reference) = match self {
+            Quantity::Output => (&r.output, &c.output),
+            Quantity::GradInput => (&r.grad_input, &c.grad_input),
+            Quantity::GradWeight => (&r.grad_weight, &c.grad_weight),
+            Quantity::GradBias => (r.grad_bias.as_ref()?, c.grad_bias.as_ref()?),
+        };
+        Some((ours.shallow_clone(), reference.shallow_clone()))
+    }
 }
 
-#[test]
-fn grad_weight_matches_torchvision() {
-    check("grad_weight", REL_TOL, Kind::Float, |c, r| {
-        Some((r.grad_weight.shallow_clone(), c.grad_weight.shallow_clone()))
-    });
+/// One test per quantity, in float32 against [`REL_TOL`].
+macro_rules! float32_tests {
+    ($($test:ident: $quantity:ident,)*) => {$(
+        #[test]
+        fn $test() {
+            let q = Quantity::$quantity;
+            check(q.name(), REL_TOL, Kind::Float, |c, r| q.pick(c, r));
+        }
+    )*};
 }
 
-#[test]
-fn grad_bias_matches_torchvision() {
-    check("grad_bias", REL_TOL, Kind::Float, |c, r| {
-        Some((
-            r.grad_bias.as_ref()?.shallow_clone(),
-            c.grad_bias.as_ref()?.shallow_clone(),
-        ))
-    });
+float32_tests! {
+    output_matches_torchvision: Output,
+    grad_input_matches_torchvision: GradInput,
+    grad_weight_matches_torchvision: GradWeight,
+    grad_bias_matches_torchvision: GradBias,
 }
 
 /// The same comparisons in float64: the library is then held to the float32 rounding of the
 /// stored reference instead of float32 arithmetic.
 #[test]
 fn float64_output_and_gradients_match_torchvision() {
-    check("float64 output", F64_REL_TOL, Kind::Double, |c, r| {
-        Some((r.output.shallow_clone(), c.output.shallow_clone()))
-    });
-    check("float64 grad_input", F64_REL_TOL, Kind::Double, |c, r| {
-        Some((r.grad_input.shallow_clone(), c.grad_input.shallow_clone()))
-    });
-    check("float64 grad_weight", F64_REL_TOL, Kind::Double, |c, r| {
-        Some((r.grad_weight.shallow_clone(), c.grad_weight.shallow_clone()))
-    });
-    check("float64 grad_bias", F64_REL_TOL, Kind::Double, |c, r| {
-        Some((
-            r.grad_bias.as_ref()?.shallow_clone(),
-            c.grad_bias.as_ref()?.shallow_clone(),
-        ))
-    });
+    for q in Quantity::ALL {
+        let what = format!("float64 {}", q.name());
+        check(&what, F64_REL_TOL, Kind::Double, |c, r| q.pick(c, r));
+    }
 }

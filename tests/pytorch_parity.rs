@@ -14,18 +14,19 @@ mod common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::{Arc, OnceLock};
 
 use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
-use calibconv::experiment::{self, DefaultOpener, Experiment, RunOptions};
+use calibconv::experiment::{self, Experiment};
 use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::train;
 use calibconv::train::checkpoint::{self, CheckpointInfo};
-use common::{calibconv, max_rel, read_safetensors, root};
+use common::experiment::{quiet, ExperimentFile};
+use common::{calibconv, failed, max_rel, ok, read_safetensors, root, s};
 
 /// float32 convolutions, BatchNorm and up-sampling by one libtorch from two front ends; the
 /// issue's bound. Observed: 0 (bit-identical) on this machine; other thread counts reorder sums.
@@ -69,13 +70,9 @@ fn python(args: &[&Path]) {
     );
 }
 
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
+/// `calibconv convert` or `calibconv export` (`command`) of `file` to `out`, which must succeed.
+fn convert(command: &str, file: &Path, out: &Path) {
+    ok(calibconv(&[command, s(file), "--out", s(out)]));
 }
 
 /// The PyTorch fixtures, made once per test run, with each `.pth` converted by
@@ -91,12 +88,7 @@ fn fixtures() -> &'static Path {
             for suffix in ["", "_nested", "_1class"] {
                 let pth = dir.join(format!("{mode}{suffix}.pth"));
                 let out = dir.join(format!("{mode}{suffix}.safetensors"));
-                ok(&calibconv(&[
-                    "convert",
-                    pth.to_str().unwrap(),
-                    "--out",
-                    out.to_str().unwrap(),
-                ]));
+                convert("convert", &pth, &out);
             }
         }
         dir
@@ -161,12 +153,7 @@ fn milesials_own_size_converts_loads_into_the_classic_presets_and_matches() {
     for (mode, preset) in [("transposed", "classic"), ("bilinear", "classic-bilinear")] {
         let pth = dir.path().join(format!("classic_{mode}.pth"));
         let file = dir.path().join(format!("classic_{mode}.safetensors"));
-        ok(&calibconv(&[
-            "convert",
-            pth.to_str().unwrap(),
-            "--out",
-            file.to_str().unwrap(),
-        ]));
+        convert("convert", &pth, &file);
         let cfg = UNetConfig::preset(preset, Head::Segmentation { classes: 2 }).unwrap();
         let vs = VarStore::new(Device::Cpu);
         let net = UNet::new(&vs.root(), &cfg, &ConvKind::Standard, SIZE).unwrap();
@@ -221,56 +208,25 @@ fn a_converted_checkpoint_for_another_architecture_lists_every_difference() {
 
 /// A depth experiment on the toy task whose initial weights are `init`.
 fn experiment(dir: &Path, name: &str, kernel: &str, up: &str, init: &Path) -> Experiment {
-    let text = format!(
-        r#"
-name = "{name}"
-task = "depth"
-seed = 1
-output = "{out}"
-device = "cpu"
-
-[model]
-preset = "tiny"
-kernel = "{kernel}"
-base = 8
-depth = 4
-up = "{up}"
-init = {{ checkpoint = "{init}" }}
-
-[input]
-camera = "{camera}"
-padding = [0, 120]
-size = [64, 64]
-
-[data]
-train = {{ toy = 4, split = "train" }}
-
-[train]
-steps = 1
-batch_size = 2
-log_every = 1
-
-[optimizer]
-lr = 1e-3
-"#,
-        out = dir.display(),
-        init = init.display(),
-        camera = root().join("data/cameras/f195.toml").display(),
-    );
-    let path = dir.join(format!("{name}.toml"));
-    std::fs::write(&path, text).unwrap();
-    experiment::load(&path).unwrap()
+    ExperimentFile::tiny(name)
+        .set("seed", 1)
+        .set_path("output", dir)
+        .set("model.kernel", kernel)
+        .set("model.base", 8)
+        .set("model.depth", 4)
+        .set("model.up", up)
+        .set_path("model.init.checkpoint", init)
+        .square(64)
+        .set_toml("data.train", r#"{ toy = 4, split = "train" }"#)
+        .set("train.steps", 1)
+        .set("train.log_every", 1)
+        .load_in(dir)
 }
 
 #[test]
 fn an_experiment_fine_tunes_a_converted_checkpoint_with_either_kernel_and_exports_it_back() {
     let dir = tempfile::tempdir().unwrap();
-    let opts = RunOptions {
-        resume: false,
-        progress: false,
-        verbose: false,
-        opener: &DefaultOpener,
-    };
+    let opts = quiet();
     for (mode, _) in MODES {
         let init = fixtures().join(format!("{mode}_1class.safetensors"));
         for kernel in ["standard", "calibrated"] {
@@ -308,9 +264,9 @@ fn an_experiment_fine_tunes_a_converted_checkpoint_with_either_kernel_and_export
 }
 
 /// Exports the calibconv checkpoint `ckpt` (a standard-kernel `cfg` network) with `calibconv
-/// export` to `dir/STEM_state_dict.safetensors`, runs the same random input through it in calibconv and, after a strict
-/// `load_state_dict`, in PyTorch (eval mode, raw `outc` output), and returns the largest
-/// relative difference.
+/// export` to `dir/STEM_state_dict.safetensors`, runs the same random input through it in
+/// calibconv and, after a strict `load_state_dict`, in PyTorch (eval mode, raw `outc` output),
+/// and returns the largest relative difference.
 fn export_and_compare(
     ckpt: &Path,
     cfg: &UNetConfig,
@@ -318,13 +274,6 @@ fn export_and_compare(
     dir: &Path,
     stem: &str,
 ) -> f64 {
-    let state = dir.join(format!("{stem}_state_dict.safetensors"));
-    ok(&calibconv(&[
-        "export",
-        ckpt.to_str().unwrap(),
-        "--out",
-        state.to_str().unwrap(),
-    ]));
     let vs = VarStore::new(Device::Cpu);
     let net = UNet::new(&vs.root(), cfg, &ConvKind::Standard, size).unwrap();
     checkpoint::load(ckpt, &vs, cfg).unwrap();
@@ -333,11 +282,22 @@ fn export_and_compare(
         (Kind::Float, Device::Cpu),
     );
     let y = tch::no_grad(|| net.f_forward_raw_t(&x, false)).unwrap();
+    let (torch, _) = export_to_torch(ckpt, &x, dir, stem);
+    max_rel(&y, &torch)
+}
+
+/// Exports `ckpt` with `calibconv export` to `dir/STEM_state_dict.safetensors`, loads that
+/// strictly into PyTorch's network and returns its output for `x` (eval mode, raw `outc`
+/// output) and the exported file.
+fn export_to_torch(ckpt: &Path, x: &Tensor, dir: &Path, stem: &str) -> (Tensor, PathBuf) {
+    let state = dir.join(format!("{stem}_state_dict.safetensors"));
+    convert("export", ckpt, &state);
     let io = dir.join(format!("{stem}_io.safetensors"));
-    Tensor::write_safetensors(&[("input", &x)], &io).unwrap();
+    Tensor::write_safetensors(&[("input", x)], &io).unwrap();
     let out = dir.join(format!("{stem}_torch.safetensors"));
     python(&[Path::new("rust-to-torch"), &state, &io, &out]);
-    max_rel(&y, &read_safetensors(&out)["output"])
+    let mut torch = read_safetensors(&out);
+    (torch.remove("output").expect("output in the result"), state)
 }
 
 fn randomise_batchnorm(vs: &VarStore) {
@@ -372,36 +332,16 @@ fn exported_checkpoints_load_strictly_into_pytorch_and_give_the_same_outputs() {
         randomise_batchnorm(&vs);
         let ckpt = dir.path().join(format!("{mode}.safetensors"));
         let info = CheckpointInfo {
-            format: checkpoint::FORMAT.into(),
-            version: checkpoint::FORMAT_VERSION,
-            model: cfg,
-            input_size: SIZE,
-            kernel: "standard".into(),
-            camera_file: None,
-            camera_toml: None,
-            padding: [0, 0],
             experiment: Some("parity".into()),
             step: 3,
-            epoch: 0,
             batch_in_epoch: 3,
-            metrics: Default::default(),
-            git: None,
+            ..common::checkpoint_info(cfg, SIZE)
         };
         checkpoint::save(&ckpt, &vs, &info).unwrap();
-        let state = dir.path().join(format!("{mode}_state_dict.safetensors"));
-        ok(&calibconv(&[
-            "export",
-            ckpt.to_str().unwrap(),
-            "--out",
-            state.to_str().unwrap(),
-        ]));
         let x = Tensor::rand([2, 3, SIZE[0], SIZE[1]], (Kind::Float, Device::Cpu));
         let y = tch::no_grad(|| net.f_forward_raw_t(&x, false)).unwrap();
-        let io = dir.path().join(format!("{mode}_io.safetensors"));
-        Tensor::write_safetensors(&[("input", &x)], &io).unwrap();
-        let out = dir.path().join(format!("{mode}_torch.safetensors"));
-        python(&[Path::new("rust-to-torch"), &state, &io, &out]);
-        let e = max_rel(&y, &read_safetensors(&out)["output"]);
+        let (torch, state) = export_to_torch(&ckpt, &x, dir.path(), mode);
+        let e = max_rel(&y, &torch);
         eprintln!("calibconv -> torch, {mode}: max relative error {e:.3e}");
         assert!(e < TOL, "{mode}: {e}");
         // milesial's key counts (depth 4), with the counters strict loading needs.
@@ -424,26 +364,15 @@ fn convert_and_export_errors_are_clear() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("w.safetensors");
     let out = out.to_str().unwrap();
-    let o = calibconv(&["convert", "no/such.pth", "--out", out]);
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("no/such.pth: no such file"));
+    let err = failed(calibconv(&["convert", "no/such.pth", "--out", out]));
+    assert!(err.contains("no/such.pth: no such file"), "{err}");
     let pth = fixtures().join("bilinear.pth");
-    let o = calibconv(&[
-        "convert",
-        pth.to_str().unwrap(),
-        "--out",
-        out,
-        "--python",
-        "no/python",
-    ]);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let args = ["convert", s(&pth), "--out", out, "--python", "no/python"];
+    let err = failed(calibconv(&args));
     assert!(err.contains("no Python environment at no/python"), "{err}");
     // A converted PyTorch file has no calibconv metadata: nothing to export.
     let conv = fixtures().join("bilinear.safetensors");
-    let o = calibconv(&["export", conv.to_str().unwrap(), "--out", out]);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = failed(calibconv(&["export", s(&conv), "--out", out]));
     assert!(err.contains("not a calibconv checkpoint"), "{err}");
     assert!(!Path::new(out).exists());
 }

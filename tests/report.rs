@@ -4,7 +4,9 @@
 //! intervals, `verdict.json` / `verdict.md`; one replicate without seed folders; an unreadable
 //! metrics file named in the error.
 
-use std::path::Path;
+mod common;
+
+use std::path::{Path, PathBuf};
 
 use serde_json::json;
 use tch::{Device, Kind, Tensor};
@@ -97,14 +99,27 @@ fn write_seed(dir: &Path, seed: u64, gain: f64) {
     });
 }
 
+/// A temporary folder and the results folder to write in it (not made yet).
+fn results_dir() -> (tempfile::TempDir, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let results = tmp.path().join("results");
+    (tmp, results)
+}
+
 fn read_verdict(dir: &Path) -> Verdict {
     serde_json::from_str(&std::fs::read_to_string(dir.join("verdict.json")).unwrap()).unwrap()
 }
 
+/// The text of the report file `name` in `dir`, after checking that it contains every one of
+/// `parts`.
+#[track_caller]
+fn report_has(dir: &Path, name: &str, parts: &[&str]) -> String {
+    common::file_containing(&dir.join(name), parts)
+}
+
 #[test]
 fn three_seeds_give_intervals_differences_and_a_verdict() {
-    let tmp = tempfile::tempdir().unwrap();
-    let results = tmp.path().join("results");
+    let (tmp, results) = results_dir();
     for (seed, gain) in [(0, 0.10), (1, 0.12), (2, 0.08)] {
         write_seed(&results.join(format!("seed-{seed}")), seed, gain);
     }
@@ -117,16 +132,20 @@ fn three_seeds_give_intervals_differences_and_a_verdict() {
     ] {
         assert!(files.iter().any(|p| p.ends_with(f)), "{f} not written");
     }
-    let table = std::fs::read_to_string(results.join("table_depth.md")).unwrap();
-    assert!(table.contains("`per-image` averaging"), "{table}");
-    assert!(table.contains("| FT | F195 | calibrated | 3 | "), "{table}");
-    assert!(table.contains(" ± "), "{table}");
-    let diffs = std::fs::read_to_string(results.join("differences_depth.md")).unwrap();
-    assert!(
-        diffs.contains("| FT | F195 | calibrated − standard | rmse | 3 |"),
-        "{diffs}"
+    report_has(
+        &results,
+        "table_depth.md",
+        &[
+            "`per-image` averaging",
+            "| FT | F195 | calibrated | 3 | ",
+            " ± ",
+        ],
     );
-    assert!(diffs.contains("s0: -"), "{diffs}");
+    report_has(
+        &results,
+        "differences_depth.md",
+        &["| FT | F195 | calibrated − standard | rmse | 3 |", "s0: -"],
+    );
 
     let v = read_verdict(&results);
     assert_eq!(v.seeds, [0, 1, 2]);
@@ -159,8 +178,11 @@ fn three_seeds_give_intervals_differences_and_a_verdict() {
     let c2 = row("C2", Metric::Rmse, "F165");
     assert_eq!(c2.outcome, Outcome::Inconclusive);
     assert!(c2.reason.as_ref().unwrap().contains("FT F165"));
-    let md = std::fs::read_to_string(results.join("verdict.md")).unwrap();
-    assert!(md.contains("| C1 | depth | rmse | FT F195 calibrated - FT F195 standard | < 0 |"));
+    report_has(
+        &results,
+        "verdict.md",
+        &["| C1 | depth | rmse | FT F195 calibrated - FT F195 standard | < 0 |"],
+    );
 
     // Pooled averaging is a choice the tables state.
     let out = tmp.path().join("pooled");
@@ -170,26 +192,18 @@ fn three_seeds_give_intervals_differences_and_a_verdict() {
     };
     write_report_with(&results, &out, &opts).unwrap();
     assert_eq!(read_verdict(&out).averaging, Averaging::Pooled);
-    let table = std::fs::read_to_string(out.join("table_depth.md")).unwrap();
-    assert!(table.contains("`pooled` averaging"), "{table}");
+    report_has(&out, "table_depth.md", &["`pooled` averaging"]);
 }
 
 #[test]
 fn one_replicate_without_seed_folders_prints_no_interval() {
-    let tmp = tempfile::tempdir().unwrap();
-    let results = tmp.path().join("results");
+    let (_tmp, results) = results_dir();
     write_seed(&results, 0, 0.1);
     write_report_with(&results, &results, &ReportOptions::default()).unwrap();
-    let table = std::fs::read_to_string(results.join("table_depth.md")).unwrap();
-    assert!(
-        !table.contains('±') && table.contains("need >= 2 seeds"),
-        "{table}"
-    );
-    let diffs = std::fs::read_to_string(results.join("differences_depth.md")).unwrap();
-    assert!(
-        diffs.contains("needs >= 2 seeds") && !diffs.contains('['),
-        "{diffs}"
-    );
+    let table = report_has(&results, "table_depth.md", &["need >= 2 seeds"]);
+    assert!(!table.contains('±'), "{table}");
+    let diffs = report_has(&results, "differences_depth.md", &["needs >= 2 seeds"]);
+    assert!(!diffs.contains('['), "{diffs}");
     let v = read_verdict(&results);
     // The experiment files' own seed.
     assert_eq!(v.seeds, [0]);
@@ -198,17 +212,16 @@ fn one_replicate_without_seed_folders_prints_no_interval() {
         assert!(c.ci95.is_none() && c.half_width.is_none());
         assert!(c.reason.is_some(), "{c:?}");
     }
-    let md = std::fs::read_to_string(results.join("verdict.md")).unwrap();
-    assert!(
-        md.contains("an interval over seeds needs >= 2 seeds"),
-        "{md}"
+    report_has(
+        &results,
+        "verdict.md",
+        &["an interval over seeds needs >= 2 seeds"],
     );
 }
 
 #[test]
 fn an_unreadable_metrics_file_is_an_error_naming_it() {
-    let tmp = tempfile::tempdir().unwrap();
-    let results = tmp.path().join("results");
+    let (_tmp, results) = results_dir();
     write_seed(&results.join("seed-0"), 0, 0.1);
     write_seed(&results.join("seed-1"), 1, 0.1);
     let bad = results.join("seed-1/paper-depth-ft-f195-standard/eval/f195-standard/metrics.json");
@@ -226,8 +239,7 @@ fn an_unreadable_metrics_file_is_an_error_naming_it() {
 #[test]
 fn a_shared_baseline_leaves_c5_without_an_interval() {
     // share_baseline: the BL run lives in the first seed's folder only.
-    let tmp = tempfile::tempdir().unwrap();
-    let results = tmp.path().join("results");
+    let (_tmp, results) = results_dir();
     for (seed, gain) in [(0, 0.10), (1, 0.12), (2, 0.08)] {
         write_seed(&results.join(format!("seed-{seed}")), seed, gain);
         if seed > 0 {
@@ -259,19 +271,17 @@ fn a_shared_baseline_leaves_c5_without_an_interval() {
     // The FT claims still have three seeds.
     let c1 = v.claims.iter().find(|c| c.id == "C1").unwrap();
     assert_eq!((c1.per_seed.len(), c1.outcome), (3, Outcome::Holds));
-    let md = std::fs::read_to_string(results.join("verdict.md")).unwrap();
-    assert!(md.contains("share_baseline"), "{md}");
-    let table = std::fs::read_to_string(results.join("table_depth.md")).unwrap();
-    assert!(
-        table.contains("| BL (Pers) | F195 | standard | 1 | "),
-        "{table}"
+    report_has(&results, "verdict.md", &["share_baseline"]);
+    report_has(
+        &results,
+        "table_depth.md",
+        &["| BL (Pers) | F195 | standard | 1 | "],
     );
 }
 
 #[test]
 fn the_gain_against_the_field_of_view_has_one_point_per_lens() {
-    let tmp = tempfile::tempdir().unwrap();
-    let results = tmp.path().join("results");
+    let (_tmp, results) = results_dir();
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     for (seed, gain) in [(0u64, 0.10), (1, 0.12), (2, 0.08)] {
         let dir = results.join(format!("seed-{seed}"));
@@ -319,6 +329,9 @@ fn the_gain_against_the_field_of_view_has_one_point_per_lens() {
     }
     assert!(rmse[1]["mean"].as_f64().unwrap() < rmse[0]["mean"].as_f64().unwrap());
     assert!(results.join("fov_gain.png").is_file());
-    let md = std::fs::read_to_string(results.join("REPORT.md")).unwrap();
-    assert!(md.contains("## Gain against the field of view"), "{md}");
+    report_has(
+        &results,
+        "REPORT.md",
+        &["## Gain against the field of view"],
+    );
 }

@@ -14,67 +14,50 @@ use calibconv::experiment::layout::{ResultsDir, RunDir};
 use calibconv::experiment::run::open_training_source;
 use calibconv::experiment::sweep::{self, Seeds};
 use calibconv::experiment::{DefaultOpener, InitSpec};
-use common::{calibconv_in, synth_tiny_f195};
-
-/// A 32-px F195 data set (10 panoramas, 2 views each) in `dir/sets/f195`.
-fn synth(dir: &Path) {
-    synth_tiny_f195(&dir.join("sets"), 32);
-}
+use common::experiment::ExperimentFile;
+use common::{assert_contains, calibconv_in, file_containing, ok, synth_tiny_f195};
 
 /// A baseline (`init` None) or a fine-tuning of `bl` with `kernel` on the F195 set, with
 /// colour-jitter augmentation.
-fn experiment(dir: &Path, name: &str, kernel: &str, init: Option<&str>) -> String {
-    format!(
-        r#"name = "{name}"
-task = "depth"
-device = "cpu"
-data_root = "{sets}"
-output = "runs"
+fn experiment(dir: &Path, name: &str, kernel: &str, init: Option<&str>) -> ExperimentFile {
+    let set = |split: &str| format!(r#"{{ dataset = "f195", split = "{split}" }}"#);
+    let e = ExperimentFile::tiny(name)
+        .set_path("data_root", &dir.join("sets"))
+        .set("model.kernel", kernel)
+        .remove("input.size")
+        .set("input.width", 32)
+        .set("input.padding", vec![0, 4])
+        .set_toml("data.train", &set("train"))
+        .set_toml("data.val", &set("val"))
+        .set("train.batch_size", 3)
+        .set_toml("train.augment", "{ jitter = 0.3 }")
+        .eval(&format!(
+            r#"{{ name = "f195-{kernel}", data = {} }}"#,
+            set("test")
+        ));
+    match init {
+        Some(i) => e.set_toml("model.init", &format!(r#"{{ experiment = "{i}" }}"#)),
+        None => e,
+    }
+}
 
-[model]
-preset = "tiny"
-kernel = "{kernel}"
-{init}
-
-[input]
-camera = "{root}/data/cameras/f195.toml"
-width = 32
-padding = [0, 4]
-
-[data]
-train = {{ dataset = "f195", split = "train" }}
-val = {{ dataset = "f195", split = "val" }}
-
-[train]
-steps = 2
-batch_size = 3
-augment = {{ jitter = 0.3 }}
-
-[optimizer]
-lr = 1e-3
-
-[[eval]]
-name = "f195-{kernel}"
-data = {{ dataset = "f195", split = "test" }}
-"#,
-        sets = dir.join("sets").display(),
-        root = env!("CARGO_MANIFEST_DIR"),
-        init = init
-            .map(|i| format!("init = {{ experiment = \"{i}\" }}"))
-            .unwrap_or_default()
-    )
+/// A temporary folder with a 32-px F195 data set (10 panoramas, 2 views each) in
+/// `sets/f195` and, in `exp/`, a baseline `bl` and its fine-tunings `ft-standard` and
+/// `ft-calibrated`.
+fn study() -> tempfile::TempDir {
+    let tmp = tempfile::tempdir().unwrap();
+    synth_tiny_f195(&tmp.path().join("sets"), 32);
+    write_set(tmp.path());
+    tmp
 }
 
 fn write_set(dir: &Path) {
-    std::fs::create_dir_all(dir.join("exp")).unwrap();
     let e = dir.join("exp");
-    std::fs::write(e.join("bl.toml"), experiment(dir, "bl", "standard", None)).unwrap();
+    std::fs::create_dir_all(&e).unwrap();
+    experiment(dir, "bl", "standard", None).write(&e.join("bl.toml"));
     for k in ["standard", "calibrated"] {
-        std::fs::write(
-            e.join(format!("ft-{k}.toml")),
-            experiment(dir, &format!("ft-{k}"), k, Some("bl")),
-        )
-        .unwrap();
+        let name = format!("ft-{k}");
+        experiment(dir, &name, k, Some("bl")).write(&e.join(format!("{name}.toml")));
     }
 }
 
@@ -93,10 +76,8 @@ fn batches(exp: &calibconv::experiment::Experiment) -> Vec<(Vec<String>, Tensor)
 
 #[test]
 fn seeds_replicate_the_sweep_and_fine_tunings_of_one_seed_see_the_same_batches() {
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = study();
     let dir = tmp.path();
-    synth(dir);
-    write_set(dir);
     std::env::set_current_dir(dir).unwrap();
     let profile = Default::default();
     let seeds = Seeds {
@@ -206,10 +187,8 @@ fn seeds_replicate_the_sweep_and_fine_tunings_of_one_seed_see_the_same_batches()
 
 #[test]
 fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed() {
-    let tmp = tempfile::tempdir().unwrap();
+    let tmp = study();
     let dir = tmp.path();
-    synth(dir);
-    write_set(dir);
     let e = dir.join("exp");
     std::fs::create_dir_all(e.join("profiles")).unwrap();
     std::fs::write(
@@ -218,27 +197,13 @@ fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed(
     )
     .unwrap();
     let exp_dir = e.display().to_string();
-    let o = calibconv_in(
-        dir,
-        &[
-            "sweep",
-            &exp_dir,
-            "--profile",
-            "rep",
-            "--seeds",
-            "0,1",
-            "--jobs",
-            "2",
-            "-q",
-        ],
-    );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
+    let sweep = |extra: &[&str]| {
+        let args = ["sweep", exp_dir.as_str(), "--profile", "rep"];
+        ok(calibconv_in(dir, &[&args[..], extra].concat()))
+    };
+    let err = common::stderr(&sweep(&["--seeds", "0,1", "--jobs", "2", "-q"]));
     // Each run's line says where its time went.
-    assert!(
-        err.contains("seed-1/ft-calibrated: train:") && err.contains("steps "),
-        "{err}"
-    );
+    assert_contains(&err, &["seed-1/ft-calibrated: train:", "steps "]);
     let results = ResultsDir::new(dir.join("runs"));
     let reps = results.replicates().unwrap();
     assert_eq!(
@@ -261,36 +226,22 @@ fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed(
     assert_eq!(study.runs.len(), 6);
 
     let slurm = dir.join("slurm");
-    let o = calibconv_in(
-        dir,
+    sweep(&["--emit-slurm", common::s(&slurm), "--slurm-set", "mem=1G"]);
+    let l0 = file_containing(
+        &slurm.join("level-0.sbatch"),
         &[
-            "sweep",
-            &exp_dir,
-            "--profile",
-            "rep",
-            "--emit-slurm",
-            &slurm.display().to_string(),
-            "--slurm-set",
-            "mem=1G",
+            "#SBATCH --array=0-2\n",
+            "RUNS=(bl bl bl)\n",
+            "SEEDS=(1 2 3)\n",
+            "#SBATCH --time=00:10:00\n#SBATCH --cpus-per-task=1\n#SBATCH --mem=1G\n",
         ],
     );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let l0 = std::fs::read_to_string(slurm.join("level-0.sbatch")).unwrap();
-    let l1 = std::fs::read_to_string(slurm.join("level-1.sbatch")).unwrap();
-    assert!(
-        l0.contains("#SBATCH --array=0-2\n")
-            && l0.contains("RUNS=(bl bl bl)\n")
-            && l0.contains("SEEDS=(1 2 3)\n"),
-        "{l0}"
-    );
-    assert!(
-        l0.contains("#SBATCH --time=00:10:00\n#SBATCH --cpus-per-task=1\n#SBATCH --mem=1G\n"),
-        "{l0}"
-    );
     assert!(!l0.contains("gres"), "{l0}");
-    assert!(l1.contains("#SBATCH --array=0-5\n"), "{l1}");
-    assert!(
-        l1.contains("--seeds 1,2,3 --only-seed \"${SEEDS[$SLURM_ARRAY_TASK_ID]}\""),
-        "{l1}"
+    file_containing(
+        &slurm.join("level-1.sbatch"),
+        &[
+            "#SBATCH --array=0-5\n",
+            "--seeds 1,2,3 --only-seed \"${SEEDS[$SLURM_ARRAY_TASK_ID]}\"",
+        ],
     );
 }

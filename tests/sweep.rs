@@ -10,59 +10,35 @@ use calibconv::experiment::layout::{RunDir, SweepStatus};
 use calibconv::experiment::profile::Override;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
-use common::{calibconv_in, synth_tiny_f195};
+use common::experiment::ExperimentFile;
+use common::{assert_contains, calibconv_in, failed, file_containing, ok, synth_tiny_f195};
 
-/// A tiny toy experiment: 2 steps of the tiny U-Net on 16x16 toy images.
-fn toy(name: &str, init: Option<&str>, train: &str) -> String {
-    format!(
-        r#"name = "{name}"
-task = "depth"
-output = "runs"
-device = "cpu"
-
-[model]
-preset = "tiny"
-kernel = "standard"
-{init}
-
-[input]
-camera = "{root}/data/cameras/f195.toml"
-padding = [8, 0]
-size = [16, 16]
-
-[data]
-train = {train}
-val = {{ toy = 4, split = "val" }}
-
-[train]
-epochs = 5
-batch_size = 2
-
-[optimizer]
-lr = 1e-3
-
-[[eval]]
-name = "f195-standard"
-data = {{ toy = 4, split = "test" }}
-"#,
-        root = env!("CARGO_MANIFEST_DIR"),
-        init = init
-            .map(|i| format!("init = {{ experiment = \"{i}\" }}"))
-            .unwrap_or_default()
-    )
+/// A tiny toy experiment: 5 epochs of the tiny U-Net on 16x16 toy images, training on
+/// `train`, fine-tuning `init` if given.
+fn toy(name: &str, init: Option<&str>, train: &str) -> ExperimentFile {
+    let e = ExperimentFile::tiny(name)
+        .remove("train.steps")
+        .set("train.epochs", 5)
+        .set_toml("data.train", train)
+        .set_toml("data.val", r#"{ toy = 4, split = "val" }"#)
+        .eval(r#"{ name = "f195-standard", data = { toy = 4, split = "test" } }"#);
+    match init {
+        Some(i) => e.set_toml("model.init", &format!(r#"{{ experiment = "{i}" }}"#)),
+        None => e,
+    }
 }
 
 fn write_set(dir: &Path) {
     let ok = r#"{ toy = 4, split = "train" }"#;
     let missing = r#"{ dataset = "no-such-folder", split = "train" }"#;
-    std::fs::write(dir.join("bl.toml"), toy("bl", None, ok)).unwrap();
-    std::fs::write(dir.join("ft.toml"), toy("ft", Some("bl"), ok)).unwrap();
-    std::fs::write(dir.join("broken.toml"), toy("broken", None, missing)).unwrap();
-    std::fs::write(
-        dir.join("after-broken.toml"),
-        toy("after-broken", Some("broken"), ok),
-    )
-    .unwrap();
+    for (name, init, train) in [
+        ("bl", None, ok),
+        ("ft", Some("bl"), ok),
+        ("broken", None, missing),
+        ("after-broken", Some("broken"), ok),
+    ] {
+        toy(name, init, train).write(&dir.join(format!("{name}.toml")));
+    }
     std::fs::create_dir_all(dir.join("profiles")).unwrap();
     std::fs::write(
         dir.join("profiles/tiny.toml"),
@@ -178,15 +154,18 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     let files =
         calibconv::report::results::write_report(&dir.join("runs"), &dir.join("report")).unwrap();
     assert!(files.iter().any(|f| f.ends_with("table_depth.md")));
-    let table = std::fs::read_to_string(dir.join("report/table_depth.csv")).unwrap();
+    let table = file_containing(
+        &dir.join("report/table_depth.csv"),
+        &["BL,F195,standard,1,", "FT,F195,standard,1,"],
+    );
     assert!(
         table.starts_with("block,dataset,kernel,n,mre,mre_ci95_half_width,mae,"),
         "{table}"
     );
-    assert!(table.contains("BL,F195,standard,1,"), "{table}");
-    assert!(table.contains("FT,F195,standard,1,"), "{table}");
-    let report = std::fs::read_to_string(dir.join("report/REPORT.md")).unwrap();
-    assert!(report.contains("| FT | F195 | standard | 1 |") && report.contains("[ft](../runs/ft)"));
+    file_containing(
+        &dir.join("report/REPORT.md"),
+        &["| FT | F195 | standard | 1 |", "[ft](../runs/ft)"],
+    );
     assert!(dir.join("report/verdict.json").is_file());
 }
 
@@ -196,47 +175,34 @@ fn the_command_exits_non_zero_after_a_failure_and_writes_slurm_scripts_by_level(
     let dir = tmp.path();
     write_set(dir);
     let d = dir.display().to_string();
-    let o = calibconv_in(
-        dir,
-        &["sweep", &d, "--profile", "tiny", "--only", "*broken", "-q"],
-    );
-    let text = String::from_utf8_lossy(&o.stderr).to_string();
-    assert!(!o.status.success());
-    assert!(
-        text.contains("FAILED broken") && text.contains("BLOCKED after-broken"),
-        "{text}"
-    );
+    let sweep = |extra: &[&str]| {
+        let args = ["sweep", d.as_str(), "--profile", "tiny"];
+        calibconv_in(dir, &[&args[..], extra].concat())
+    };
+    let text = failed(sweep(&["--only", "*broken", "-q"]));
+    assert_contains(&text, &["FAILED broken", "BLOCKED after-broken"]);
 
     let slurm = dir.join("slurm");
-    let o = calibconv_in(
-        dir,
-        &[
-            "sweep",
-            &d,
-            "--profile",
-            "tiny",
-            "--set",
-            "optimizer.lr=1e-4",
-            "--emit-slurm",
-            &slurm.display().to_string(),
-        ],
+    ok(sweep(&[
+        "--set",
+        "optimizer.lr=1e-4",
+        "--emit-slurm",
+        common::s(&slurm),
+    ]));
+    let l0 = file_containing(
+        &slurm.join("level-0.sbatch"),
+        &["#SBATCH --array=0-1\n", "RUNS=(bl broken)\n"],
     );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let l0 = std::fs::read_to_string(slurm.join("level-0.sbatch")).unwrap();
-    let l1 = std::fs::read_to_string(slurm.join("level-1.sbatch")).unwrap();
     assert!(l0.starts_with("#!/bin/bash\n"));
-    assert!(
-        l0.contains("#SBATCH --array=0-1\n") && l0.contains("RUNS=(bl broken)\n"),
-        "{l0}"
-    );
-    assert!(l1.contains("#SBATCH --array=0-1\n") && l1.contains("RUNS=(after-broken ft)\n"));
-    assert!(
-        l1.contains("--profile") && l1.contains("--set 'optimizer.lr=0.0001'"),
-        "{l1}"
-    );
-    assert!(
-        l1.contains("--only \"${RUNS[$SLURM_ARRAY_TASK_ID]}\""),
-        "{l1}"
+    file_containing(
+        &slurm.join("level-1.sbatch"),
+        &[
+            "#SBATCH --array=0-1\n",
+            "RUNS=(after-broken ft)\n",
+            "--profile",
+            "--set 'optimizer.lr=0.0001'",
+            "--only \"${RUNS[$SLURM_ARRAY_TASK_ID]}\"",
+        ],
     );
     let submit = std::fs::read_to_string(slurm.join("submit.sh")).unwrap();
     let lines: Vec<&str> = submit.lines().filter(|l| l.contains("sbatch")).collect();
@@ -254,57 +220,31 @@ fn experiments_train_on_data_set_folders_and_refuse_another_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     synth_tiny_f195(&dir.join("sets"), 16);
+    let set = |split: &str| format!(r#"{{ dataset = "f195", split = "{split}" }}"#);
     let exp = |eval_camera: &str| {
-        format!(
-            r#"name = "ds"
-task = "depth"
-device = "cpu"
-data_root = "{sets}"
-output = "{out}"
-
-[model]
-preset = "tiny"
-kernel = "standard"
-
-[input]
-camera = "{root}/data/cameras/f195.toml"
-width = 16
-padding = [0, 2]
-
-[data]
-train = {{ dataset = "f195", split = "train" }}
-val = {{ dataset = "f195", split = "val" }}
-
-[train]
-steps = 2
-batch_size = 2
-
-[optimizer]
-lr = 1e-3
-
-[[eval]]
-name = "f195-standard"
-data = {{ dataset = "f195", split = "test" }}
-camera = "{root}/data/cameras/{eval_camera}.toml"
-"#,
-            sets = dir.join("sets").display(),
-            out = dir.join("runs").display(),
-            root = env!("CARGO_MANIFEST_DIR"),
-        )
+        let camera = common::root().join(format!("data/cameras/{eval_camera}.toml"));
+        let eval = format!(
+            r#"{{ name = "f195-standard", data = {}, camera = "{}" }}"#,
+            set("test"),
+            camera.display()
+        );
+        ExperimentFile::tiny("ds")
+            .set_path("data_root", &dir.join("sets"))
+            .set_path("output", &dir.join("runs"))
+            .remove("input.size")
+            .set("input.width", 16)
+            .set("input.padding", vec![0, 2])
+            .set_toml("data.train", &set("train"))
+            .set_toml("data.val", &set("val"))
+            .eval(&eval)
     };
-    let file = dir.join("ds.toml");
-    std::fs::write(&file, exp("f195")).unwrap();
-    let o = calibconv_in(dir, &["train", &file.display().to_string(), "-q"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let m = std::fs::read_to_string(dir.join("runs/ds/eval/f195-standard/metrics.json")).unwrap();
-    assert!(m.contains("\"rmse\""), "{m}");
+    let file = exp("f195").write(&dir.join("ds.toml"));
+    let f = common::s(&file);
+    ok(calibconv_in(dir, &["train", f, "-q"]));
+    let metrics = dir.join("runs/ds/eval/f195-standard/metrics.json");
+    file_containing(&metrics, &["\"rmse\""]);
     // The F165 camera on F195 images: a clear error naming the folder.
-    std::fs::write(&file, exp("f165")).unwrap();
-    let o = calibconv_in(dir, &["eval", &file.display().to_string(), "-q"]);
-    let e = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success());
-    assert!(
-        e.contains("sets/f195") && e.contains("is not the experiment's"),
-        "{e}"
-    );
+    exp("f165").write(&file);
+    let e = failed(calibconv_in(dir, &["eval", f, "-q"]));
+    assert_contains(&e, &["sets/f195", "is not the experiment's"]);
 }

@@ -16,69 +16,34 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::data::memory::MemorySource;
 use calibconv::eval::metrics::Metric;
-use calibconv::experiment::{self, DefaultOpener, Experiment, RunOptions};
+use calibconv::experiment::{self, RunOptions};
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig};
 use calibconv::train::adam::AdamConfig;
-use calibconv::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
+use calibconv::train::checkpoint::{self, TensorFile};
 use calibconv::train::schedule::Schedule;
 use calibconv::train::{self, Length, NoReporter, TrainConfig, TrainRun};
 use calibconv::Error;
+use common::experiment::{quiet, ExperimentFile};
+use common::{assert_contains, failed, ok};
 
-const F195: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/cameras/f195.toml");
-
-/// A toy experiment in `dir`: F195 padded to a square and scaled to 48x48, tiny U-Net.
-fn experiment_text(dir: &Path, name: &str, kernel: &str, steps: u64, extra_train: &str) -> String {
-    format!(
-        r#"
-name = "{name}"
-task = "depth"
-seed = 3
-output = "{out}"
-device = "cpu"
-
-[model]
-preset = "tiny"
-kernel = "{kernel}"
-
-[input]
-camera = "{F195}"
-padding = [0, 120]
-size = [48, 48]
-
-[data]
-train = {{ toy = 16, split = "train" }}
-val = {{ toy = 4, split = "val" }}
-test = {{ toy = 4, split = "test" }}
-
-[train]
-steps = {steps}
-batch_size = 4
-log_every = 4
-val_every = 12
-images = 2
-radial_bins = 4
-{extra_train}
-
-[optimizer]
-lr = 1e-2
-"#,
-        out = dir.display()
-    )
-}
-
-fn load(dir: &Path, text: &str) -> Experiment {
-    let path = dir.join("exp.toml");
-    std::fs::write(&path, text).unwrap();
-    experiment::load(&path).unwrap()
-}
-
-fn quiet() -> RunOptions<'static> {
-    RunOptions {
-        resume: false,
-        progress: false,
-        verbose: false,
-        opener: &DefaultOpener,
-    }
+/// A toy experiment in `dir`: F195 padded to a square and scaled to 48x48, tiny U-Net, `steps`
+/// steps of batches of 4, validated every 12.
+fn experiment(dir: &Path, name: &str, kernel: &str, steps: u32) -> ExperimentFile {
+    ExperimentFile::tiny(name)
+        .set("seed", 3)
+        .set_path("output", dir)
+        .set("model.kernel", kernel)
+        .square(48)
+        .set_toml("data.train", r#"{ toy = 16, split = "train" }"#)
+        .set_toml("data.val", r#"{ toy = 4, split = "val" }"#)
+        .set_toml("data.test", r#"{ toy = 4, split = "test" }"#)
+        .set("train.steps", steps)
+        .set("train.batch_size", 4)
+        .set("train.log_every", 4)
+        .set("train.val_every", 12)
+        .set("train.images", 2)
+        .set("train.radial_bins", 4)
+        .set("optimizer.lr", 1e-2)
 }
 
 fn vars(path: &Path) -> Vec<(String, Tensor)> {
@@ -91,10 +56,7 @@ fn vars(path: &Path) -> Vec<(String, Tensor)> {
 fn each_kernel_kind_trains_evaluates_and_reloads() {
     for kernel in ["standard", "calibrated"] {
         let dir = tempfile::tempdir().unwrap();
-        let exp = load(
-            dir.path(),
-            &experiment_text(dir.path(), "e2e", kernel, 24, ""),
-        );
+        let exp = experiment(dir.path(), "e2e", kernel, 24).load_in(dir.path());
         let out = experiment::train(&exp, &quiet()).unwrap();
         let s = &out.summary;
         assert_eq!(s.steps, 24, "{kernel}");
@@ -187,17 +149,15 @@ fn each_kernel_kind_trains_evaluates_and_reloads() {
 #[test]
 fn resume_continues_at_the_same_step_with_the_same_data_order() {
     let dir = tempfile::tempdir().unwrap();
+    let run =
+        |d: &Path, steps| experiment(d, "r", "standard", steps).set("train.checkpoint_every", 2);
     // Uninterrupted: 10 steps (4 per epoch, so the stop at 6 is mid-epoch).
     let a_dir = dir.path().join("a");
-    let a = load(
-        &mkdir(&a_dir),
-        &experiment_text(&a_dir, "r", "standard", 10, "checkpoint_every = 2"),
-    );
+    let a = run(&a_dir, 10).load_in(&mkdir(&a_dir));
     experiment::train(&a, &quiet()).unwrap();
     // Interrupted after 6 steps (the same file with steps = 6), then resumed to 10.
     let b_dir = dir.path().join("b");
-    let text6 = experiment_text(&b_dir, "r", "standard", 6, "checkpoint_every = 2");
-    let b6 = load(&mkdir(&b_dir), &text6);
+    let b6 = run(&b_dir, 6).load_in(&mkdir(&b_dir));
     experiment::train(&b6, &quiet()).unwrap();
     let info = TensorFile::open(&b6.run_dir.join("checkpoints/last.safetensors"))
         .unwrap()
@@ -205,20 +165,14 @@ fn resume_continues_at_the_same_step_with_the_same_data_order() {
         .unwrap()
         .unwrap();
     assert_eq!((info.step, info.epoch, info.batch_in_epoch), (6, 1, 2));
-    let b = load(
-        &b_dir,
-        &experiment_text(&b_dir, "r", "standard", 10, "checkpoint_every = 2"),
-    );
+    let b = run(&b_dir, 10).load_in(&b_dir);
     let resume = RunOptions {
         resume: true,
         ..quiet()
     };
     // Another batch size would change the data order: refused, and the run is left alone.
-    let other = experiment_text(&b_dir, "r", "standard", 10, "checkpoint_every = 2")
-        .replace("batch_size = 4", "batch_size = 2");
-    let e = experiment::train(&load(&b_dir, &other), &resume)
-        .unwrap_err()
-        .to_string();
+    let other = run(&b_dir, 10).set("train.batch_size", 2).load_in(&b_dir);
+    let e = experiment::train(&other, &resume).unwrap_err().to_string();
     assert!(e.contains("batch size 4, not 2"), "{e}");
     let stored = std::fs::read_to_string(b.run_dir.join("experiment.toml")).unwrap();
     assert!(stored.contains("steps = 6"));
@@ -276,22 +230,7 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
         UNet::new(&vs.root(), &cfg, &ConvKind::Standard, [h, w])
     })
     .unwrap();
-    let info = CheckpointInfo {
-        format: FORMAT.into(),
-        version: FORMAT_VERSION,
-        model: cfg,
-        input_size: [h, w],
-        kernel: "standard".into(),
-        camera_file: None,
-        camera_toml: None,
-        padding: [0, 0],
-        experiment: None,
-        step: 0,
-        epoch: 0,
-        batch_in_epoch: 0,
-        metrics: Default::default(),
-        git: None,
-    };
+    let info = common::checkpoint_info(cfg, [h, w]);
     let tc = TrainConfig {
         length: Length::Steps(8),
         batch_size: 2,
@@ -355,18 +294,14 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
 #[test]
 fn the_binary_trains_and_evaluates_and_names_a_wrong_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
-    let text = experiment_text(dir.path(), "cli", "standard", 4, "");
-    let file = dir.path().join("cli.toml");
-    std::fs::write(&file, &text).unwrap();
+    let cli = experiment(dir.path(), "cli", "standard", 4);
+    let file = cli.write(&dir.path().join("cli.toml"));
     let run = common::calibconv;
-    let f = file.to_str().unwrap();
-    let o = run(&["train", f, "--quiet"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let stdout = String::from_utf8_lossy(&o.stdout);
+    let f = common::s(&file);
+    let stdout = common::stdout(&ok(run(&["train", f, "--quiet"])));
     assert!(stdout.contains("cli: 4 steps"), "{stdout}");
-    let o = run(&["eval", f, "--quiet", "--only", "test"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(String::from_utf8_lossy(&o.stdout).contains("test: loss"));
+    let o = ok(run(&["eval", f, "--quiet", "--only", "test"]));
+    assert!(common::stdout(&o).contains("test: loss"));
     // A checkpoint of another architecture (a small U-Net) is refused, naming a tensor.
     let other = dir.path().join("other.safetensors");
     let vs = VarStore::new(Device::Cpu);
@@ -385,47 +320,40 @@ fn the_binary_trains_and_evaluates_and_names_a_wrong_checkpoint() {
         Default::default(),
     )
     .unwrap();
-    let o = run(&[
+    let stderr = failed(run(&[
         "eval",
         f,
         "--quiet",
         "--checkpoint",
-        other.to_str().unwrap(),
-    ]);
-    assert!(!o.status.success());
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        stderr.contains("other.safetensors") && stderr.contains("does not fit this network"),
-        "{stderr}"
-    );
-    assert!(
-        stderr.contains("`down1.maxpool_conv.1.double_conv.0.weight`"),
-        "{stderr}"
+        common::s(&other),
+    ]));
+    assert_contains(
+        &stderr,
+        &[
+            "other.safetensors",
+            "does not fit this network",
+            "`down1.maxpool_conv.1.double_conv.0.weight`",
+        ],
     );
     // Unknown evaluation names get a suggestion; a typo in the file names the key.
     let o = run(&["eval", f, "--only", "tset"]);
-    assert!(String::from_utf8_lossy(&o.stderr).contains("did you mean `test`"));
-    std::fs::write(&file, text.replace("batch_size = 4", "batch_sise = 4")).unwrap();
+    assert!(common::stderr(&o).contains("did you mean `test`"));
+    let typo = cli.remove("train.batch_size").set("train.batch_sise", 4);
+    typo.write(&file);
     let o = run(&["train", f]);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        stderr.contains("train.batch_sise") && stderr.contains("did you mean `batch_size`"),
-        "{stderr}"
+    assert_contains(
+        &common::stderr(&o),
+        &["train.batch_sise", "did you mean `batch_size`"],
     );
 }
 
 #[test]
 fn segmentation_trains_and_reports_per_class_scores() {
     let dir = tempfile::tempdir().unwrap();
-    let text = experiment_text(
-        dir.path(),
-        "seg",
-        "standard",
-        16,
-        "loss = \"cross-entropy\"",
-    )
-    .replace("task = \"depth\"", "task = \"segmentation\"");
-    let exp = load(dir.path(), &text);
+    let exp = experiment(dir.path(), "seg", "standard", 16)
+        .set("task", "segmentation")
+        .set("train.loss", "cross-entropy")
+        .load_in(dir.path());
     assert_eq!(exp.train.val_metric, Metric::MIoU);
     let out = experiment::train(&exp, &quiet()).unwrap();
     let s = &out.summary;

@@ -11,7 +11,12 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use calibconv::nn::UNetConfig;
+use calibconv::train::checkpoint::{self, CheckpointInfo};
 use tch::{Kind, Tensor};
+
+pub mod experiment;
+pub mod opencv;
 
 /// Floor of the scale in [`max_rel`], so that an all-zero reference does not divide by zero.
 pub const TINY: f64 = 1e-30;
@@ -48,6 +53,68 @@ pub fn calibconv(args: &[&str]) -> Output {
     calibconv_in(root(), args)
 }
 
+/// A finished command's standard error, as text.
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// A finished command's standard output, as text.
+pub fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// Panics, showing everything the command printed, unless it exited successfully; returns the
+/// output.
+#[track_caller]
+pub fn ok(o: Output) -> Output {
+    assert!(
+        o.status.success(),
+        "{}: {}{}",
+        o.status,
+        stdout(&o),
+        stderr(&o)
+    );
+    o
+}
+
+/// Panics, showing its standard output, unless the command failed (a non-zero exit status);
+/// returns its standard error, where the error is printed.
+#[track_caller]
+pub fn failed(o: Output) -> String {
+    assert!(!o.status.success(), "succeeded: {}", stdout(&o));
+    stderr(&o)
+}
+
+/// Panics, showing `text`, unless it contains every one of `parts`.
+#[track_caller]
+pub fn assert_contains(text: &str, parts: &[&str]) {
+    for part in parts {
+        assert!(text.contains(part), "no {part:?} in:\n{text}");
+    }
+}
+
+/// The text of the file `path`, after checking that it contains every one of `parts`.
+#[track_caller]
+pub fn file_containing(path: &Path, parts: &[&str]) -> String {
+    let text = read_text(path);
+    assert_contains(&text, parts);
+    text
+}
+
+/// Arguments written as a command line, split at white space (for arguments without spaces).
+pub fn words(line: &str) -> Vec<&str> {
+    line.split_whitespace().collect()
+}
+
+/// A path as a `&str`, to pass to the binary.
+///
+/// # Panics
+/// If the path is not UTF-8.
+pub fn s(path: &Path) -> &str {
+    path.to_str()
+        .unwrap_or_else(|| panic!("{} is not UTF-8", path.display()))
+}
+
 /// A tiny F195 data set in `out/f195` (10 procedural panoramas 16 px high, 2 views each,
 /// `width` px wide), written by `calibconv synth`.
 ///
@@ -71,7 +138,28 @@ pub fn synth_tiny_f195(out: &Path, width: u32) {
         "--out",
         &out,
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(o);
+}
+
+/// The record of a checkpoint that a test writes itself, for `model` at `input_size`: standard
+/// kernels, no camera, no experiment, step 0, no metrics; set the fields a test needs.
+pub fn checkpoint_info(model: UNetConfig, input_size: [i64; 2]) -> CheckpointInfo {
+    CheckpointInfo {
+        format: checkpoint::FORMAT.into(),
+        version: checkpoint::FORMAT_VERSION,
+        model,
+        input_size,
+        kernel: "standard".into(),
+        camera_file: None,
+        camera_toml: None,
+        padding: [0, 0],
+        experiment: None,
+        step: 0,
+        epoch: 0,
+        batch_in_epoch: 0,
+        metrics: Default::default(),
+        git: None,
+    }
 }
 
 /// `tests/golden/`.
