@@ -335,3 +335,54 @@ fn the_gain_against_the_field_of_view_has_one_point_per_lens() {
         &["## Gain against the field of view"],
     );
 }
+
+/// `calibconv report` on a trained fine-tuned calibrated depth run draws its point cloud (the
+/// top view, and the PLY files unless `--no-ply`, which also removes those of an earlier report).
+#[test]
+fn the_command_draws_a_point_cloud_and_no_ply_leaves_the_files_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let runs = dir.join("runs");
+    let file = dir.join("t.toml");
+    common::experiment::ExperimentFile::tiny("t-depth-ft-f195-calibrated")
+        .set_path("output", &runs)
+        .set("model.kernel", "calibrated")
+        .square(32)
+        .set("train.steps", 1)
+        .set_toml("data.train", r#"{ toy = 4, split = "train" }"#)
+        .eval(r#"{ name = "f195-calibrated", data = { toy = 2, split = "test" } }"#)
+        .write(&file);
+    common::ok(common::calibconv_in(
+        dir,
+        &["train", "-q", &common::s(&file)],
+    ));
+    let out = dir.join("out");
+    let report = |extra: &[&str]| {
+        let mut args = vec!["report", "runs", "--out", "out"];
+        args.extend_from_slice(extra);
+        common::ok(common::calibconv_in(dir, &args))
+    };
+    report(&[]);
+    let md = |out: &Path| std::fs::read_to_string(out.join("REPORT.md")).unwrap();
+    for f in [
+        "pointcloud_pred.ply",
+        "pointcloud_true.ply",
+        "pointcloud_top.png",
+    ] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    assert!(md(&out).contains("[predicted](pointcloud_pred.ply)"));
+    let o = report(&["--no-ply"]);
+    assert!(
+        common::stdout(&o).contains("removed"),
+        "{}",
+        common::stdout(&o)
+    );
+    assert!(!out.join("pointcloud_pred.ply").exists() && !out.join("pointcloud_true.ply").exists());
+    assert!(out.join("pointcloud_top.png").is_file());
+    let text = md(&out);
+    assert!(
+        text.contains("## Point cloud") && !text.contains(".ply"),
+        "{text}"
+    );
+}
