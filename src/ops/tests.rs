@@ -13,6 +13,17 @@ fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
     diff / scale
 }
 
+/// The plan of a 3x3, stride-1 "same" convolution with offsets `off` on an `hw` input.
+fn plan3x3(off: &Tensor, hw: [i64; 2], kind: Kind) -> SamplingPlan {
+    SamplingPlan::new(
+        off,
+        hw,
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        kind,
+    )
+    .unwrap()
+}
+
 #[test]
 fn zero_offsets_equal_conv2d() {
     tch::manual_seed(0);
@@ -344,13 +355,7 @@ fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
     tch::manual_seed(3);
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 7, 9], opts) * 1.5;
-    let plan = SamplingPlan::new(
-        &off,
-        [7, 9],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Double,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [7, 9], Kind::Double);
     let x = Tensor::randn([2, 6, 7, 9], opts);
     let (w, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
     let probe = Tensor::randn([2, 4, 7, 9], opts);
@@ -425,13 +430,7 @@ fn input_gradient_is_exact_with_far_reaching_offsets() {
     let dy = (rows.remainder(7.0) * 1.7 * sign).expand([9, h, w], false);
     let dx = Tensor::randn([9, h, w], opts) * 0.3;
     let off = Tensor::stack(&[dy, dx], 1).reshape([18, h, w]);
-    let plan = SamplingPlan::new(
-        &off,
-        [h, w],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Double,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [h, w], Kind::Double);
     let x = Tensor::randn([2, 3, h, w], opts);
     let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
     let probe = Tensor::randn([2, 4, h, w], opts);
@@ -450,13 +449,7 @@ fn native_gradients_match_finite_differences_per_item_channels_last() {
     let w = Tensor::randn([6, 2, 3, 3], opts).set_requires_grad(true);
     let b = Tensor::randn([6], opts).set_requires_grad(true);
     let off = Tensor::randn([2, 18, 5, 6], opts) * 2.0;
-    let plan = SamplingPlan::new(
-        &off,
-        [5, 6],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Double,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [5, 6], Kind::Double);
     let probe = Tensor::randn([2, 6, 5, 6], opts);
     // The op sees a channels-last input; the variables stay NCHW for perturbing.
     let loss = |x: &Tensor, w: &Tensor, b: &Tensor| -> Tensor {
@@ -491,13 +484,7 @@ fn native_results_are_deterministic() {
     tch::manual_seed(6);
     let opts = (Kind::Float, Device::Cpu);
     let off = Tensor::randn([18, 40, 40], opts) * 2.0;
-    let plan = SamplingPlan::new(
-        &off,
-        [40, 40],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [40, 40], Kind::Float);
     let x = Tensor::randn([3, 16, 40, 40], opts);
     let (w, b) = (
         Tensor::randn([16, 16, 3, 3], opts),
@@ -518,13 +505,7 @@ fn native_results_are_deterministic() {
 fn double_backward_is_an_error_not_a_crash() {
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 4, 4], opts);
-    let plan = SamplingPlan::new(
-        &off,
-        [4, 4],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Double,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [4, 4], Kind::Double);
     let x = Tensor::randn([1, 2, 4, 4], opts).set_requires_grad(true);
     let w = Tensor::randn([2, 2, 3, 3], opts).set_requires_grad(true);
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
@@ -539,20 +520,8 @@ fn double_backward_is_an_error_not_a_crash() {
 fn float32_plan_serves_a_float64_input() {
     let opts = (Kind::Double, Device::Cpu);
     let off = Tensor::randn([18, 5, 5], opts);
-    let plan32 = SamplingPlan::new(
-        &off,
-        [5, 5],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap();
-    let plan64 = SamplingPlan::new(
-        &off,
-        [5, 5],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Double,
-    )
-    .unwrap();
+    let plan32 = plan3x3(&off, [5, 5], Kind::Float);
+    let plan64 = plan3x3(&off, [5, 5], Kind::Double);
     let x = Tensor::randn([1, 2, 5, 5], opts);
     let w = Tensor::randn([3, 2, 3, 3], opts);
     let a = deform_conv2d_planned(&x, &plan32, &w, None, 1).unwrap();
@@ -669,13 +638,7 @@ fn native_handles_an_empty_batch() {
     }
     let opts = (Kind::Float, Device::Cpu);
     let off = Tensor::randn([18, 5, 5], opts);
-    let plan = SamplingPlan::new(
-        &off,
-        [5, 5],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap();
+    let plan = plan3x3(&off, [5, 5], Kind::Float);
     let x = Tensor::randn([0, 2, 5, 5], opts).set_requires_grad(true);
     let w = Tensor::randn([3, 2, 3, 3], opts).set_requires_grad(true);
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
@@ -716,13 +679,7 @@ fn first_layer_without_input_gradient_matches_aten() {
             } else {
                 Tensor::randn([18, h, w], opts) * 2.0
             };
-            let plan = SamplingPlan::new(
-                &off,
-                [h, w],
-                ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-                kind,
-            )
-            .unwrap();
+            let plan = plan3x3(&off, [h, w], kind);
             let x = Tensor::randn([b, c, h, w], opts);
             let probe = Tensor::randn([b, 8, h, w], opts);
             let run = |backend| {
