@@ -239,37 +239,12 @@ fn native_matches_aten_on_random_plans() {
     tch::manual_seed(2);
     // (batch, c_in, c_out, h, w, kernel, stride, padding, dilation, groups, per-item offsets,
     // offset scale in pixels: large scales put many samples partly or wholly outside).
+    #[rustfmt::skip]
     let cases = [
-        (
-            2,
-            4,
-            6,
-            9,
-            11,
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
-            1,
-            false,
-            1.0,
-        ),
+        (2, 4, 6, 9, 11, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.0),
         (3, 6, 4, 8, 7, [3, 3], [2, 1], [0, 2], [1, 2], 2, false, 3.0),
         (2, 8, 8, 10, 6, [3, 5], [1, 2], [2, 1], [2, 1], 4, true, 2.0),
-        (
-            1,
-            5,
-            3,
-            12,
-            12,
-            [1, 1],
-            [1, 1],
-            [0, 0],
-            [1, 1],
-            1,
-            false,
-            6.0,
-        ),
+        (1, 5, 3, 12, 12, [1, 1], [1, 1], [0, 0], [1, 1], 1, false, 6.0),
         (2, 3, 5, 6, 9, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 12.0),
         // 1 and 2 channels: the unrolled gathers of the first layers.
         (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
@@ -278,48 +253,9 @@ fn native_matches_aten_on_random_plans() {
         // items (B * P above a tile), the oneDNN GEMMs (float32, one group; the weight gradient
         // from 32 output channels), scatter bands within an item (a tall map, small batch) and
         // tasks of several whole items (small maps).
-        (
-            3,
-            16,
-            32,
-            24,
-            20,
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
-            1,
-            false,
-            2.0,
-        ),
-        (
-            2,
-            8,
-            8,
-            40,
-            36,
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
-            1,
-            true,
-            3.0,
-        ),
-        (
-            5,
-            32,
-            16,
-            12,
-            10,
-            [3, 3],
-            [1, 1],
-            [1, 1],
-            [1, 1],
-            1,
-            false,
-            1.5,
-        ),
+        (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
+        (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
+        (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
     ];
     for (i, &(b, ci, co, h, w, k, s, p, d, g, per_item, scale)) in cases.iter().enumerate() {
         for kind in [Kind::Double, Kind::Float] {
