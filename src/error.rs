@@ -82,8 +82,8 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// A camera built in code with an invalid parameter (a model's `new`), through
 /// [`Error::Geometry`].
-impl From<crate::camera::Invalid> for Error {
-    fn from(e: crate::camera::Invalid) -> Self {
+impl From<calibconv_geometry::camera::Invalid> for Error {
+    fn from(e: calibconv_geometry::camera::Invalid) -> Self {
         Error::Geometry(e.into())
     }
 }
