@@ -5,7 +5,7 @@ use std::time::Instant;
 use anyhow::{bail, Result};
 use tch::{Device, Kind, Tensor};
 
-use calibconv::camera::CameraModel;
+use calibconv::camera::{Camera, CameraModel};
 use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{
     compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, Offsets, OffsetsTensor,
@@ -26,31 +26,26 @@ fn time_ms(reps: usize, mut f: impl FnMut()) -> f64 {
     start.elapsed().as_secs_f64() * 1e3 / reps as f64
 }
 
-pub fn run(args: DemoArgs) -> Result<()> {
-    let camera = load_camera(&args.camera)?;
-    let [w, h] = camera.size();
-    let m = 1usize << args.depth;
-    let frame = InputFrame {
-        padding: [(m - w % m) % m, (m - h % m) % m],
-        ..Default::default()
-    };
-    let input = [h + frame.padding[1], w + frame.padding[0]];
-    let sizes = pyramid_sizes(input, args.depth);
-    println!(
-        "camera {} ({w}x{h}, FOV {:.0} deg), network input {}x{} (padding {:?}), {} levels",
-        args.camera.display(),
-        camera.fov().to_degrees(),
-        input[0],
-        input[1],
-        frame.padding,
-        sizes.len()
-    );
+/// The offsets of a pyramid, as saved and summarised.
+struct PyramidOffsets {
+    /// `levelL`, the offsets of level `L`.
+    tensors: Vec<(String, Tensor)>,
+    /// A summary per level for `summary.json`.
+    levels: Vec<serde_json::Value>,
+    /// How long computing them took.
+    seconds: f64,
+}
 
-    // 1. Offsets for every level of the pyramid (3x3, stride 1, "same"), timed.
+/// The offsets of every level of `sizes` (3x3, stride 1, "same"), printed level by level.
+fn pyramid_offsets(
+    camera: &Camera,
+    sizes: &[[usize; 2]],
+    frame: &InputFrame,
+) -> Result<PyramidOffsets> {
     let start = Instant::now();
     let levels: Vec<Offsets> = sizes
         .iter()
-        .map(|&size| compute_offsets(&camera, size, &LayerGeometry::same(3), &frame))
+        .map(|&size| compute_offsets(camera, size, &LayerGeometry::same(3), frame))
         .collect::<calibconv::Result<_>>()?;
     let offsets_secs = start.elapsed().as_secs_f64();
     let anchors: usize = sizes.iter().map(|s| s[0] * s[1]).sum();
@@ -78,31 +73,28 @@ pub fn run(args: DemoArgs) -> Result<()> {
         offsets_secs,
         offsets_secs * 1e6 / anchors as f64
     );
-    let offsets_path = args.out.join("pyramid_offsets.safetensors");
-    write_safetensors(&offsets_path, &tensors)?;
+    Ok(PyramidOffsets {
+        tensors,
+        levels: summary_levels,
+        seconds: offsets_secs,
+    })
+}
 
-    // 2. The kernel figure.
-    let fig = KernelFigure {
-        frame,
-        ..Default::default()
-    };
-    let figure_path = args.out.join("kernels.png");
-    save_png(
-        &figure_path,
-        &draw_kernels(&camera, image_circle(&camera), &fig)?,
-    )?;
-
-    // 3. A calibrated convolution at the third level, forward + backward, against conv2d.
-    let level = sizes.len().min(3) - 1;
-    let [fh, fw] = sizes[level].map(|v| v as i64);
+/// Times a 16->16 calibrated convolution at `[fh, fw]` against `conv2d`, forward + backward,
+/// in milliseconds per call; an error if the calibrated output is not finite.
+fn time_calibrated_conv(
+    camera: &Camera,
+    frame: &InputFrame,
+    [fh, fw]: [i64; 2],
+) -> Result<(f64, f64)> {
     let vs = tch::nn::VarStore::new(Device::Cpu);
     let conv = CalibratedConv2d::new(
         &vs.root(),
         16,
         16,
         3,
-        &camera,
-        &frame,
+        camera,
+        frame,
         [fh, fw],
         Conv2dConfig::default(),
     )?;
@@ -124,6 +116,54 @@ pub fn run(args: DemoArgs) -> Result<()> {
     if !finite {
         bail!("the calibrated convolution produced non-finite values");
     }
+    Ok((cal_ms, std_ms))
+}
+
+pub fn run(args: DemoArgs) -> Result<()> {
+    let camera = load_camera(&args.camera)?;
+    let [w, h] = camera.size();
+    let m = 1usize << args.depth;
+    let frame = InputFrame {
+        padding: [(m - w % m) % m, (m - h % m) % m],
+        ..Default::default()
+    };
+    let input = [h + frame.padding[1], w + frame.padding[0]];
+    let sizes = pyramid_sizes(input, args.depth);
+    println!(
+        "camera {} ({w}x{h}, FOV {:.0} deg), network input {}x{} (padding {:?}), {} levels",
+        args.camera.display(),
+        camera.fov().to_degrees(),
+        input[0],
+        input[1],
+        frame.padding,
+        sizes.len()
+    );
+
+    // 1. Offsets for every level of the pyramid (3x3, stride 1, "same"), timed.
+    let PyramidOffsets {
+        tensors,
+        levels: summary_levels,
+        seconds: offsets_secs,
+    } = pyramid_offsets(&camera, &sizes, &frame)?;
+    let anchors: usize = sizes.iter().map(|s| s[0] * s[1]).sum();
+    let offsets_path = args.out.join("pyramid_offsets.safetensors");
+    write_safetensors(&offsets_path, &tensors)?;
+
+    // 2. The kernel figure.
+    let fig = KernelFigure {
+        frame,
+        ..Default::default()
+    };
+    let figure_path = args.out.join("kernels.png");
+    save_png(
+        &figure_path,
+        &draw_kernels(&camera, image_circle(&camera), &fig)?,
+    )?;
+
+    // 3. A calibrated convolution at the third level, forward + backward, against conv2d.
+    let level = sizes.len().min(3) - 1;
+    let [fh, fw] = sizes[level].map(|v| v as i64);
+    let (cal_ms, std_ms) = time_calibrated_conv(&camera, &frame, [fh, fw])?;
     println!(
         "calibrated conv 16->16 at {fh}x{fw}, forward+backward: {cal_ms:.1} ms vs conv2d {std_ms:.1} ms ({:.1}x)",
         cal_ms / std_ms

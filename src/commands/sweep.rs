@@ -2,13 +2,14 @@
 //! [--emit-slurm D [--slurm-set K=V]]`.
 
 use std::io::IsTerminal;
+use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
 use calibconv::experiment::layout::{write_record, ResultsDir};
 use calibconv::experiment::profile::{Override, Profile};
 use calibconv::experiment::slurm::{emit_slurm, SlurmSpec};
-use calibconv::experiment::sweep::{self, Outcome, Seeds, SweepOptions};
+use calibconv::experiment::sweep::{self, Outcome, Planned, Seeds, SweepOptions};
 use calibconv::experiment::DefaultOpener;
 
 use crate::cli::SweepArgs;
@@ -18,11 +19,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         Some(name) => sweep::find_profile(&args.dir, name)?,
         None => Profile::default(),
     };
-    let overrides = args
-        .set
-        .iter()
-        .map(|s| s.parse::<Override>())
-        .collect::<calibconv::error::Result<Vec<_>>>()?;
+    let overrides = parse_overrides(&args.set)?;
     if let Some(t) = args.threads {
         anyhow::ensure!(t > 0, "--threads must be positive");
         tch::set_num_threads(t);
@@ -47,11 +44,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         }
         Ok(())
     };
-    let slurm_sets = args
-        .slurm_set
-        .iter()
-        .map(|s| s.parse::<Override>())
-        .collect::<calibconv::error::Result<Vec<_>>>()?;
+    let slurm_sets = parse_overrides(&args.slurm_set)?;
     anyhow::ensure!(
         slurm_sets.is_empty() || args.emit_slurm.is_some(),
         "--slurm-set applies to --emit-slurm"
@@ -67,19 +60,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         println!("submit with: {}", out.join("submit.sh").display());
         return Ok(());
     }
-    for p in &plan {
-        eprintln!(
-            "level {} {:<44} {:?}{}",
-            p.level,
-            p.key(),
-            sweep::state(&p.exp)?,
-            if p.deps.is_empty() {
-                String::new()
-            } else {
-                format!(" (after {})", p.deps.join(", "))
-            }
-        );
-    }
+    print_plan(&plan)?;
     if args.dry_run {
         return Ok(());
     }
@@ -95,6 +76,42 @@ pub fn run(args: SweepArgs) -> Result<()> {
             opener: &DefaultOpener,
         },
     );
+    summarise(&args.dir, &plan, &outcomes, start.elapsed().as_secs_f64())
+}
+
+/// `KEY=VALUE` overrides (`--set`, `--slurm-set`).
+fn parse_overrides(sets: &[String]) -> Result<Vec<Override>> {
+    Ok(sets
+        .iter()
+        .map(|s| s.parse::<Override>())
+        .collect::<calibconv::error::Result<Vec<_>>>()?)
+}
+
+/// The plan on stderr: a line per run with its level, state and dependencies.
+fn print_plan(plan: &[Planned]) -> Result<()> {
+    for p in plan {
+        eprintln!(
+            "level {} {:<44} {:?}{}",
+            p.level,
+            p.key(),
+            sweep::state(&p.exp)?,
+            if p.deps.is_empty() {
+                String::new()
+            } else {
+                format!(" (after {})", p.deps.join(", "))
+            }
+        );
+    }
+    Ok(())
+}
+
+/// The sweep's counts and where its results are; an error naming the runs that failed.
+fn summarise(
+    dir: &Path,
+    plan: &[Planned],
+    outcomes: &[(String, Outcome)],
+    seconds: f64,
+) -> Result<()> {
     let failed: Vec<_> = outcomes.iter().filter(|(_, o)| o.is_failure()).collect();
     let ran = outcomes
         .iter()
@@ -102,16 +119,16 @@ pub fn run(args: SweepArgs) -> Result<()> {
         .count();
     println!(
         "sweep of {}: {} run(s), {ran} ran, {} skipped (complete), {} failed, in {:.1} s",
-        args.dir.display(),
+        dir.display(),
         outcomes.len(),
         outcomes
             .iter()
             .filter(|(_, o)| *o == Outcome::Skipped)
             .count(),
         failed.len(),
-        start.elapsed().as_secs_f64()
+        seconds
     );
-    if let Some(r) = sweep::results_dir(&plan) {
+    if let Some(r) = sweep::results_dir(plan) {
         println!("results in {}", r.display());
     }
     if !failed.is_empty() {

@@ -327,8 +327,9 @@ mod tests {
     /// float64 sums of a few values: rounding only.
     const TOL: f64 = 1e-12;
 
-    #[test]
-    fn pooled_per_image_and_radial_values_by_hand() {
+    /// The evaluation of two 1x4 images (see the comment inside) that the tests below check
+    /// by hand.
+    fn two_images() -> Evaluation {
         // Two 1x4 images, ground truth 1 m everywhere; the predictor returns the image's first
         // channel: image 0 predicts [1, 2, 1, 1], image 1 predicts [1, 1, 1, 3] with its first
         // pixel masked out. Bins around (u, v) = (0, 0) of width 2: u = 0, 1 | u = 2, 3.
@@ -353,7 +354,22 @@ mod tests {
             device: Device::Cpu,
             progress: false,
         };
-        let e = evaluate_with(Head::Depth, &source, &opts, |x| Ok(x.narrow(1, 0, 1))).unwrap();
+        evaluate_with(Head::Depth, &source, &opts, |x| Ok(x.narrow(1, 0, 1))).unwrap()
+    }
+
+    /// [`two_images`] written to a temporary folder, and its `metrics.json`.
+    fn two_images_written() -> (tempfile::TempDir, MetricsRecord) {
+        let dir = tempfile::tempdir().unwrap();
+        two_images()
+            .write(dir.path(), &json!({"evaluation": "unit"}))
+            .unwrap();
+        let rec = MetricsRecord::read(&dir.path().join("metrics.json")).unwrap();
+        (dir, rec)
+    }
+
+    #[test]
+    fn pooled_per_image_and_radial_values_by_hand() {
+        let e = two_images();
         assert_eq!((e.images, e.pixels), (2, 7));
         // Errors: image 0 [0, 1, 0, 0], image 1 [-, 0, 0, 2]. Pooled MAE 3/7; L1 loss the same.
         assert!((e.metric(Metric::Mae).unwrap() - 3.0 / 7.0).abs() < TOL);
@@ -376,9 +392,11 @@ mod tests {
         let (_, p, m, s) = mae(r1);
         assert!((p - 0.5).abs() < TOL && (m - 0.5).abs() < TOL && (s - 0.5).abs() < TOL);
         assert_eq!(e.panels.len(), 1);
+    }
 
-        let dir = tempfile::tempdir().unwrap();
-        e.write(dir.path(), &json!({"evaluation": "unit"})).unwrap();
+    #[test]
+    fn written_files_hold_both_depth_conventions_by_hand() {
+        let (dir, rec) = two_images_written();
         let csv = std::fs::read_to_string(dir.path().join("metrics.csv")).unwrap();
         assert!(
             csv.starts_with("images,pixels,loss,mre,mae,rmse,rmse_log,delta1,delta2,delta3\n2,7,")
@@ -389,7 +407,6 @@ mod tests {
             "{radial}"
         );
         assert_eq!(radial.lines().count(), 3);
-        let rec = MetricsRecord::read(&dir.path().join("metrics.json")).unwrap();
         assert_eq!(rec.about.evaluation.as_deref(), Some("unit"));
         assert!(dir.path().join("predictions/a.png").exists());
 
@@ -420,7 +437,11 @@ mod tests {
         );
         assert_eq!(rec.radial.len(), 2);
         assert_eq!(rec.radial[1].per_image_mean[&Metric::Mae], Some(0.5));
+    }
 
+    #[test]
+    fn per_image_json_reaggregates_to_the_set_values() {
+        let (dir, rec) = two_images_written();
         // per_image.json: both images by id; re-aggregating all of them gives the set's
         // values, and a resample with image 0 twice gives image 0's own.
         let per = PerImageRecord::read(&dir.path().join("per_image.json")).unwrap();

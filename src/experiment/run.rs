@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use serde_json::json;
 use tch::nn::VarStore;
+use tch::Device;
 
 use super::layout::{
     write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord, Summary,
@@ -216,22 +217,9 @@ pub fn init_checkpoint(exp: &Experiment) -> Result<Option<PathBuf>> {
     }
 }
 
-/// Trains `exp` (from scratch, from its initial checkpoint, or resumed), then runs its
-/// evaluations on the best checkpoint, holding the run directory's lock.
-pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
-    let lock = run_dir(exp).lock()?;
-    train_locked(exp, opts, &lock)
-}
-
-/// [`train`] with the run's lock already held (by a sweep).
-pub fn train_locked(
-    exp: &Experiment,
-    opts: &RunOptions<'_>,
-    lock: &RunLock,
-) -> Result<TrainOutcome> {
-    check_lock(exp, lock)?;
-    let dir = run_dir(exp);
-    let device = exp.device()?;
+/// Checks that `opts.resume` matches the state of `dir` (a checkpoint to resume, or none to
+/// overwrite) and creates its checkpoint folder; warns when a resumed run's file changed.
+fn prepare_run_dir(exp: &Experiment, opts: &RunOptions<'_>, dir: &RunDir) -> Result<()> {
     let ckdir = dir.checkpoints();
     let last = dir.last_checkpoint();
     if opts.resume && !last.is_file() {
@@ -252,9 +240,8 @@ pub fn train_locked(
         });
     }
     std::fs::create_dir_all(&ckdir).map_err(|e| Error::io(&ckdir, e))?;
-    let stored = dir.experiment_toml();
     if opts.resume && opts.verbose {
-        if let Ok(old) = std::fs::read_to_string(&stored) {
+        if let Ok(old) = std::fs::read_to_string(dir.experiment_toml()) {
             if old != exp.text {
                 eprintln!(
                     "warning: {} changed since the run started; resuming with the new file",
@@ -263,6 +250,78 @@ pub fn train_locked(
             }
         }
     }
+    Ok(())
+}
+
+/// Loads the starting weights of `exp` into `vs` (none when resuming: the trainer loads
+/// `last`; else the initial checkpoint, if any) and records the invocation; returns the step
+/// a resumed run continues from.
+fn start_weights(
+    exp: &Experiment,
+    opts: &RunOptions<'_>,
+    vs: &VarStore,
+    last: &Path,
+) -> Result<Option<u64>> {
+    let mut init_from = None;
+    let mut resume_step = None;
+    if opts.resume {
+        let info = TensorFile::open(last)?.info()?;
+        resume_step = info.map(|i| i.step);
+    } else if let Some(path) = init_checkpoint(exp)? {
+        checkpoint::load(&path, vs, &exp.model)?;
+        init_from = Some(path);
+    }
+    record_invocation(
+        exp,
+        "train",
+        InvocationDetails::Train {
+            resume: opts.resume,
+            resume_step,
+            init: init_from,
+        },
+    )?;
+    Ok(resume_step)
+}
+
+/// Opens the validation source of `exp`, if it has one, in order and without augmentations.
+fn open_validation_source(
+    exp: &Experiment,
+    opener: &dyn SourceOpener,
+) -> Result<Option<Box<dyn BatchSource>>> {
+    exp.val_data
+        .as_ref()
+        .map(|spec| {
+            opener.open(&source_for(
+                spec,
+                &exp.input,
+                exp.train.eval_batch_size,
+                None,
+                Augment::default(),
+            ))
+        })
+        .transpose()
+}
+
+/// Trains `exp` (from scratch, from its initial checkpoint, or resumed), then runs its
+/// evaluations on the best checkpoint, holding the run directory's lock.
+pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
+    let lock = run_dir(exp).lock()?;
+    train_locked(exp, opts, &lock)
+}
+
+/// [`train()`] with the run's lock already held (by a sweep).
+pub fn train_locked(
+    exp: &Experiment,
+    opts: &RunOptions<'_>,
+    lock: &RunLock,
+) -> Result<TrainOutcome> {
+    check_lock(exp, lock)?;
+    let dir = run_dir(exp);
+    let device = exp.device()?;
+    let ckdir = dir.checkpoints();
+    let last = dir.last_checkpoint();
+    prepare_run_dir(exp, opts, &dir)?;
+    let stored = dir.experiment_toml();
     // The files that describe the run: written now for a new run; for a resumed one only once
     // it has resumed (a refused resume leaves the run's description alone).
     let describe_run = || -> Result<()> {
@@ -277,38 +336,12 @@ pub fn train_locked(
     let vs = VarStore::new(device);
     let model = build_model(exp, &vs, exp.kernel, &exp.input)?;
     let build_seconds = t_build.elapsed().as_secs_f64();
-    let mut init_from = None;
-    let mut resume_step = None;
-    if opts.resume {
-        let info = TensorFile::open(&last)?.info()?;
-        resume_step = info.map(|i| i.step);
-    } else if let Some(path) = init_checkpoint(exp)? {
-        checkpoint::load(&path, &vs, &exp.model)?;
-        init_from = Some(path);
-    }
-    record_invocation(
-        exp,
-        "train",
-        InvocationDetails::Train {
-            resume: opts.resume,
-            resume_step,
-            init: init_from,
-        },
-    )?;
+    let resume_step = start_weights(exp, opts, &vs, &last)?;
 
     let t = &exp.train;
     let t_data = Instant::now();
     let train_src = open_training_source(exp, opts.opener)?;
-    let val_src = match &exp.val_data {
-        Some(spec) => Some(opts.opener.open(&source_for(
-            spec,
-            &exp.input,
-            t.eval_batch_size,
-            None,
-            Augment::default(),
-        ))?),
-        None => None,
-    };
+    let val_src = open_validation_source(exp, opts.opener)?;
     let data_seconds = t_data.elapsed().as_secs_f64();
     let val_opts = EvalOptions {
         bins: radial_bins(&exp.input, t.radial_bins, None)?,
@@ -318,55 +351,17 @@ pub fn train_locked(
         progress: false,
     };
     let per_epoch = train_src.len().div_ceil(t.batch_size) as u64;
-    let cfg = TrainConfig {
-        length: t.length,
-        batch_size: t.batch_size,
-        adam: t.adam,
-        schedule: t.schedule,
-        depth_loss: t.depth_loss,
-        val_every: Some(t.val_every.unwrap_or(per_epoch)),
-        val_metric: t.val_metric,
-        log_every: t.log_every,
-        checkpoint_every: t.checkpoint_every,
-        device,
-        progress: opts.progress,
-        verbose: opts.verbose,
-    };
-    let info = CheckpointInfo {
-        format: FORMAT.into(),
-        version: FORMAT_VERSION,
-        model: exp.model,
-        input_size: exp.input.size,
-        kernel: exp.kernel.as_str().into(),
-        camera_file: Some(exp.input.camera_file.clone()),
-        camera_toml: Some(exp.input.camera_toml.clone()),
-        padding: exp.input.padding,
-        experiment: Some(exp.name.clone()),
-        step: 0,
-        epoch: 0,
-        batch_in_epoch: 0,
-        metrics: Default::default(),
-        git: git_revision(),
-    };
+    let cfg = train_config(exp, per_epoch, device, opts);
     let mut reporters: Vec<Box<dyn Reporter>> = vec![
         Box::new(TensorBoard::create(&dir.tb())?),
         Box::new(CsvLog::create(&exp.run_dir, resume_step)?),
     ];
     if opts.verbose {
-        eprintln!(
-            "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
-            exp.name,
-            checkpoint::describe(&exp.model),
-            exp.kernel.as_str(),
-            exp.input.size[0],
-            exp.input.size[1],
+        announce_training(
+            exp,
             train_src.len(),
-            val_src
-                .as_ref()
-                .map(|v| format!(", {} val", v.len()))
-                .unwrap_or_default(),
+            val_src.as_ref().map(|v| v.len()),
             device,
-            exp.run_dir.display()
         );
     }
     let summary = train::train(
@@ -376,7 +371,7 @@ pub fn train_locked(
             train: train_src.as_ref(),
             val: val_src.as_deref().map(|s| (s, val_opts)),
             checkpoint_dir: &ckdir,
-            info,
+            info: checkpoint_info(exp),
             reporter: &mut reporters,
             resume: opts.resume,
         },
@@ -386,31 +381,7 @@ pub fn train_locked(
     if opts.resume {
         describe_run()?;
     }
-    let mut record = Summary {
-        experiment: exp.name.clone(),
-        seed: Some(exp.seed),
-        steps: summary.steps,
-        steps_this_run: summary.steps_this_run,
-        first_loss: summary.first_loss,
-        last_loss: summary.last_loss,
-        best: summary.best.map(|(m, value, step)| BestRecord {
-            metric: m.name().into(),
-            value,
-            step,
-        }),
-        images_per_s: summary.images_per_s,
-        seconds: summary.seconds,
-        timing: Timing {
-            build: build_seconds,
-            data: data_seconds,
-            steps: summary.step_seconds,
-            validation: summary.validation_seconds,
-            checkpoints: summary.checkpoint_seconds,
-            evaluation: None,
-        },
-        last_checkpoint: summary.last_checkpoint.clone(),
-        best_checkpoint: summary.best_checkpoint.clone(),
-    };
+    let mut record = summary_record(exp, &summary, build_seconds, data_seconds);
     // Written before the evaluations: with it the run counts as trained (a sweep then only
     // evaluates); rewritten with their time after them.
     write_record(&dir.summary_json(), &record)?;
@@ -435,6 +406,100 @@ pub fn train_locked(
         summary,
         evaluations,
     })
+}
+
+/// The trainer's settings for `exp`: validation every `val_every` steps, else once per epoch
+/// of `per_epoch` steps.
+fn train_config(
+    exp: &Experiment,
+    per_epoch: u64,
+    device: Device,
+    opts: &RunOptions<'_>,
+) -> TrainConfig {
+    TrainConfig {
+        length: exp.train.length,
+        batch_size: exp.train.batch_size,
+        adam: exp.train.adam,
+        schedule: exp.train.schedule,
+        depth_loss: exp.train.depth_loss,
+        val_every: Some(exp.train.val_every.unwrap_or(per_epoch)),
+        val_metric: exp.train.val_metric,
+        log_every: exp.train.log_every,
+        checkpoint_every: exp.train.checkpoint_every,
+        device,
+        progress: opts.progress,
+        verbose: opts.verbose,
+    }
+}
+
+/// The metadata every checkpoint of `exp` carries (the trainer fills in the progress).
+fn checkpoint_info(exp: &Experiment) -> CheckpointInfo {
+    CheckpointInfo {
+        format: FORMAT.into(),
+        version: FORMAT_VERSION,
+        model: exp.model,
+        input_size: exp.input.size,
+        kernel: exp.kernel.as_str().into(),
+        camera_file: Some(exp.input.camera_file.clone()),
+        camera_toml: Some(exp.input.camera_toml.clone()),
+        padding: exp.input.padding,
+        experiment: Some(exp.name.clone()),
+        step: 0,
+        epoch: 0,
+        batch_in_epoch: 0,
+        metrics: Default::default(),
+        git: git_revision(),
+    }
+}
+
+/// The status line before training `exp` on `train_len` (and `val_len`) samples.
+fn announce_training(exp: &Experiment, train_len: usize, val_len: Option<usize>, device: Device) {
+    eprintln!(
+        "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
+        exp.name,
+        checkpoint::describe(&exp.model),
+        exp.kernel.as_str(),
+        exp.input.size[0],
+        exp.input.size[1],
+        train_len,
+        val_len.map(|n| format!(", {n} val")).unwrap_or_default(),
+        device,
+        exp.run_dir.display()
+    );
+}
+
+/// The `summary.json` record of a training call, its evaluation time still unknown.
+fn summary_record(
+    exp: &Experiment,
+    summary: &TrainSummary,
+    build_seconds: f64,
+    data_seconds: f64,
+) -> Summary {
+    Summary {
+        experiment: exp.name.clone(),
+        seed: Some(exp.seed),
+        steps: summary.steps,
+        steps_this_run: summary.steps_this_run,
+        first_loss: summary.first_loss,
+        last_loss: summary.last_loss,
+        best: summary.best.map(|(m, value, step)| BestRecord {
+            metric: m.name().into(),
+            value,
+            step,
+        }),
+        images_per_s: summary.images_per_s,
+        seconds: summary.seconds,
+        timing: Timing {
+            build: build_seconds,
+            data: data_seconds,
+            steps: summary.step_seconds,
+            validation: summary.validation_seconds,
+            checkpoints: summary.checkpoint_seconds,
+            evaluation: None,
+        },
+        last_checkpoint: summary.last_checkpoint.clone(),
+        best_checkpoint: summary.best_checkpoint.clone(),
+    }
 }
 
 /// Runs the evaluations of `exp` named in `only` (all if empty) on `checkpoint` (default: the
@@ -470,32 +535,7 @@ pub fn evaluate_locked(
     lock: &RunLock,
 ) -> Result<Vec<EvalOutcome>> {
     check_lock(exp, lock)?;
-    let rd = run_dir(exp);
-    let names: Vec<&str> = exp.evals.iter().map(|e| e.name.as_str()).collect();
-    for o in only {
-        if !names.contains(&o.as_str()) {
-            let hint = super::suggest::nearest(o, &names)
-                .map(|b| format!("; did you mean `{b}`?"))
-                .unwrap_or_default();
-            return Err(Error::Config {
-                path: exp.file.clone(),
-                field: "eval".into(),
-                message: format!(
-                    "no evaluation named `{o}` (it has: {}){hint}",
-                    if names.is_empty() {
-                        "none".to_string()
-                    } else {
-                        names.join(", ")
-                    }
-                ),
-            });
-        }
-    }
-    let selected: Vec<&EvalSpec> = exp
-        .evals
-        .iter()
-        .filter(|e| only.is_empty() || only.contains(&e.name))
-        .collect();
+    let selected = select_evaluations(exp, only)?;
     if selected.is_empty() {
         return Ok(Vec::new());
     }
@@ -516,68 +556,109 @@ pub fn evaluate_locked(
             evaluations: selected.iter().map(|e| e.name.clone()).collect(),
         },
     )?;
-    let info = TensorFile::open(&ckpt)?.info()?;
+    let step = TensorFile::open(&ckpt)?.info()?.map(|i| i.step);
     let mut out = Vec::new();
     for spec in selected {
-        let vs = VarStore::new(device);
-        let model = build_model(exp, &vs, spec.kernel, &spec.input)?;
-        checkpoint::load(&ckpt, &vs, &exp.model)?;
-        let source = opts.opener.open(&source_for(
-            &spec.data,
-            &spec.input,
-            spec.batch_size,
-            None,
-            Augment::default(),
-        ))?;
-        let eopts = EvalOptions {
-            bins: radial_bins(&spec.input, spec.radial_bins, spec.radial_max)?,
-            panels: spec.images,
-            depth_loss: exp.train.depth_loss,
-            device,
-            progress: opts.progress,
-        };
-        let e = eval::evaluate(&model, source.as_ref(), &eopts)?;
-        let dir = rd.eval_dir(&spec.name);
-        let about = json!({
-            "experiment": exp.name,
-            "evaluation": spec.name,
-            "data": spec.data.describe(),
-            "kernel": spec.kernel.as_str(),
-            "camera_file": spec.input.camera_file,
-            "input_size": spec.input.size,
-            "padding": spec.input.padding,
-            "principal_point": eopts.bins.centre,
-            "radial_edges": eopts.bins.edges,
-            "checkpoint": ckpt,
-            "checkpoint_step": info.as_ref().map(|i| i.step),
-            "git": git_revision(),
-        });
-        e.write(&dir, &about)?;
-        write_radial_plots(&dir, &e, spec)?;
-        if opts.verbose {
-            let line: Vec<String> = e
-                .metrics
-                .iter()
-                .map(|(m, v)| format!("{m} {v:.4}"))
-                .collect();
-            eprintln!(
-                "eval {} ({}, {} kernels, {} images): {}",
-                spec.name,
-                spec.data.describe(),
-                spec.kernel.as_str(),
-                e.images,
-                line.join(", ")
-            );
-        }
-        out.push(EvalOutcome {
-            name: spec.name.clone(),
-            dir,
-            checkpoint: ckpt.clone(),
-            evaluation: e,
-        });
+        out.push(evaluate_one(exp, spec, &ckpt, step, device, opts)?);
     }
     write_evaluations_csv(&exp.run_dir)?;
     Ok(out)
+}
+
+/// The evaluations of `exp` named in `only` (all if empty); a name it does not have is an
+/// error.
+fn select_evaluations<'a>(exp: &'a Experiment, only: &[String]) -> Result<Vec<&'a EvalSpec>> {
+    let names: Vec<&str> = exp.evals.iter().map(|e| e.name.as_str()).collect();
+    for o in only {
+        if !names.contains(&o.as_str()) {
+            let hint = super::suggest::did_you_mean(o, &names);
+            return Err(Error::Config {
+                path: exp.file.clone(),
+                field: "eval".into(),
+                message: format!(
+                    "no evaluation named `{o}` (it has: {}){hint}",
+                    if names.is_empty() {
+                        "none".to_string()
+                    } else {
+                        names.join(", ")
+                    }
+                ),
+            });
+        }
+    }
+    Ok(exp
+        .evals
+        .iter()
+        .filter(|e| only.is_empty() || only.contains(&e.name))
+        .collect())
+}
+
+/// Runs one evaluation of `exp` on the checkpoint `ckpt` (saved at `step`) and writes
+/// `eval/NAME/`.
+fn evaluate_one(
+    exp: &Experiment,
+    spec: &EvalSpec,
+    ckpt: &Path,
+    step: Option<u64>,
+    device: Device,
+    opts: &RunOptions<'_>,
+) -> Result<EvalOutcome> {
+    let vs = VarStore::new(device);
+    let model = build_model(exp, &vs, spec.kernel, &spec.input)?;
+    checkpoint::load(ckpt, &vs, &exp.model)?;
+    let source = opts.opener.open(&source_for(
+        &spec.data,
+        &spec.input,
+        spec.batch_size,
+        None,
+        Augment::default(),
+    ))?;
+    let eopts = EvalOptions {
+        bins: radial_bins(&spec.input, spec.radial_bins, spec.radial_max)?,
+        panels: spec.images,
+        depth_loss: exp.train.depth_loss,
+        device,
+        progress: opts.progress,
+    };
+    let e = eval::evaluate(&model, source.as_ref(), &eopts)?;
+    let dir = run_dir(exp).eval_dir(&spec.name);
+    let about = json!({
+        "experiment": exp.name,
+        "evaluation": spec.name,
+        "data": spec.data.describe(),
+        "kernel": spec.kernel.as_str(),
+        "camera_file": spec.input.camera_file,
+        "input_size": spec.input.size,
+        "padding": spec.input.padding,
+        "principal_point": eopts.bins.centre,
+        "radial_edges": eopts.bins.edges,
+        "checkpoint": ckpt,
+        "checkpoint_step": step,
+        "git": git_revision(),
+    });
+    e.write(&dir, &about)?;
+    write_radial_plots(&dir, &e, spec)?;
+    if opts.verbose {
+        let line: Vec<String> = e
+            .metrics
+            .iter()
+            .map(|(m, v)| format!("{m} {v:.4}"))
+            .collect();
+        eprintln!(
+            "eval {} ({}, {} kernels, {} images): {}",
+            spec.name,
+            spec.data.describe(),
+            spec.kernel.as_str(),
+            e.images,
+            line.join(", ")
+        );
+    }
+    Ok(EvalOutcome {
+        name: spec.name.clone(),
+        dir,
+        checkpoint: ckpt.to_path_buf(),
+        evaluation: e,
+    })
 }
 
 /// The paper's radial figures for one evaluation: `radial_<metric>.png` (mean and one standard

@@ -60,9 +60,7 @@ impl SlurmSpec {
         let mut table: Table = profile.slurm.clone();
         for o in sets {
             if !SLURM_KEYS.contains(&o.key.as_str()) {
-                let hint = super::suggest::nearest(&o.key, &SLURM_KEYS)
-                    .map(|b| format!("; did you mean `{b}`?"))
-                    .unwrap_or_default();
+                let hint = super::suggest::did_you_mean(&o.key, &SLURM_KEYS);
                 return Err(Error::InvalidArgument(format!(
                     "--slurm-set {}: unknown key (expected one of {}){hint}",
                     o.key,
@@ -141,20 +139,10 @@ fn quote(s: &str) -> String {
     format!("'{}'", s.replace('\'', "'\\''"))
 }
 
-/// Writes `level-K.sbatch` (one job array per dependency level) and `submit.sh` into `out`
-/// for `plan`; returns the files written.
-pub fn emit_slurm(
-    plan: &[Planned],
-    dir: &Path,
-    profile: &Profile,
-    overrides: &[Override],
-    seeds: &Seeds,
-    spec: &SlurmSpec,
-    out: &Path,
-) -> Result<Vec<PathBuf>> {
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    // The binary that wrote the scripts (the cluster shares the file system), else `calibconv`
-    // from PATH.
+/// The `calibconv sweep` command line every array task runs (before its `--only`): the binary
+/// that wrote the scripts (the cluster shares the file system), else `calibconv` from PATH,
+/// with the sweep's folder, profile, overrides and seeds.
+fn sweep_command(dir: &Path, profile: &Profile, overrides: &[Override], seeds: &Seeds) -> String {
     let exe = std::env::current_exe()
         .map(|p| p.display().to_string())
         .unwrap_or_else(|_| "calibconv".into());
@@ -173,7 +161,70 @@ pub fn emit_slurm(
         let list: Vec<String> = seeds.seeds.iter().map(u64::to_string).collect();
         common += &format!(" --seeds {}", list.join(","));
     }
+    common
+}
+
+/// `level-K.sbatch`: one array task per run of dependency level `level`, run from `root`
+/// (quoted) with `common` ([`sweep_command`]).
+fn level_script(
+    level: usize,
+    runs: &[&Planned],
+    seeds: &Seeds,
+    directives: &str,
+    root: &str,
+    common: &str,
+) -> String {
+    let names: Vec<&str> = runs.iter().map(|p| p.exp.name.as_str()).collect();
+    let seed_line = if seeds.seeds.is_empty() {
+        String::new()
+    } else {
+        let s: Vec<String> = runs
+            .iter()
+            .map(|p| p.seed.map_or(String::new(), |s| s.to_string()))
+            .collect();
+        format!("SEEDS=({})\n", s.join(" "))
+    };
+    let only_seed = if seeds.seeds.is_empty() {
+        ""
+    } else {
+        " --only-seed \"${SEEDS[$SLURM_ARRAY_TASK_ID]}\""
+    };
+    format!(
+        "#!/bin/bash\n\
+         #SBATCH --job-name=calibconv-level-{level}\n\
+         #SBATCH --array=0-{last}\n\
+         {directives}{sep}\
+         #SBATCH --output=slurm-%A_%a.out\n\
+         # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
+         set -euo pipefail\n\
+         cd {root}\n\
+         RUNS=({runs})\n\
+         {seed_line}\
+         srun {common}{only_seed} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\" \
+         ${{SLURM_CPUS_PER_TASK:+--threads $SLURM_CPUS_PER_TASK}} -q\n",
+        last = names.len() - 1,
+        sep = if directives.is_empty() { "" } else { "\n" },
+        n = names.len(),
+        prev = level.saturating_sub(1),
+        runs = names.join(" "),
+    )
+}
+
+/// Writes `level-K.sbatch` (one job array per dependency level) and `submit.sh` into `out`
+/// for `plan`; returns the files written.
+pub fn emit_slurm(
+    plan: &[Planned],
+    dir: &Path,
+    profile: &Profile,
+    overrides: &[Override],
+    seeds: &Seeds,
+    spec: &SlurmSpec,
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let common = sweep_command(dir, profile, overrides, seeds);
     let root = std::env::current_dir().map_err(|e| Error::io(Path::new("."), e))?;
+    let root = quote(&root.display().to_string());
     let max_level = plan.iter().map(|p| p.level).max().unwrap_or(0);
     let mut files = Vec::new();
     let mut submit = String::from(
@@ -183,42 +234,8 @@ pub fn emit_slurm(
     let directives = spec.directives().join("\n");
     for level in 0..=max_level {
         let runs: Vec<&Planned> = plan.iter().filter(|p| p.level == level).collect();
-        let names: Vec<&str> = runs.iter().map(|p| p.exp.name.as_str()).collect();
-        let seed_line = if seeds.seeds.is_empty() {
-            String::new()
-        } else {
-            let s: Vec<String> = runs
-                .iter()
-                .map(|p| p.seed.map_or(String::new(), |s| s.to_string()))
-                .collect();
-            format!("SEEDS=({})\n", s.join(" "))
-        };
-        let only_seed = if seeds.seeds.is_empty() {
-            ""
-        } else {
-            " --only-seed \"${SEEDS[$SLURM_ARRAY_TASK_ID]}\""
-        };
         let file = out.join(format!("level-{level}.sbatch"));
-        let text = format!(
-            "#!/bin/bash\n\
-             #SBATCH --job-name=calibconv-level-{level}\n\
-             #SBATCH --array=0-{last}\n\
-             {directives}{sep}\
-             #SBATCH --output=slurm-%A_%a.out\n\
-             # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
-             set -euo pipefail\n\
-             cd {root}\n\
-             RUNS=({runs})\n\
-             {seed_line}\
-             srun {common}{only_seed} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\" \
-             ${{SLURM_CPUS_PER_TASK:+--threads $SLURM_CPUS_PER_TASK}} -q\n",
-            last = names.len() - 1,
-            sep = if directives.is_empty() { "" } else { "\n" },
-            n = names.len(),
-            prev = level.saturating_sub(1),
-            root = quote(&root.display().to_string()),
-            runs = names.join(" "),
-        );
+        let text = level_script(level, &runs, seeds, &directives, &root, &common);
         write_bytes_atomic(&file, text.as_bytes())?;
         if level == 0 {
             submit += &format!("j0=$(sbatch --parsable level-{level}.sbatch)\n");

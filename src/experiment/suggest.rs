@@ -31,6 +31,14 @@ pub fn nearest<'a>(word: &str, candidates: &[&'a str]) -> Option<&'a str> {
         .map(|(_, c)| c)
 }
 
+/// `; did you mean `B`?` for the candidate `B` nearest `word` (see [`nearest`]), or nothing:
+/// the tail of an "unknown name" message.
+pub fn did_you_mean(word: &str, candidates: &[&str]) -> String {
+    nearest(word, candidates)
+        .map(|b| format!("; did you mean `{b}`?"))
+        .unwrap_or_default()
+}
+
 /// What serde said was unknown, parsed from its message: `(what, name, valid names)`, `what`
 /// being `field` or `variant`. Handles "unknown field `x`, expected one of `a`, `b`",
 /// "... expected `a` or `b`", "... expected `a`" and "... there are no fields".

@@ -247,6 +247,44 @@ pub fn plan_seeds(
     only: &[String],
     seeds: &Seeds,
 ) -> Result<Vec<Planned>> {
+    let selected = read_selected(dir, profile, overrides, only)?;
+    for s in &seeds.only {
+        if !seeds.seeds.contains(s) {
+            return Err(Error::InvalidArgument(format!(
+                "seed {s} is not one of the sweep's seeds ({:?})",
+                seeds.seeds
+            )));
+        }
+    }
+    // (run, its dependency's key if that run is in the plan or planned for another seed).
+    let mut all: Vec<(Planned, Option<String>)> = Vec::new();
+    let replicates: Vec<Option<u64>> = if seeds.seeds.is_empty() {
+        vec![None]
+    } else {
+        seeds.seeds.iter().map(|s| Some(*s)).collect()
+    };
+    for &seed in &replicates {
+        if let Some(s) = seed {
+            if !seeds.only.is_empty() && !seeds.only.contains(&s) {
+                continue;
+            }
+        }
+        for (file, merged, exp) in &selected {
+            all.extend(replicate(file, merged, exp, seed, seeds)?);
+        }
+    }
+    order_by_level(dir, all)
+}
+
+/// Reads, merges and resolves every experiment of `dir` and keeps those matching one of
+/// `only` (all if empty; an exact name selects that run only): `(file, merged text,
+/// experiment)`. Two experiments of one name, or nothing selected, is an error.
+fn read_selected(
+    dir: &Path,
+    profile: &Profile,
+    overrides: &[Override],
+    only: &[String],
+) -> Result<Vec<(PathBuf, String, Experiment)>> {
     let mut base = Vec::new();
     for file in experiment_files(dir)? {
         let text = std::fs::read_to_string(&file).map_err(|e| Error::io(&file, e))?;
@@ -285,66 +323,57 @@ pub fn plan_seeds(
             only.join(", ")
         )));
     }
-    for s in &seeds.only {
-        if !seeds.seeds.contains(s) {
-            return Err(Error::InvalidArgument(format!(
-                "seed {s} is not one of the sweep's seeds ({:?})",
-                seeds.seeds
-            )));
-        }
-    }
-    // (run, its dependency's key if that run is in the plan or planned for another seed).
-    let mut all: Vec<(Planned, Option<String>)> = Vec::new();
-    let replicates: Vec<Option<u64>> = if seeds.seeds.is_empty() {
-        vec![None]
-    } else {
-        seeds.seeds.iter().map(|s| Some(*s)).collect()
-    };
+    Ok(selected)
+}
+
+/// The run of one experiment for replicate `seed` (none for a baseline that a later seed
+/// shares), with the key of the run it starts from, if it starts from another experiment.
+fn replicate(
+    file: &Path,
+    merged: &str,
+    exp: &Experiment,
+    seed: Option<u64>,
+    seeds: &Seeds,
+) -> Result<Option<(Planned, Option<String>)>> {
     let first = seeds.seeds.first().copied();
-    for &seed in &replicates {
-        if let Some(s) = seed {
-            if !seeds.only.is_empty() && !seeds.only.contains(&s) {
-                continue;
-            }
-        }
-        for (file, merged, exp) in &selected {
-            let baseline = exp.init.is_none();
-            if baseline && seeds.share_baseline && seed.is_some() && seed != first {
-                continue;
-            }
-            let (text, mut exp) = match seed {
-                None => (merged.clone(), exp.clone()),
-                Some(s) => {
-                    let text = with_seed(file, merged, s)?;
-                    let exp = super::parse(&text, file)?.resolve(file, &text)?;
-                    (text, exp)
-                }
-            };
-            let mut dep = None;
-            if let Some(InitSpec::Experiment { name, checkpoints }) = &mut exp.init {
-                let from = if seeds.share_baseline { first } else { seed };
-                if from != seed {
-                    // The shared baseline lives in the first seed's folder.
-                    let output = exp.output.parent().unwrap_or(&exp.output).to_path_buf();
-                    *checkpoints = layout::ResultsDir::new(output)
-                        .run_dir(from, name)
-                        .checkpoints();
-                }
-                dep = Some(run_key(from, name));
-            }
-            all.push((
-                Planned {
-                    exp,
-                    seed,
-                    file: file.clone(),
-                    text,
-                    deps: Vec::new(),
-                    level: 0,
-                },
-                dep,
-            ));
-        }
+    let baseline = exp.init.is_none();
+    if baseline && seeds.share_baseline && seed.is_some() && seed != first {
+        return Ok(None);
     }
+    let (text, mut exp) = match seed {
+        None => (merged.to_string(), exp.clone()),
+        Some(s) => {
+            let text = with_seed(file, merged, s)?;
+            let exp = super::parse(&text, file)?.resolve(file, &text)?;
+            (text, exp)
+        }
+    };
+    let mut dep = None;
+    if let Some(InitSpec::Experiment { name, checkpoints }) = &mut exp.init {
+        let from = if seeds.share_baseline { first } else { seed };
+        if from != seed {
+            // The shared baseline lives in the first seed's folder.
+            let output = exp.output.parent().unwrap_or(&exp.output).to_path_buf();
+            *checkpoints = layout::ResultsDir::new(output)
+                .run_dir(from, name)
+                .checkpoints();
+        }
+        dep = Some(run_key(from, name));
+    }
+    let planned = Planned {
+        exp,
+        seed,
+        file: file.to_path_buf(),
+        text,
+        deps: Vec::new(),
+        level: 0,
+    };
+    Ok(Some((planned, dep)))
+}
+
+/// Keeps the dependencies that are runs of the plan, gives each run its level, and sorts by
+/// level, seed and name; a cycle among the experiments of `dir` is an error.
+fn order_by_level(dir: &Path, all: Vec<(Planned, Option<String>)>) -> Result<Vec<Planned>> {
     let keys: BTreeSet<String> = all.iter().map(|(p, _)| p.key()).collect();
     let mut out: Vec<Planned> = all
         .into_iter()

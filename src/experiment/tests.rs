@@ -1,6 +1,13 @@
 use std::path::Path;
 
+use tch::Device;
+
 use super::*;
+use crate::eval::metrics::Metric;
+use crate::loss::DepthLoss;
+use crate::nn::{Head, UNetConfig};
+use crate::train::schedule::Schedule;
+use crate::train::Length;
 
 const CAM: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/cameras/f195.toml");
 const PERS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/cameras/pers.toml");

@@ -7,7 +7,8 @@ use super::*;
 use crate::camera::{Camera, Intrinsics, Pinhole};
 use crate::kernel::InputFrame;
 
-fn f195() -> Camera {
+/// The F195 fisheye of `data/cameras/` (shared with the U-Net tests).
+pub(super) fn f195() -> Camera {
     crate::camera::load(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/data/cameras/f195.toml"
@@ -15,14 +16,16 @@ fn f195() -> Camera {
     .unwrap()
 }
 
-fn calibrated(camera: Camera) -> ConvKind {
+/// Calibrated kernels for `camera` in the default frame.
+pub(super) fn calibrated(camera: Camera) -> ConvKind {
     ConvKind::Calibrated {
         camera: Arc::new(camera),
         frame: InputFrame::default(),
     }
 }
 
-fn names_and_shapes(vs: &VarStore) -> Vec<(String, Vec<i64>)> {
+/// The parameters of `vs`, sorted by name.
+pub(super) fn names_and_shapes(vs: &VarStore) -> Vec<(String, Vec<i64>)> {
     let mut v: Vec<_> = vs
         .variables()
         .into_iter()
@@ -142,26 +145,19 @@ fn wrong_input_size_panics_with_a_clear_message() {
 fn layers_of_the_same_geometry_share_offsets_and_plans() {
     let vs = VarStore::new(Device::Cpu);
     let kind = calibrated(f195());
-    let a = conv2d(
-        &(vs.root() / "a"),
-        3,
-        4,
-        3,
-        &kind,
-        [40, 44],
-        Conv2dConfig::default(),
-    )
-    .unwrap();
-    let b = conv2d(
-        &(vs.root() / "b"),
-        4,
-        4,
-        3,
-        &kind,
-        [40, 44],
-        Conv2dConfig::default(),
-    )
-    .unwrap();
+    let layer = |name: &str, c_in| {
+        conv2d(
+            &(vs.root() / name),
+            c_in,
+            4,
+            3,
+            &kind,
+            [40, 44],
+            Conv2dConfig::default(),
+        )
+        .unwrap()
+    };
+    let (a, b) = (layer("a", 3), layer("b", 4));
     let (Conv::Calibrated(a), Conv::Calibrated(b)) = (&a, &b) else {
         panic!("calibrated")
     };

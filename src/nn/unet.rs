@@ -236,6 +236,40 @@ struct Up {
 }
 
 impl Up {
+    /// The decoder block that takes level `l + 1` of `config` to level `l` (feature map `size`),
+    /// under `p` (`up{k}`).
+    fn new(
+        p: &nn::Path,
+        config: &UNetConfig,
+        l: usize,
+        kind: &ConvKind,
+        size: [i64; 2],
+    ) -> Result<Self> {
+        let c_in = config.base << (l + 1);
+        let c_out = match (config.up, l) {
+            (UpMode::Bilinear, l) if l > 0 => (config.base << l) / 2,
+            _ => config.base << l,
+        };
+        let (up, mid) = match config.up {
+            UpMode::Transposed => (
+                Some(nn::conv_transpose2d(
+                    p / "up",
+                    c_in,
+                    c_in / 2,
+                    2,
+                    nn::ConvTransposeConfig {
+                        stride: 2,
+                        ..Default::default()
+                    },
+                )),
+                c_out,
+            ),
+            UpMode::Bilinear => (None, c_in / 2),
+        };
+        let conv = DoubleConv::new(&(p / "conv"), c_in, mid, c_out, kind, size)?;
+        Ok(Up { up, conv })
+    }
+
     fn forward_t(&self, x: &Tensor, skip: &Tensor, train: bool) -> Tensor {
         let x = match &self.up {
             Some(t) => t.forward(x),
@@ -253,6 +287,16 @@ impl Up {
         };
         self.conv.forward_t(&Tensor::cat(&[skip, &x], 1), train)
     }
+}
+
+/// `r` with its error naming U-Net level `l` of `sizes`.
+fn at_level<T>(sizes: &[[i64; 2]], l: usize, r: Result<T>) -> Result<T> {
+    r.map_err(|e| {
+        Error::InvalidArgument(format!(
+            "U-Net level {l} ({}x{}): {e}",
+            sizes[l][0], sizes[l][1]
+        ))
+    })
 }
 
 /// The U-Net, built for one input size and conv kind.
@@ -295,16 +339,9 @@ impl UNet {
                 input_size[0], input_size[1], sizes[d][0], sizes[d][1]
             )));
         }
-        let at_level = |l: usize, r: Result<DoubleConv>| {
-            r.map_err(|e| {
-                Error::InvalidArgument(format!(
-                    "U-Net level {l} ({}x{}): {e}",
-                    sizes[l][0], sizes[l][1]
-                ))
-            })
-        };
         let w = |l: usize| config.level_width(l);
         let inc = at_level(
+            &sizes,
             0,
             DoubleConv::new(
                 &(vs / "inc"),
@@ -319,6 +356,7 @@ impl UNet {
         for (l, &size) in sizes.iter().enumerate().skip(1) {
             let p = vs / format!("down{l}") / "maxpool_conv" / 1;
             downs.push(at_level(
+                &sizes,
                 l,
                 DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size),
             )?);
@@ -328,32 +366,7 @@ impl UNet {
             // Up k takes level d-k+1 to level d-k.
             let l = d - k;
             let p = vs / format!("up{k}");
-            let c_in = config.base << (l + 1);
-            let c_out = match (config.up, l) {
-                (UpMode::Bilinear, l) if l > 0 => (config.base << l) / 2,
-                _ => config.base << l,
-            };
-            let (up, mid) = match config.up {
-                UpMode::Transposed => (
-                    Some(nn::conv_transpose2d(
-                        &p / "up",
-                        c_in,
-                        c_in / 2,
-                        2,
-                        nn::ConvTransposeConfig {
-                            stride: 2,
-                            ..Default::default()
-                        },
-                    )),
-                    c_out,
-                ),
-                UpMode::Bilinear => (None, c_in / 2),
-            };
-            let conv = at_level(
-                l,
-                DoubleConv::new(&(&p / "conv"), c_in, mid, c_out, kind, sizes[l]),
-            )?;
-            ups.push(Up { up, conv });
+            ups.push(at_level(&sizes, l, Up::new(&p, config, l, kind, sizes[l]))?);
         }
         let outc = conv2d(
             &(vs / "outc" / "conv"),
@@ -450,46 +463,17 @@ impl ModuleT for UNet {
 
 #[cfg(test)]
 mod tests {
-    use std::sync::Arc;
-
     use tch::nn::VarStore;
     use tch::{Device, Kind};
 
     use super::*;
-    use crate::camera::Camera;
-    use crate::kernel::InputFrame;
-
-    fn f195() -> Arc<Camera> {
-        Arc::new(
-            crate::camera::load(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/data/cameras/f195.toml"
-            ))
-            .unwrap(),
-        )
-    }
+    use crate::nn::tests::{calibrated, f195, names_and_shapes};
 
     fn kinds() -> Vec<(&'static str, ConvKind)> {
         vec![
             ("standard", ConvKind::Standard),
-            (
-                "calibrated",
-                ConvKind::Calibrated {
-                    camera: f195(),
-                    frame: InputFrame::default(),
-                },
-            ),
+            ("calibrated", calibrated(f195())),
         ]
-    }
-
-    fn names_and_shapes(vs: &VarStore) -> Vec<(String, Vec<i64>)> {
-        let mut v: Vec<_> = vs
-            .variables()
-            .into_iter()
-            .map(|(n, t)| (n, t.size()))
-            .collect();
-        v.sort();
-        v
     }
 
     #[test]

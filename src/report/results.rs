@@ -225,6 +225,23 @@ fn verdict_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
     ))
 }
 
+/// Writes `STEM.md` (`text`) and `STEM.csv` (`csv`) into `out` and adds them to `files`;
+/// returns the two files.
+fn write_md_csv(
+    out: &Path,
+    stem: &str,
+    text: &str,
+    csv: &str,
+    files: &mut Vec<PathBuf>,
+) -> Result<(PathBuf, PathBuf)> {
+    let md_file = out.join(format!("{stem}.md"));
+    let csv_file = out.join(format!("{stem}.csv"));
+    write_bytes_atomic(&md_file, text.as_bytes())?;
+    write_bytes_atomic(&csv_file, csv.as_bytes())?;
+    files.extend([md_file.clone(), csv_file.clone()]);
+    Ok((md_file, csv_file))
+}
+
 /// One task's tables, differences, radial plots and grids; returns its `REPORT.md` section.
 fn task_section(
     cx: &Ctx<'_>,
@@ -233,50 +250,81 @@ fn task_section(
     title: &str,
     files: &mut Vec<PathBuf>,
 ) -> Result<String> {
-    let Ctx {
-        study,
-        obs,
-        opts,
-        out,
-    } = *cx;
-    let seeds: Vec<u64> = obs.seeds().into_iter().collect();
-    let mut report = String::new();
-    let task_rows: Vec<&Row> = study.rows.iter().filter(|r| r.cell.task == task).collect();
+    let seeds: Vec<u64> = cx.obs.seeds().into_iter().collect();
+    let task_rows: Vec<&Row> = cx
+        .study
+        .rows
+        .iter()
+        .filter(|r| r.cell.task == task)
+        .collect();
     if task_rows.is_empty() {
-        return Ok(report);
+        return Ok(String::new());
     }
+    let mut report = table_section(cx, task, columns, title, seeds.len(), files)?;
+    report += &differences_section(cx, task, columns, seeds.len(), files)?;
+    report += &radial_section(cx, task, seeds.len(), files)?;
+    let first_seed: Vec<&Row> = task_rows
+        .iter()
+        .copied()
+        .filter(|r| Some(r.seed) == seeds.first().copied())
+        .collect();
+    report += &grids_section(cx, task, &first_seed, seeds.first().copied(), files)?;
+    Ok(report)
+}
+
+/// The task's table of cells over `n_seeds` seeds (`table_T.{md,csv}`, `values_T.csv`).
+fn table_section(
+    cx: &Ctx<'_>,
+    task: Task,
+    columns: &[Metric],
+    title: &str,
+    n_seeds: usize,
+    files: &mut Vec<PathBuf>,
+) -> Result<String> {
+    let Ctx { obs, opts, out, .. } = *cx;
     let title = match task {
         Task::Depth => format!("{title} (metres; `{}` averaging)", opts.averaging),
         Task::Segmentation => format!("{title} (one confusion matrix over the test set)"),
     };
-    let about = convention(task, opts.averaging, seeds.len());
+    let about = convention(task, opts.averaging, n_seeds);
     let (md, csv) = cell_table(obs, task, columns);
-    let md_file = out.join(format!("table_{}.md", task.short()));
-    let csv_file = out.join(format!("table_{}.csv", task.short()));
-    write_bytes_atomic(
-        &md_file,
-        format!("## {title}\n\n{about}.\n\n{md}").as_bytes(),
+    let (md_file, csv_file) = write_md_csv(
+        out,
+        &format!("table_{}", task.short()),
+        &format!("## {title}\n\n{about}.\n\n{md}"),
+        &csv,
+        files,
     )?;
-    write_bytes_atomic(&csv_file, csv.as_bytes())?;
     let seeds_file = out.join(format!("values_{}.csv", task.short()));
     write_bytes_atomic(&seeds_file, seed_values_csv(obs, task, columns).as_bytes())?;
-    files.extend([md_file.clone(), csv_file.clone(), seeds_file.clone()]);
-    report += &format!(
+    files.push(seeds_file.clone());
+    Ok(format!(
         "## {title}\n\n{about}.\n\n{md}\n({}, {}; every seed's value: {})\n\n",
         link(&md_file, out),
         link(&csv_file, out),
         link(&seeds_file, out)
-    );
+    ))
+}
 
+/// The task's paired differences (`differences_T.{md,csv}`), with a bootstrap over test
+/// images when there are two seeds or more.
+fn differences_section(
+    cx: &Ctx<'_>,
+    task: Task,
+    columns: &[Metric],
+    n_seeds: usize,
+    files: &mut Vec<PathBuf>,
+) -> Result<String> {
+    let Ctx { obs, opts, out, .. } = *cx;
     let pairs = comparison_pairs(obs, task);
-    let boot = if seeds.len() >= 2 {
-        study.bootstrap(&pairs, opts.averaging, opts.bootstrap_seed)?
+    let boot = if n_seeds >= 2 {
+        cx.study
+            .bootstrap(&pairs, opts.averaging, opts.bootstrap_seed)?
     } else {
         Default::default()
     };
-    let metrics: Vec<Metric> = columns.to_vec();
-    let (md, csv) = difference_table(obs, &boot, task, &metrics);
-    let diff_about = if seeds.len() >= 2 {
+    let (md, csv) = difference_table(obs, &boot, task, columns);
+    let diff_about = if n_seeds >= 2 {
         format!(
             "Per seed, the difference of the two rows (the same seed, the same test images); \
              mean and 95% Student-t interval over seeds; per seed in brackets a 95% \
@@ -288,50 +336,65 @@ fn task_section(
     } else {
         "One seed: the difference of the two rows; intervals need >= 2 seeds".to_string()
     };
-    let md_file = out.join(format!("differences_{}.md", task.short()));
-    let csv_file = out.join(format!("differences_{}.csv", task.short()));
     let heading = format!("Paired differences, {}", task.name());
-    write_bytes_atomic(
-        &md_file,
-        format!("## {heading}\n\n{diff_about}.\n\n{md}").as_bytes(),
+    let (md_file, csv_file) = write_md_csv(
+        out,
+        &format!("differences_{}", task.short()),
+        &format!("## {heading}\n\n{diff_about}.\n\n{md}"),
+        &csv,
+        files,
     )?;
-    write_bytes_atomic(&csv_file, csv.as_bytes())?;
-    files.extend([md_file.clone(), csv_file.clone()]);
-    report += &format!(
+    Ok(format!(
         "### {heading}\n\n{diff_about}.\n\n{md}\n({}, {})\n\n",
         link(&md_file, out),
         link(&csv_file, out)
-    );
+    ))
+}
 
-    let plots = radial_plots(study, task, opts.averaging, out)?;
+/// The task's radial plots ([`radial_plots`]), empty if none.
+fn radial_section(
+    cx: &Ctx<'_>,
+    task: Task,
+    n_seeds: usize,
+    files: &mut Vec<PathBuf>,
+) -> Result<String> {
+    let plots = radial_plots(cx.study, task, cx.opts.averaging, cx.out)?;
+    let mut report = String::new();
     if !plots.is_empty() {
         report += &format!(
             "### Radial plots\n\nMetric vs distance to the principal point ({}); standard \
              kernels red, calibrated blue, rectified green (rectified images are a pinhole \
              projection: the same radius is another viewing angle).\n\n",
-            if seeds.len() >= 2 {
+            if n_seeds >= 2 {
                 "mean over seeds of each seed's curve, band: 95% Student-t interval over seeds"
             } else {
                 "one seed: mean ± 1 std over the test images"
             }
         );
         for p in &plots {
-            report += &format!("![{0}]({0})\n", rel(p, out));
+            report += &format!("![{0}]({0})\n", rel(p, cx.out));
         }
         report += "\n";
     }
     files.extend(plots);
-    let first_seed: Vec<&Row> = task_rows
-        .iter()
-        .copied()
-        .filter(|r| Some(r.seed) == seeds.first().copied())
-        .collect();
-    let grids = qualitative_grids(&first_seed, out)?;
+    Ok(report)
+}
+
+/// The task's qualitative grids from the rows of its first seed `seed`, empty if none.
+fn grids_section(
+    cx: &Ctx<'_>,
+    task: Task,
+    rows: &[&Row],
+    seed: Option<u64>,
+    files: &mut Vec<PathBuf>,
+) -> Result<String> {
+    let grids = qualitative_grids(rows, cx.out)?;
+    let mut report = String::new();
     if !grids.is_empty() {
         report += &format!(
             "### Qualitative results\n\nColumns: RGB | standard | calibrated | ground truth \
              (first test images, seed {}).{}\n\n",
-            seeds.first().copied().unwrap_or(0),
+            seed.unwrap_or(0),
             if task == Task::Depth {
                 " Depth colour map: near dark blue to far yellow, per image over [0, max \
                  ground truth]; invalid pixels black."
@@ -340,7 +403,7 @@ fn task_section(
             }
         );
         for g in &grids {
-            report += &format!("![{0}]({0})\n", rel(g, out));
+            report += &format!("![{0}]({0})\n", rel(g, cx.out));
         }
         report += "\n";
         if task == Task::Segmentation {

@@ -68,9 +68,26 @@ pub fn ln_gamma(x: f64) -> f64 {
     0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
 }
 
+/// Lentz's guard: a denominator this small is replaced by it (avoids dividing by zero).
+const FPMIN: f64 = 1e-300;
+
+/// One term `aa` of the modified Lentz method: updates `c` and `d` and returns the factor
+/// `c * d` the continued fraction is multiplied by.
+fn lentz_step(aa: f64, c: &mut f64, d: &mut f64) -> f64 {
+    *d = 1.0 + aa * *d;
+    if d.abs() < FPMIN {
+        *d = FPMIN;
+    }
+    *c = 1.0 + aa / *c;
+    if c.abs() < FPMIN {
+        *c = FPMIN;
+    }
+    *d = 1.0 / *d;
+    *d * *c
+}
+
 /// The continued fraction of the incomplete beta function (Lentz's method).
 fn betacf(a: f64, b: f64, x: f64) -> f64 {
-    const FPMIN: f64 = 1e-300;
     let (qab, qap, qam) = (a + b, a + 1.0, a - 1.0);
     let mut c = 1.0;
     let mut d = 1.0 - qab * x / qap;
@@ -82,28 +99,11 @@ fn betacf(a: f64, b: f64, x: f64) -> f64 {
     for m in 1..=BETACF_MAX_ITER {
         let m = m as f64;
         let m2 = 2.0 * m;
+        // The even and the odd term of step m.
         let aa = m * (b - m) * x / ((qam + m2) * (a + m2));
-        d = 1.0 + aa * d;
-        if d.abs() < FPMIN {
-            d = FPMIN;
-        }
-        c = 1.0 + aa / c;
-        if c.abs() < FPMIN {
-            c = FPMIN;
-        }
-        d = 1.0 / d;
-        h *= d * c;
+        h *= lentz_step(aa, &mut c, &mut d);
         let aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2));
-        d = 1.0 + aa * d;
-        if d.abs() < FPMIN {
-            d = FPMIN;
-        }
-        c = 1.0 + aa / c;
-        if c.abs() < FPMIN {
-            c = FPMIN;
-        }
-        d = 1.0 / d;
-        let del = d * c;
+        let del = lentz_step(aa, &mut c, &mut d);
         h *= del;
         if (del - 1.0).abs() < BETACF_EPS {
             break;

@@ -222,67 +222,62 @@ struct ClaimSpec {
 }
 
 fn claims(task: Task) -> Vec<ClaimSpec> {
-    let c = |block, set: &str, kernel: &str| Cell::new(task, block, set, kernel);
     use Block::{Bl, Ft};
+    let c = |block, set: &str, kernel: &str| Cell::new(task, block, set, kernel);
+    // The calibrated kernels against the standard ones, on one block and data set.
+    let gain = |block, set: &str| (c(block, set, CALIBRATED), c(block, set, STANDARD));
+    let diff = |(a, b): (Cell, Cell)| Compare::Diff(a, b);
+    let claim = |id, statement, direction, compares| ClaimSpec {
+        id,
+        statement,
+        direction,
+        compares,
+    };
+    let (f195_cal, f195_std) = gain(Ft, "F195");
     vec![
-        ClaimSpec {
-            id: "C1",
-            statement: "After fine-tuning on F195, calibrated kernels beat standard kernels.",
-            direction: Direction::Better,
-            compares: vec![Compare::Diff(
-                c(Ft, "F195", CALIBRATED),
-                c(Ft, "F195", STANDARD),
-            )],
-        },
-        ClaimSpec {
-            id: "C2",
-            statement: "After fine-tuning on F165, calibrated kernels beat standard kernels.",
-            direction: Direction::Better,
-            compares: vec![Compare::Diff(
-                c(Ft, "F165", CALIBRATED),
-                c(Ft, "F165", STANDARD),
-            )],
-        },
-        ClaimSpec {
-            id: "C3",
-            statement: "The calibrated kernels' gain after fine-tuning is larger on F195 (wider \
-                        field of view) than on F165.",
-            direction: Direction::Better,
-            compares: vec![Compare::DiffOfDiff(
-                (c(Ft, "F195", CALIBRATED), c(Ft, "F195", STANDARD)),
-                (c(Ft, "F165", CALIBRATED), c(Ft, "F165", STANDARD)),
-            )],
-        },
-        ClaimSpec {
-            id: "C4",
-            statement: "After fine-tuning, standard kernels on rectified F165 images are worse \
-                        than standard kernels on the F165 fisheye images.",
-            direction: Direction::Worse,
-            compares: vec![Compare::Diff(
+        claim(
+            "C1",
+            "After fine-tuning on F195, calibrated kernels beat standard kernels.",
+            Direction::Better,
+            vec![diff(gain(Ft, "F195"))],
+        ),
+        claim(
+            "C2",
+            "After fine-tuning on F165, calibrated kernels beat standard kernels.",
+            Direction::Better,
+            vec![diff(gain(Ft, "F165"))],
+        ),
+        claim(
+            "C3",
+            "The calibrated kernels' gain after fine-tuning is larger on F195 (wider field of \
+             view) than on F165.",
+            Direction::Better,
+            vec![Compare::DiffOfDiff(gain(Ft, "F195"), gain(Ft, "F165"))],
+        ),
+        claim(
+            "C4",
+            "After fine-tuning, standard kernels on rectified F165 images are worse than \
+             standard kernels on the F165 fisheye images.",
+            Direction::Worse,
+            vec![Compare::Diff(
                 c(Ft, "F165", RECTIFIED),
                 c(Ft, "F165", STANDARD),
             )],
-        },
-        ClaimSpec {
-            id: "C5",
-            statement: "Before fine-tuning (BL, trained on Pers), calibrated kernels are slightly \
-                        worse than standard kernels on F195 and on F165.",
-            direction: Direction::Worse,
-            compares: vec![
-                Compare::Diff(c(Bl, "F195", CALIBRATED), c(Bl, "F195", STANDARD)),
-                Compare::Diff(c(Bl, "F165", CALIBRATED), c(Bl, "F165", STANDARD)),
-            ],
-        },
-        ClaimSpec {
-            id: "C6",
-            statement: "After fine-tuning on F195, the calibrated kernels' gain grows with the \
-                        distance to the principal point.",
-            direction: Direction::Better,
-            compares: vec![Compare::RadialOuterInner(
-                c(Ft, "F195", CALIBRATED),
-                c(Ft, "F195", STANDARD),
-            )],
-        },
+        ),
+        claim(
+            "C5",
+            "Before fine-tuning (BL, trained on Pers), calibrated kernels are slightly worse \
+             than standard kernels on F195 and on F165.",
+            Direction::Worse,
+            vec![diff(gain(Bl, "F195")), diff(gain(Bl, "F165"))],
+        ),
+        claim(
+            "C6",
+            "After fine-tuning on F195, the calibrated kernels' gain grows with the distance to \
+             the principal point.",
+            Direction::Better,
+            vec![Compare::RadialOuterInner(f195_cal, f195_std)],
+        ),
     ]
 }
 

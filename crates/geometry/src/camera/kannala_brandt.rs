@@ -250,10 +250,11 @@ impl CameraModel for KannalaBrandt {
         ])
     }
 
-    /// With `r_d = sqrt(((u - cx) / fx)^2 + ((v - cy) / fy)^2)`, solves `d(theta) = r_d` (see
-    /// [`MAX_ITER`](super::solve::MAX_ITER), [`EPS`]) and returns `[sin(theta) cos(phi), sin(theta) sin(phi),
-    /// cos(theta)]`; `[0, 0, 1]` at the principal point. `None` for non-finite input, for
-    /// `r_d > d(theta_max)` and if Newton does not converge.
+    /// With `r_d = sqrt(((u - cx) / fx)^2 + ((v - cy) / fy)^2)`, solves `d(theta) = r_d` (at most
+    /// `solve::MAX_ITER` Newton steps, to the step tolerance `EPS`) and returns
+    /// `[sin(theta) cos(phi), sin(theta) sin(phi), cos(theta)]`; `[0, 0, 1]` at the principal
+    /// point. `None` for non-finite input, for `r_d > d(theta_max)` and if Newton does not
+    /// converge.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let mx = (px[0] - self.cx) / self.fx;
         let my = (px[1] - self.cy) / self.fy;

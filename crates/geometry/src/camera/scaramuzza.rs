@@ -181,7 +181,7 @@ impl Scaramuzza {
         cam
     }
 
-    /// Every float finite, at most [`MAX_POLY_LEN`] coefficients, `a0 < 0`, `c - d e > 0`,
+    /// Every float finite, at most `MAX_POLY_LEN` (64) coefficients, `a0 < 0`, `c - d e > 0`,
     /// `width, height > 0`, `0 < fov_deg < 360` and `fov_deg / 2` below
     /// [`Scaramuzza::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
