@@ -34,7 +34,7 @@
 //! - [`train`]: Adam with a savable state, learning-rate schedules, safetensors checkpoints
 //!   with metadata (atomic, mismatches listed by name), and the trainer: periodic validation,
 //!   best checkpoint, exact resume, stop on NaN / Inf. Output goes through the
-//!   [`train::Reporter`] trait.
+//!   [`train::Reporter`] trait (TensorBoard event files, CSV logs).
 //! - [`experiment`]: experiment TOML files (raw -> resolved, did-you-mean errors), the hook that
 //!   opens data sources (data set folders whose camera matches, or the toy task), and the run
 //!   directory (`experiment::layout`: its paths, typed records and lock): training then
@@ -43,7 +43,7 @@
 //!   order (skip, resume, keep going past failures, SLURM scripts), as `calibconv sweep` runs
 //!   them.
 //! - [`report`]: figures (the deformed-kernel grid of the paper's Figure 1a, radial plots, point
-//!   clouds), the training reporters (TensorBoard event files, CSV logs), and the report of a
+//!   clouds) and the report of a
 //!   sweep's results over seed replicates (the paper's tables with Student-t intervals over
 //!   seeds, paired differences with a bootstrap over test images, radial plots, qualitative
 //!   grids, the computed verdict on the paper's claims, the gain against the field of view,
@@ -51,6 +51,8 @@
 //! - [`bench`](mod@bench): the benchmark `calibconv bench` runs (paired, interleaved timings of the
 //!   calibrated convolution against `conv2d`, and a peak-memory pass).
 //! - [`io`]: atomic file output used by every writer.
+//! - [`plots`]: line plots with bands (radial metrics, validation curves, the FOV gain), drawn
+//!   by evaluations and reports alike.
 //! - [`util`]: CSV number formatting and progress bars, shared by training, evaluation and
 //!   reports.
 
@@ -65,6 +67,7 @@ pub mod kernel;
 pub mod loss;
 pub mod nn;
 pub mod ops;
+pub mod plots;
 pub mod report;
 pub mod train;
 pub mod util;

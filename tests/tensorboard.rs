@@ -6,7 +6,7 @@ use std::process::Command;
 
 use image::RgbImage;
 
-use calibconv::report::tensorboard::TensorBoard;
+use calibconv::train::tensorboard::TensorBoard;
 use calibconv::train::Reporter;
 
 /// Scalars are stored as float32.

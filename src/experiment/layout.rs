@@ -137,11 +137,11 @@ impl RunDir {
     pub fn evaluations_csv(&self) -> PathBuf {
         self.root.join(EVALUATIONS_CSV)
     }
-    /// `train.csv` (written by [`crate::report::csv::CsvLog`]).
+    /// `train.csv` (written by [`crate::train::csv::CsvLog`]).
     pub fn train_csv(&self) -> PathBuf {
         self.root.join(TRAIN_CSV)
     }
-    /// `val.csv` (written by [`crate::report::csv::CsvLog`]).
+    /// `val.csv` (written by [`crate::train::csv::CsvLog`]).
     pub fn val_csv(&self) -> PathBuf {
         self.root.join(VAL_CSV)
     }

@@ -26,10 +26,10 @@ use crate::eval::record::MetricsRecord;
 use crate::eval::{self, principal_point, EvalOptions, Evaluation};
 use crate::io::write_bytes_atomic;
 use crate::nn::UNet;
-use crate::report::csv::CsvLog;
-use crate::report::plots;
-use crate::report::tensorboard::TensorBoard;
+use crate::plots;
 use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
+use crate::train::csv::CsvLog;
+use crate::train::tensorboard::TensorBoard;
 use crate::train::{self, Reporter, TrainConfig, TrainRun, TrainSummary};
 use crate::util::fmt_f64;
 

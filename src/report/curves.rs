@@ -15,15 +15,15 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::collect::{RunInfo, Study};
-use super::csv::read_log;
-use super::plots::{
-    line_band_plot, Curve, PlotSpec, CALIBRATED_BLUE, RECTIFIED_GREEN, STANDARD_RED,
-};
 use super::stats::{mean, sample_sd};
 use super::study::Task;
 use crate::error::Result;
 use crate::experiment::layout::{RunDir, Timing};
 use crate::io::write_bytes_atomic;
+use crate::plots::{
+    line_band_plot, Curve, PlotSpec, CALIBRATED_BLUE, RECTIFIED_GREEN, STANDARD_RED,
+};
+use crate::train::csv::read_log;
 use crate::util::fmt_f64;
 
 /// The group of a run (its name without the kernel suffix) and its kernel label.

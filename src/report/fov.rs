@@ -12,7 +12,6 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use super::collect::Study;
-use super::plots::{line_band_plot, Curve, PlotSpec};
 use super::stats::MeanCi;
 use super::study::{paired_difference, Block, Cell, Observations, Task, CALIBRATED, STANDARD};
 use super::tables::comparison_pairs;
@@ -20,6 +19,7 @@ use super::verdict::claim_metrics;
 use crate::camera::{self, CameraModel};
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
+use crate::plots::{line_band_plot, Curve, PlotSpec};
 
 /// One point of the curve.
 #[derive(Clone, Debug, PartialEq, Serialize)]

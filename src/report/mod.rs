@@ -1,8 +1,6 @@
 //! Figures people would rather look at than numbers, and the report of a sweep's results.
 //!
 //! - [`kernels`]: the grid of calibrated kernels over a fisheye image (paper Figure 1a).
-//! - [`tensorboard`], [`csv`]: training reporters ([`crate::train::Reporter`]): TensorBoard event
-//!   files and per-split CSV logs.
 //! - [`results`]: `calibconv report RESULTS`: reads the run directories of every seed into
 //!   [`study::Observations`], writes the tables with intervals over seeds, the paired-difference
 //!   table ([`tables`]), radial plots with bands over seeds, qualitative grids, the verdict
@@ -10,17 +8,14 @@
 //!   holds the pure statistics (Student t, bootstrap).
 
 pub mod collect;
-pub mod csv;
 pub mod curves;
 pub mod draw;
 pub mod fov;
 pub mod kernels;
-pub mod plots;
 pub mod pointcloud;
 pub mod radial;
 pub mod results;
 pub mod stats;
 pub mod study;
 pub mod tables;
-pub mod tensorboard;
 pub mod verdict;

@@ -13,13 +13,13 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::collect::{Row, Study};
-use super::plots::{
-    line_band_plot, Curve, PlotSpec, CALIBRATED_BLUE, RECTIFIED_GREEN, STANDARD_RED,
-};
 use super::stats::MeanCi;
 use super::study::{Block, Cell, Task, CALIBRATED, RECTIFIED};
 use crate::error::Result;
 use crate::eval::metrics::{Averaging, Metric};
+use crate::plots::{
+    line_band_plot, Curve, PlotSpec, CALIBRATED_BLUE, RECTIFIED_GREEN, STANDARD_RED,
+};
 
 /// Metrics with radial plots, per task.
 pub fn radial_metrics(task: Task) -> [Metric; 2] {

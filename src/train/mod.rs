@@ -25,8 +25,10 @@
 
 pub mod adam;
 pub mod checkpoint;
+pub mod csv;
 pub mod pytorch;
 pub mod schedule;
+pub mod tensorboard;
 pub mod tensors;
 mod trainer;
 
@@ -46,8 +48,8 @@ use adam::AdamConfig;
 use checkpoint::CheckpointInfo;
 use schedule::Schedule;
 
-/// Where training output goes: scalars and images by step. Implementations (TensorBoard, CSV)
-/// live in [`crate::report`]; the trainer only sees this trait.
+/// Where training output goes: scalars and images by step. Implementations: [`tensorboard`]
+/// (event files) and [`csv`] (per-split CSV logs); the trainer only sees this trait.
 pub trait Reporter {
     /// Scalars of `split` (`train`, `val`) at `step`.
     fn scalars(&mut self, split: &str, step: u64, values: &[(String, f64)]) -> Result<()>;

@@ -20,7 +20,7 @@ pub const CALIBRATED_BLUE: [u8; 3] = [31, 119, 180];
 /// Colour of the rectified-image baseline.
 pub const RECTIFIED_GREEN: [u8; 3] = [44, 160, 44];
 
-static FONT: &[u8] = include_bytes!("../../data/fonts/DejaVuSans.ttf");
+static FONT: &[u8] = include_bytes!("../data/fonts/DejaVuSans.ttf");
 
 fn ensure_font() {
     static REGISTER: Once = Once::new();
