@@ -32,14 +32,14 @@
 //! Parameters: `xi in (-1, 1]`, `alpha in [0, 1]` (checked by the camera file reader). Pixels are
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
-use super::unified::unified_w;
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
     Invalid,
 };
+use super::unified::unified_w;
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
 
 /// A Double Sphere camera. All fields are plain parameters (nothing derived is cached).
 #[derive(Clone, Debug, PartialEq)]
@@ -120,12 +120,19 @@ impl DoubleSphere {
         (-self.w2()).clamp(-1.0, 1.0).acos()
     }
 
-    /// `(d1, k = xi d1 + z, d2, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64, f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for DoubleSphere {
+    /// `(d1, k = xi d1 + z, d2)`.
+    type Parts = (f64, f64, f64);
+
+    /// `den = alpha d2 + (1 - alpha) k` (Eqs. 40-42), inside `z > -w2 d1`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, (f64, f64, f64))> {
         let d1 = x.hypot(y).hypot(z);
         if d1 == 0.0 || !d1.is_finite() || z <= -self.w2() * d1 {
             return None;
@@ -133,33 +140,27 @@ impl DoubleSphere {
         let k = self.xi * d1 + z;
         let d2 = x.hypot(y).hypot(k);
         let den = self.alpha * d2 + (1.0 - self.alpha) * k;
-        (den > 0.0).then_some((d1, k, d2, den))
+        (den > 0.0).then_some((den, (d1, k, d2)))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `k = xi d1 + z` and `den` the denominator of the projection:
+    /// With `k = xi d1 + z`:
     ///
     /// ```text
     /// dk/dx = xi x / d1          dk/dy = xi y / d1          dk/dz = xi z / d1 + 1
     /// dd2/dx = (x + k dk/dx) / d2   dd2/dy = (y + k dk/dy) / d2   dd2/dz = k dk/dz / d2
     /// dden = alpha dd2 + (1 - alpha) dk
-    /// du/dp = fx (e_x / den - x dden / den^2),   dv/dp = fy (e_y / den - y dden / den^2)
     /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d1, k, d2, den) = self.parts(ray)?;
-        let [x, y, z] = ray;
+    fn den_gradient(&self, [x, y, z]: [f64; 3], (d1, k, d2): (f64, f64, f64)) -> [f64; 3] {
         let dk = [self.xi * x / d1, self.xi * y / d1, self.xi * z / d1 + 1.0];
         let dd2 = [(x + k * dk[0]) / d2, (y + k * dk[1]) / d2, k * dk[2] / d2];
-        let dden: [f64; 3] = [0, 1, 2].map(|i| self.alpha * dd2[i] + (1.0 - self.alpha) * dk[i]);
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        [0, 1, 2].map(|i| self.alpha * dd2[i] + (1.0 - self.alpha) * dk[i])
     }
 }
 
 impl CameraModel for DoubleSphere {
     /// Eqs. 40-42 (module docs), or `None` outside `z > -w2 |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, _, _, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Eqs. 44-47 (module docs), normalised; `None` outside the disc `r^2 <= 1 / (2 alpha - 1)`,

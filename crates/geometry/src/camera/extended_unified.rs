@@ -28,14 +28,14 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::unified::{unified_den, unified_w};
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
     Invalid,
 };
+use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
 
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
@@ -118,40 +118,39 @@ impl ExtendedUnified {
         std::f64::consts::PI - (1.0 - w * w).max(0.0).sqrt().atan2(w * self.beta.sqrt())
     }
 
-    /// `(d, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for ExtendedUnified {
+    /// The ellipsoid norm `d`.
+    type Parts = f64;
+
+    /// `den = alpha d + (1 - alpha) z` with `d = sqrt(beta (x^2 + y^2) + z^2)` (Eqs. 22-24),
+    /// inside `z > -w d`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, f64)> {
         let d = (self.beta * (x * x + y * y) + z * z).sqrt();
-        unified_den(self.alpha, d, z).map(|den| (d, den))
+        unified_den(self.alpha, d, z).map(|den| (den, d))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `den = alpha d + (1 - alpha) z`:
-    ///
-    /// ```text
-    /// dden/dp = [alpha beta x / d, alpha beta y / d, alpha z / d + 1 - alpha]
-    /// du/dp = fx (e_x / den - x dden/dp / den^2),   dv/dp = fy (e_y / den - y dden/dp / den^2)
-    /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d, den) = self.parts(ray)?;
+    /// `dden/dp = [alpha beta x / d, alpha beta y / d, alpha z / d + 1 - alpha]`.
+    fn den_gradient(&self, ray: [f64; 3], d: f64) -> [f64; 3] {
         let (a, b) = (self.alpha, self.beta);
-        let dden = [
+        [
             a * b * ray[0] / d,
             a * b * ray[1] / d,
             a * ray[2] / d + (1.0 - a),
-        ];
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        ]
     }
 }
 
 impl CameraModel for ExtendedUnified {
     /// Eqs. 22-24 (module docs), or `None` outside `z > -w d`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Eqs. 26-29 (module docs); `None` outside the disc `r^2 <= 1 / (beta (2 alpha - 1))`, for a

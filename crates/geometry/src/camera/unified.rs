@@ -30,10 +30,10 @@
 //! cross-check each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
 
 /// The denominator `den = alpha d + (1 - alpha) z` of the unified-model family's projection
 /// (Eqs. 14, 22) for a ray with `z` and norm `d` (the model's own: Euclidean, or with `beta`),
@@ -127,36 +127,34 @@ impl Unified {
         (-unified_w(self.alpha)).clamp(-1.0, 1.0).acos()
     }
 
-    /// `(d, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for Unified {
+    /// The ray's norm `d`.
+    type Parts = f64;
+
+    /// `den = alpha d + (1 - alpha) z` with `d = |ray|` (Eq. 14), inside `z > -w d`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, f64)> {
         let d = x.hypot(y).hypot(z);
-        unified_den(self.alpha, d, z).map(|den| (d, den))
+        unified_den(self.alpha, d, z).map(|den| (den, d))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `den = alpha d + (1 - alpha) z`:
-    ///
-    /// ```text
-    /// dden/dp = alpha p / d + (1 - alpha) e_z
-    /// du/dp = fx (e_x / den - x dden/dp / den^2),   dv/dp = fy (e_y / den - y dden/dp / den^2)
-    /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d, den) = self.parts(ray)?;
+    /// `dden/dp = alpha p / d + (1 - alpha) e_z`.
+    fn den_gradient(&self, ray: [f64; 3], d: f64) -> [f64; 3] {
         let a = self.alpha;
-        let dden = [a * ray[0] / d, a * ray[1] / d, a * ray[2] / d + (1.0 - a)];
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        [a * ray[0] / d, a * ray[1] / d, a * ray[2] / d + (1.0 - a)]
     }
 }
 
 impl CameraModel for Unified {
     /// Eq. 14 (module docs), or `None` outside `z > -w |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Mei's closed form (module docs), normalised; `None` where its square root is imaginary,
