@@ -39,59 +39,25 @@ impl Builder {
             let t = 0.025;
             self.begin();
             // Back panel (against the wall, local -z), sides, top, plinth.
-            self.cuboid(
+            let (side, panel) = ([t / 2.0, hz], [hx - t, hz]);
+            self.cuboids(
                 &f,
-                [0.0, -hz + 0.01],
-                [0.0, top],
-                [hx, 0.01],
                 BOOKCASE,
-                back,
-            );
-            self.cuboid(
-                &f,
-                [-hx + t / 2.0, 0.0],
-                [0.0, top],
-                [t / 2.0, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [hx - t / 2.0, 0.0],
-                [0.0, top],
-                [t / 2.0, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [top - t, top],
-                [hx, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [0.0, 0.08],
-                [hx - t, hz],
-                BOOKCASE,
-                frame_mat,
+                &[
+                    ([0.0, -hz + 0.01], [0.0, top], [hx, 0.01], back),
+                    ([-hx + t / 2.0, 0.0], [0.0, top], side, frame_mat),
+                    ([hx - t / 2.0, 0.0], [0.0, top], side, frame_mat),
+                    ([0.0, 0.0], [top - t, top], [hx, hz], frame_mat),
+                    ([0.0, 0.0], [0.0, 0.08], panel, frame_mat),
+                ],
             );
             let shelves = ((top - 0.1) / self.rng.uniform(0.3, 0.4)).floor().max(1.0) as usize;
             let pitch = (top - t - 0.08) / shelves as f64;
             for k in 0..shelves {
                 let e0 = 0.08 + k as f64 * pitch;
                 if k > 0 {
-                    self.cuboid(
-                        &f,
-                        [0.0, 0.0],
-                        [e0 - t / 2.0, e0 + t / 2.0],
-                        [hx - t, hz],
-                        BOOKCASE,
-                        frame_mat,
-                    );
+                    let shelf = [e0 - t / 2.0, e0 + t / 2.0];
+                    self.cuboid(&f, [0.0, 0.0], shelf, panel, BOOKCASE, frame_mat);
                 }
                 if self.rng.chance(0.85) {
                     // Books: a slab recessed 2-8 cm from the front, as tall as the compartment.
@@ -115,6 +81,15 @@ impl Builder {
                 }
             }
             self.end();
+        }
+    }
+
+    /// Four square legs 5 cm wide at `(+-corner[0], +-corner[1])` in `f`, from the floor to
+    /// elevation `top`.
+    fn legs(&mut self, f: &Frame, corner: [f64; 2], top: f64, class: u8, mat: u16) {
+        for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+            let at = [sx * corner[0], sz * corner[1]];
+            self.cuboid(f, at, [0.0, top], [0.025, 0.025], class, mat);
         }
     }
 
@@ -165,30 +140,17 @@ impl Builder {
             let feet = self.plain(srgb(40, 35, 30), 0.05);
             let arm = 0.12;
             self.begin();
-            self.cuboid(&f, [0.0, 0.0], [0.06, seat - 0.1], [hx, hz], SOFA, mat);
-            self.cuboid(
+            // Base, back, two arms.
+            let (arm_e, arm_half) = ([seat - 0.1, seat + 0.15], [arm / 2.0, hz - 0.05]);
+            self.cuboids(
                 &f,
-                [0.0, -hz + 0.1],
-                [seat - 0.1, back_top],
-                [hx, 0.1],
                 SOFA,
-                mat,
-            );
-            self.cuboid(
-                &f,
-                [-hx + arm / 2.0, 0.05],
-                [seat - 0.1, seat + 0.15],
-                [arm / 2.0, hz - 0.05],
-                SOFA,
-                mat,
-            );
-            self.cuboid(
-                &f,
-                [hx - arm / 2.0, 0.05],
-                [seat - 0.1, seat + 0.15],
-                [arm / 2.0, hz - 0.05],
-                SOFA,
-                mat,
+                &[
+                    ([0.0, 0.0], [0.06, seat - 0.1], [hx, hz], mat),
+                    ([0.0, -hz + 0.1], [seat - 0.1, back_top], [hx, 0.1], mat),
+                    ([-hx + arm / 2.0, 0.05], arm_e, arm_half, mat),
+                    ([hx - arm / 2.0, 0.05], arm_e, arm_half, mat),
+                ],
             );
             let cushions = if hx > 0.95 { 3 } else { 2 };
             let inner = hx - arm;
@@ -204,16 +166,7 @@ impl Builder {
                     cushion,
                 );
             }
-            for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                self.cuboid(
-                    &f,
-                    [sx * (hx - 0.06), sz * (hz - 0.06)],
-                    [0.0, 0.06],
-                    [0.025, 0.025],
-                    SOFA,
-                    feet,
-                );
-            }
+            self.legs(&f, [hx - 0.06, hz - 0.06], 0.06, SOFA, feet);
             self.end();
         }
     }
@@ -223,42 +176,29 @@ impl Builder {
         let hs = 0.23;
         let seat = 0.46;
         self.begin();
-        self.cuboid(
+        // Seat and back rest.
+        let back_e = [seat + 0.08, seat + 0.5];
+        self.cuboids(
             f,
-            [0.0, 0.0],
-            [seat - 0.05, seat],
-            [hs, hs],
             CHAIR,
-            seat_mat,
-        );
-        self.cuboid(
-            f,
-            [0.0, -hs + 0.02],
-            [seat + 0.08, seat + 0.5],
-            [hs - 0.01, 0.02],
-            CHAIR,
-            seat_mat,
+            &[
+                ([0.0, 0.0], [seat - 0.05, seat], [hs, hs], seat_mat),
+                ([0.0, -hs + 0.02], back_e, [hs - 0.01, 0.02], seat_mat),
+            ],
         );
         if office {
             self.cylinder(f, [0.0, 0.0], 0.025, [0.08, seat - 0.05], CHAIR, leg_mat);
             self.cylinder(f, [0.0, 0.0], 0.3, [0.03, 0.08], CHAIR, leg_mat);
             // Arm rests.
             for sx in [-1.0, 1.0] {
-                self.cuboid(
+                let at = [sx * (hs + 0.02), 0.0];
+                self.cuboids(
                     f,
-                    [sx * (hs + 0.02), 0.0],
-                    [seat + 0.16, seat + 0.19],
-                    [0.025, 0.14],
                     CHAIR,
-                    leg_mat,
-                );
-                self.cuboid(
-                    f,
-                    [sx * (hs + 0.02), 0.0],
-                    [seat, seat + 0.16],
-                    [0.01, 0.015],
-                    CHAIR,
-                    leg_mat,
+                    &[
+                        (at, [seat + 0.16, seat + 0.19], [0.025, 0.14], leg_mat),
+                        (at, [seat, seat + 0.16], [0.01, 0.015], leg_mat),
+                    ],
                 );
             }
         } else {
@@ -345,68 +285,60 @@ impl Builder {
             let leg_mat = self.plain(leg_c, 0.03);
             let t = self.rng.uniform(0.025, 0.05);
             self.begin();
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [height - t, height],
-                [hx, hz],
-                TABLE,
-                top_mat,
-            );
+            let top = [height - t, height];
+            self.cuboid(&f, [0.0, 0.0], top, [hx, hz], TABLE, top_mat);
             if self.rng.chance(0.8) {
-                for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                    self.cuboid(
-                        &f,
-                        [sx * (hx - 0.06), sz * (hz - 0.06)],
-                        [0.0, height - t],
-                        [0.025, 0.025],
-                        TABLE,
-                        leg_mat,
-                    );
-                }
+                self.legs(&f, [hx - 0.06, hz - 0.06], height - t, TABLE, leg_mat);
             } else {
                 // Panel ends (desk style).
                 for sx in [-1.0, 1.0] {
-                    self.cuboid(
-                        &f,
-                        [sx * (hx - 0.03), 0.0],
-                        [0.0, height - t],
-                        [0.015, hz - 0.04],
-                        TABLE,
-                        leg_mat,
-                    );
+                    let (at, half) = ([sx * (hx - 0.03), 0.0], [0.015, hz - 0.04]);
+                    self.cuboid(&f, at, [0.0, height - t], half, TABLE, leg_mat);
                 }
             }
             self.end();
             self.table_clutter(&f, hx, hz, height);
-            // Chairs facing the table, pulled out 0.15-0.45 m, turned +-20 degrees.
-            let mut spots = Vec::new();
-            for side in [-1.0, 1.0] {
-                for k in 0..chairs_long {
-                    let x = -hx + 2.0 * hx * (k as f64 + 0.5) / chairs_long as f64;
-                    spots.push((
-                        x,
-                        side * (hz + self.rng.uniform(0.05, 0.35)),
-                        if side > 0.0 { PI } else { 0.0 },
-                    ));
-                }
-            }
-            if chairs_end > 0 {
-                let side = if self.rng.chance(0.5) { -1.0 } else { 1.0 };
+            let style = (chair_seat, chair_legs, office);
+            self.table_chairs(&f, [hx, hz], [chairs_long, chairs_end], style);
+        }
+    }
+
+    /// Chairs around the table at `f` of half sizes `[hx, hz]`: `chairs_long` on each long side,
+    /// `chairs_end` (0 or 1) at one end, facing the table, pulled out 0.15-0.45 m, turned +-20
+    /// degrees; about one place in seven stays empty. The style is [`Builder::chair_style`]'s.
+    fn table_chairs(
+        &mut self,
+        f: &Frame,
+        [hx, hz]: [f64; 2],
+        [chairs_long, chairs_end]: [usize; 2],
+        (seat, legs, office): (u16, u16, bool),
+    ) {
+        let mut spots = Vec::new();
+        for side in [-1.0, 1.0] {
+            for k in 0..chairs_long {
+                let x = -hx + 2.0 * hx * (k as f64 + 0.5) / chairs_long as f64;
                 spots.push((
-                    side * (hx + self.rng.uniform(0.05, 0.35)),
-                    0.0,
-                    -side * FRAC_PI_2,
+                    x,
+                    side * (hz + self.rng.uniform(0.05, 0.35)),
+                    if side > 0.0 { PI } else { 0.0 },
                 ));
             }
-            for (x, z, facing) in spots {
-                if self.rng.chance(0.15) {
-                    continue; // an empty place
-                }
-                let jitter = self.rng.uniform(-0.35, 0.35);
-                let cf = f.sub(x, z, facing + jitter);
-                self.chair(&cf, chair_seat, chair_legs, office);
+        }
+        if chairs_end > 0 {
+            let side = if self.rng.chance(0.5) { -1.0 } else { 1.0 };
+            spots.push((
+                side * (hx + self.rng.uniform(0.05, 0.35)),
+                0.0,
+                -side * FRAC_PI_2,
+            ));
+        }
+        for (x, z, facing) in spots {
+            if self.rng.chance(0.15) {
+                continue; // an empty place
             }
+            let jitter = self.rng.uniform(-0.35, 0.35);
+            let cf = f.sub(x, z, facing + jitter);
+            self.chair(&cf, seat, legs, office);
         }
     }
 

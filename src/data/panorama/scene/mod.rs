@@ -288,6 +288,10 @@ impl Scene {
     }
 }
 
+/// One box of a piece as [`Builder::cuboid`] takes it: local centre `(lx, lz)` in the piece's
+/// frame, elevation range `[e0, e1]`, half sizes `(hx, hz)`, material.
+type Part = ([f64; 2], [f64; 2], [f64; 2], u16);
+
 struct Builder {
     rng: Rng,
     seed: u64,
@@ -395,6 +399,13 @@ impl Builder {
             class,
             mat,
         );
+    }
+
+    /// The boxes `parts` of one class in `frame` ([`Builder::cuboid`] of each, in order).
+    fn cuboids(&mut self, frame: &Frame, class: u8, parts: &[Part]) {
+        for &(at, e, half, mat) in parts {
+            self.cuboid(frame, at, e, half, class, mat);
+        }
     }
 
     /// An upright cylinder in `frame`: local centre `at = (lx, lz)`, radius `r`, elevation

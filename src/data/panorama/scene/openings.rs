@@ -57,31 +57,17 @@ impl Builder {
             let handle_mat = self.plain(srgb(180, 180, 185), 0.02);
             self.begin();
             let (hw, fw) = (width / 2.0, frame_w);
-            // Leaf: 4 cm thick, 2 cm proud of the wall; frame: 3 cm proud.
-            self.cuboid(&f, [0.0, 0.0], [0.0, top], [hw, 0.02], DOOR, leaf_mat);
-            self.cuboid(
+            // Leaf: 4 cm thick, 2 cm proud of the wall; frame (two jambs, a head): 3 cm proud.
+            let (jamb_e, jamb) = ([0.0, top + fw], [fw / 2.0, 0.03]);
+            self.cuboids(
                 &f,
-                [-hw - fw / 2.0, 0.0],
-                [0.0, top + fw],
-                [fw / 2.0, 0.03],
                 DOOR,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [hw + fw / 2.0, 0.0],
-                [0.0, top + fw],
-                [fw / 2.0, 0.03],
-                DOOR,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [top, top + fw],
-                [hw + fw, 0.03],
-                DOOR,
-                frame_mat,
+                &[
+                    ([0.0, 0.0], [0.0, top], [hw, 0.02], leaf_mat),
+                    ([-hw - fw / 2.0, 0.0], jamb_e, jamb, frame_mat),
+                    ([hw + fw / 2.0, 0.0], jamb_e, jamb, frame_mat),
+                    ([0.0, 0.0], [top, top + fw], [hw + fw, 0.03], frame_mat),
+                ],
             );
             let handles: &[f64] = if double { &[-0.08, 0.08] } else { &[hw - 0.1] };
             for &hx in handles {
@@ -129,23 +115,11 @@ impl Builder {
             );
             let sill_mat = self.plain(tint(self.wall_colour, 0.95), 0.05);
             self.begin();
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [sill, top],
-                [width / 2.0, 0.02],
-                WINDOW,
-                mat,
-            );
+            let hw = width / 2.0;
+            self.cuboid(&f, [0.0, 0.0], [sill, top], [hw, 0.02], WINDOW, mat);
             // The sill belongs to the wall.
-            self.cuboid(
-                &f,
-                [0.0, 0.06],
-                [sill - 0.04, sill],
-                [width / 2.0 + 0.05, 0.06],
-                WALL,
-                sill_mat,
-            );
+            let ledge = [hw + 0.05, 0.06];
+            self.cuboid(&f, [0.0, 0.06], [sill - 0.04, sill], ledge, WALL, sill_mat);
             self.end();
         }
     }
@@ -185,42 +159,23 @@ impl Builder {
             let rim = self.plain(srgb(175, 178, 182), 0.03);
             self.begin();
             let (hw, t) = (width / 2.0, 0.025);
-            self.cuboid(&f, [0.0, 0.0], [bottom, top], [hw, 0.015], BOARD, mat);
-            self.cuboid(
+            // The surface, then its rim: bottom and top bars, left and right posts.
+            let (bar, post) = ([hw + t, 0.02], [t / 2.0, 0.02]);
+            self.cuboids(
                 &f,
-                [0.0, 0.0],
-                [bottom - t, bottom],
-                [hw + t, 0.02],
                 BOARD,
-                rim,
-            );
-            self.cuboid(&f, [0.0, 0.0], [top, top + t], [hw + t, 0.02], BOARD, rim);
-            self.cuboid(
-                &f,
-                [-hw - t / 2.0, 0.0],
-                [bottom, top],
-                [t / 2.0, 0.02],
-                BOARD,
-                rim,
-            );
-            self.cuboid(
-                &f,
-                [hw + t / 2.0, 0.0],
-                [bottom, top],
-                [t / 2.0, 0.02],
-                BOARD,
-                rim,
+                &[
+                    ([0.0, 0.0], [bottom, top], [hw, 0.015], mat),
+                    ([0.0, 0.0], [bottom - t, bottom], bar, rim),
+                    ([0.0, 0.0], [top, top + t], bar, rim),
+                    ([-hw - t / 2.0, 0.0], [bottom, top], post, rim),
+                    ([hw + t / 2.0, 0.0], [bottom, top], post, rim),
+                ],
             );
             // A marker tray on whiteboards.
             if kind == 0 {
-                self.cuboid(
-                    &f,
-                    [0.0, 0.04],
-                    [bottom - 0.05, bottom - 0.03],
-                    [hw * 0.6, 0.04],
-                    BOARD,
-                    rim,
-                );
+                let tray_e = [bottom - 0.05, bottom - 0.03];
+                self.cuboid(&f, [0.0, 0.04], tray_e, [hw * 0.6, 0.04], BOARD, rim);
             }
             self.end();
         }

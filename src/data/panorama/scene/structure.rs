@@ -4,7 +4,7 @@
 use super::class::*;
 use super::placement::{Frame, Obb};
 use super::{Builder, Group, Rect, WallSeg};
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{srgb, tint, vary, Pattern, Rgb};
 use crate::data::panorama::geometry::{Aabb, Shape};
 
 impl Builder {
@@ -77,6 +77,39 @@ impl Builder {
     /// Floor, ceiling, walls and their materials (group 0).
     pub(super) fn structure(&mut self) {
         self.begin();
+        let floor = self.floor_material();
+        let ceiling = self.ceiling_material();
+        let wall = self.wall_material();
+        let (floor_y, ceil_y) = (self.y(0.0), self.y(self.height));
+        self.push(Shape::Plane { y: floor_y }, FLOOR, floor);
+        self.push(Shape::Plane { y: ceil_y }, CEILING, ceiling);
+        // Walls overlap by 0.1 mm at the ends so corners stay sealed against round-off.
+        for w in self.walls.clone() {
+            self.push(
+                Shape::Wall {
+                    axis: w.axis,
+                    at: w.at,
+                    lo: w.lo - 1e-4,
+                    hi: w.hi + 1e-4,
+                },
+                WALL,
+                wall,
+            );
+        }
+        // Group 0 is tested without culling: give it infinite bounds.
+        let (start, end) = (self.group_start, self.prims.len());
+        self.groups.push(Group {
+            bounds: Aabb {
+                lo: [f64::NEG_INFINITY; 3],
+                hi: [f64::INFINITY; 3],
+            },
+            start,
+            end,
+        });
+    }
+
+    /// The floor's material: tiles, planks, carpet or plain concrete.
+    fn floor_material(&mut self) -> u16 {
         let r = &mut self.rng;
         let floor_kind = r.below(4);
         let (base, alt, pattern) = match floor_kind {
@@ -138,7 +171,11 @@ impl Builder {
                 )
             }
         };
-        let floor = self.material(base, alt, pattern);
+        self.material(base, alt, pattern)
+    }
+
+    /// The ceiling's material (tiles or plain), remembering its colour for the beams.
+    fn ceiling_material(&mut self) -> u16 {
         let r = &mut self.rng;
         let ceiling_colour = vary(srgb(232, 232, 226), r, 0.04);
         let ceiling_pattern = if r.chance(0.6) {
@@ -153,7 +190,13 @@ impl Builder {
                 amp: 0.05,
             }
         };
-        let ceiling = self.material(ceiling_colour, tint(ceiling_colour, 0.75), ceiling_pattern);
+        self.ceiling_colour = ceiling_colour;
+        self.material(ceiling_colour, tint(ceiling_colour, 0.75), ceiling_pattern)
+    }
+
+    /// The walls' material (painted blocks or plain paint), remembering its colour for the sills
+    /// and columns.
+    fn wall_material(&mut self) -> u16 {
         let r = &mut self.rng;
         let wall_colour = vary(
             *r.pick(&[
@@ -168,40 +211,24 @@ impl Builder {
             r,
             0.05,
         );
-        let wall = if r.chance(0.2) {
+        self.wall_colour = wall_colour;
+        if r.chance(0.2) {
             // Painted concrete blocks: the wall colour with slightly darker mortar.
             self.material(wall_colour, tint(wall_colour, 0.8), Pattern::Blocks)
         } else {
             self.plain(wall_colour, 0.06)
-        };
-        self.wall_colour = wall_colour;
-        self.ceiling_colour = ceiling_colour;
-        let (floor_y, ceil_y) = (self.y(0.0), self.y(self.height));
-        self.push(Shape::Plane { y: floor_y }, FLOOR, floor);
-        self.push(Shape::Plane { y: ceil_y }, CEILING, ceiling);
-        // Walls overlap by 0.1 mm at the ends so corners stay sealed against round-off.
-        for w in self.walls.clone() {
-            self.push(
-                Shape::Wall {
-                    axis: w.axis,
-                    at: w.at,
-                    lo: w.lo - 1e-4,
-                    hi: w.hi + 1e-4,
-                },
-                WALL,
-                wall,
-            );
         }
-        // Group 0 is tested without culling: give it infinite bounds.
-        let (start, end) = (self.group_start, self.prims.len());
-        self.groups.push(Group {
-            bounds: Aabb {
-                lo: [f64::NEG_INFINITY; 3],
-                hi: [f64::INFINITY; 3],
-            },
-            start,
-            end,
-        });
+    }
+
+    /// A plain material for a structural part: half the time `tint(like, t)` (the ceiling's or
+    /// walls' colour), else a variation of `grey` by `amount`; blotches of amplitude `amp`.
+    fn matching_plain(&mut self, like: Rgb, t: f32, grey: Rgb, amount: f32, amp: f32) -> u16 {
+        let colour = if self.rng.chance(0.5) {
+            tint(like, t)
+        } else {
+            vary(grey, &mut self.rng, amount)
+        };
+        self.plain(colour, amp)
     }
 
     /// Ceiling beams spanning one rectangle of the plan.
@@ -210,12 +237,7 @@ impl Builder {
             return;
         }
         let n = self.rng.int(1, 2);
-        let colour = if self.rng.chance(0.5) {
-            tint(self.ceiling_colour, 0.92)
-        } else {
-            vary(srgb(175, 175, 170), &mut self.rng, 0.06)
-        };
-        let mat = self.plain(colour, 0.12);
+        let mat = self.matching_plain(self.ceiling_colour, 0.92, srgb(175, 175, 170), 0.06, 0.12);
         for _ in 0..n {
             let q = *self.rng.pick(&self.rects.clone());
             let along_x = self.rng.chance(0.5);
@@ -254,12 +276,7 @@ impl Builder {
             return;
         }
         let n = self.rng.int(1, 3);
-        let colour = if self.rng.chance(0.5) {
-            tint(self.wall_colour, 0.9)
-        } else {
-            vary(srgb(170, 170, 165), &mut self.rng, 0.08)
-        };
-        let mat = self.plain(colour, 0.1);
+        let mat = self.matching_plain(self.wall_colour, 0.9, srgb(170, 170, 165), 0.08, 0.1);
         let e = [0.0, self.height];
         for _ in 0..n {
             let half = self.rng.uniform(0.15, 0.32);
