@@ -588,7 +588,8 @@ mod tests {
             "{e}"
         );
         let e = read_rgb(&dir.path().join("missing.png"), [3, 2]).unwrap_err();
-        assert!(matches!(e, Error::Io { .. }) && e.to_string().contains("missing.png"));
+        let io = matches!(e, Error::Geometry(calibconv_geometry::Error::Io { .. }));
+        assert!(io && e.to_string().contains("missing.png"));
     }
 
     #[test]
