@@ -34,8 +34,7 @@
 
 use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
-    Invalid,
+    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
 use super::unified::unified_w;
 use super::{CameraModel, Intrinsics};
@@ -55,46 +54,9 @@ pub struct DoubleSphere {
 
 deref_intrinsics!(DoubleSphere);
 
-raw_camera_file! {
-    /// A Double Sphere camera file as written.
-    fisheye struct Raw {
-        xi: f64,
-        alpha: f64,
-    }
-}
-
-impl CameraFile for DoubleSphere {
-    const MODEL: &'static str = "double-sphere";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("xi", self.xi), ("alpha", self.alpha)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        DoubleSphere::new(r.intrinsics(), r.xi, r.alpha, r.fov_deg)
-    }
-}
+plain_fisheye_file!(DoubleSphere, "double-sphere", [xi, alpha]);
 
 impl DoubleSphere {
-    /// A checked camera (see [`DoubleSphere::validate`]).
-    pub fn new(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        checked(
-            Self::unchecked(intrinsics, xi, alpha, fov_deg),
-            Self::validate,
-        )
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Self {
-        DoubleSphere {
-            intrinsics,
-            xi,
-            alpha,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {

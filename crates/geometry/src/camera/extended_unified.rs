@@ -30,8 +30,7 @@
 
 use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
-    Invalid,
+    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
 use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
@@ -51,51 +50,9 @@ pub struct ExtendedUnified {
 
 deref_intrinsics!(ExtendedUnified);
 
-raw_camera_file! {
-    /// An Extended Unified Camera Model file as written.
-    fisheye struct Raw {
-        alpha: f64,
-        beta: f64,
-    }
-}
-
-impl CameraFile for ExtendedUnified {
-    const MODEL: &'static str = "extended-unified";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("alpha", self.alpha), ("beta", self.beta)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        ExtendedUnified::new(r.intrinsics(), r.alpha, r.beta, r.fov_deg)
-    }
-}
+plain_fisheye_file!(ExtendedUnified, "extended-unified", [alpha, beta]);
 
 impl ExtendedUnified {
-    /// A checked camera (see [`ExtendedUnified::validate`]).
-    pub fn new(
-        intrinsics: Intrinsics,
-        alpha: f64,
-        beta: f64,
-        fov_deg: f64,
-    ) -> Result<Self, Invalid> {
-        checked(
-            Self::unchecked(intrinsics, alpha, beta, fov_deg),
-            Self::validate,
-        )
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, beta: f64, fov_deg: f64) -> Self {
-        ExtendedUnified {
-            intrinsics,
-            alpha,
-            beta,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {

@@ -31,7 +31,7 @@
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
 use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
-use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::schema::{check_fov_in_domain, plain_fisheye_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::normalize;
 
@@ -70,41 +70,9 @@ pub struct Unified {
 
 deref_intrinsics!(Unified);
 
-raw_camera_file! {
-    /// A Unified Camera Model file as written.
-    fisheye struct Raw {
-        alpha: f64,
-    }
-}
-
-impl CameraFile for Unified {
-    const MODEL: &'static str = "unified";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("alpha", self.alpha)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        Unified::new(r.intrinsics(), r.alpha, r.fov_deg)
-    }
-}
+plain_fisheye_file!(Unified, "unified", [alpha]);
 
 impl Unified {
-    /// A checked camera (see [`Unified::validate`]).
-    pub fn new(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        checked(Self::unchecked(intrinsics, alpha, fov_deg), Self::validate)
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Self {
-        Unified {
-            intrinsics,
-            alpha,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1)`, and `fov_deg / 2` below [`Unified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
