@@ -31,6 +31,16 @@ pub fn srgb(r: u8, g: u8, b: u8) -> Rgb {
     [r, g, b].map(|c| (c as f32 / 255.0).powf(2.2))
 }
 
+/// An 8-bit sRGB colour written `0xRRGGBB` to linear RGB ([`srgb`]): palettes are tables of these.
+pub fn hex(c: u32) -> Rgb {
+    srgb((c >> 16) as u8, (c >> 8) as u8, c as u8)
+}
+
+/// A colour of `palette` (`0xRRGGBB` values, [`hex`]) drawn uniformly by `rng`.
+pub fn pick_srgb(rng: &mut Rng, palette: &[u32]) -> Rgb {
+    hex(*rng.pick(palette))
+}
+
 /// `a + (b - a) w`, componentwise.
 pub fn mix(a: Rgb, b: Rgb, w: f32) -> Rgb {
     [0, 1, 2].map(|i| a[i] + (b[i] - a[i]) * w)
@@ -343,17 +353,10 @@ impl Material {
             return dull(self.alt);
         }
         let palette = [
-            srgb(150, 40, 35),
-            srgb(35, 60, 120),
-            srgb(40, 100, 60),
-            srgb(200, 180, 140),
-            srgb(30, 30, 30),
-            srgb(210, 120, 40),
-            srgb(230, 230, 220),
-            srgb(100, 40, 90),
+            0x962823, 0x233C78, 0x28643C, 0xC8B48C, 0x1E1E1E, 0xD27828, 0xE6E6DC, 0x64285A,
         ];
-        let c =
-            palette[(lattice(seed, slot, 2, 13) * palette.len() as f32) as usize % palette.len()];
+        let i = (lattice(seed, slot, 2, 13) * palette.len() as f32) as usize % palette.len();
+        let c = hex(palette[i]);
         // A spine band.
         let band = (p[1] - top) / (half_height * 2.0 * height);
         let spine = if (0.15..0.2).contains(&band) {

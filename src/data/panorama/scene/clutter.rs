@@ -7,7 +7,7 @@ use std::f64::consts::PI;
 use super::class::*;
 use super::placement::Frame;
 use super::Builder;
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern};
 use crate::data::rng::Rng;
 
 impl Builder {
@@ -38,7 +38,7 @@ impl Builder {
                     );
                 }
                 1 => {
-                    let c = *self.rng.pick(&[srgb(40, 40, 44), srgb(190, 192, 196)]);
+                    let c = pick_srgb(&mut self.rng, &[0x28282C, 0xBEC0C4]);
                     let m = self.plain(c, 0.03);
                     // Base and lid.
                     let h = height;
@@ -94,9 +94,7 @@ impl Builder {
             return;
         };
         let c = vary(
-            *self
-                .rng
-                .pick(&[srgb(180, 182, 186), srgb(210, 200, 175), srgb(90, 92, 98)]),
+            pick_srgb(&mut self.rng, &[0xB4B6BA, 0xD2C8AF, 0x5A5C62]),
             &mut self.rng,
             0.06,
         );
@@ -135,9 +133,7 @@ impl Builder {
                 }
             }
             2 => {
-                let c = *self
-                    .rng
-                    .pick(&[srgb(60, 90, 160), srgb(80, 80, 85), srgb(40, 120, 60)]);
+                let c = pick_srgb(&mut self.rng, &[0x3C5AA0, 0x505055, 0x28783C]);
                 let m = self.plain(c, 0.05);
                 let h = self.rng.uniform(0.3, 0.6);
                 self.cylinder(&f, [0.0, 0.0], r * 0.7, [0.0, h], CLUTTER, m);
@@ -200,12 +196,7 @@ impl Builder {
             match kind {
                 0 => {
                     let c = vary(
-                        *self.rng.pick(&[
-                            srgb(180, 60, 50),
-                            srgb(60, 120, 170),
-                            srgb(220, 200, 120),
-                            srgb(90, 140, 80),
-                        ]),
+                        pick_srgb(&mut self.rng, &[0xB43C32, 0x3C78AA, 0xDCC878, 0x5A8C50]),
                         &mut self.rng,
                         0.2,
                     );

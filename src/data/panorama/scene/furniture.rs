@@ -6,19 +6,16 @@ use std::f64::consts::{FRAC_PI_2, PI};
 use super::class::*;
 use super::placement::Frame;
 use super::{Builder, Rect};
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern, Rgb};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern, Rgb};
 use crate::data::rng::Rng;
 
 impl Builder {
     pub(super) fn bookcases(&mut self) {
         let n = self.rng.int(0, 3);
-        let wood = *self.rng.pick(&[
-            srgb(150, 105, 65),
-            srgb(200, 170, 125),
-            srgb(160, 162, 168),
-            srgb(90, 60, 40),
-            srgb(225, 225, 220),
-        ]);
+        let wood = pick_srgb(
+            &mut self.rng,
+            &[0x966941, 0xC8AA7D, 0xA0A2A8, 0x5A3C28, 0xE1E1DC],
+        );
         for _ in 0..n {
             let hx = self.rng.uniform(0.4, 1.0);
             let hz = self.rng.uniform(0.15, 0.22);
@@ -94,15 +91,12 @@ impl Builder {
     }
 
     pub(super) fn fabric(&mut self) -> Rgb {
-        let c = *self.rng.pick(&[
-            srgb(95, 70, 50),
-            srgb(120, 120, 125),
-            srgb(50, 65, 110),
-            srgb(140, 45, 40),
-            srgb(60, 95, 70),
-            srgb(35, 35, 38),
-            srgb(190, 175, 150),
-        ]);
+        let c = pick_srgb(
+            &mut self.rng,
+            &[
+                0x5F4632, 0x78787D, 0x32416E, 0x8C2D28, 0x3C5F46, 0x232326, 0xBEAF96,
+            ],
+        );
         vary(c, &mut self.rng, 0.08)
     }
 
@@ -227,9 +221,7 @@ impl Builder {
                 amp: 0.1,
             },
         );
-        let leg_c = *self
-            .rng
-            .pick(&[srgb(40, 40, 42), srgb(170, 172, 178), srgb(120, 85, 55)]);
+        let leg_c = pick_srgb(&mut self.rng, &[0x28282A, 0xAAACB2, 0x785537]);
         let legs = self.plain(leg_c, 0.03);
         (seat, legs, self.rng.chance(0.5))
     }
@@ -239,13 +231,7 @@ impl Builder {
         let n = self.rng.int(0, ((area / 10.0) as usize + 1).min(5));
         let (chair_seat, chair_legs, office) = self.chair_style();
         let r = &mut self.rng;
-        let top_c = *r.pick(&[
-            srgb(160, 115, 70),
-            srgb(210, 185, 145),
-            srgb(235, 235, 230),
-            srgb(120, 122, 128),
-            srgb(70, 50, 35),
-        ]);
+        let top_c = pick_srgb(r, &[0xA07346, 0xD2B991, 0xEBEBE6, 0x787A80, 0x463223]);
         for _ in 0..n {
             let hx = self.rng.uniform(0.4, 1.2);
             let hz = self.rng.uniform(0.3, 0.5);

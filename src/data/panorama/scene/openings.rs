@@ -4,7 +4,7 @@
 use super::class::*;
 use super::placement::Obb;
 use super::Builder;
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern};
 
 impl Builder {
     pub(super) fn doors(&mut self) {
@@ -31,14 +31,10 @@ impl Builder {
                 yaw: w.yaw(),
             });
             let r = &mut self.rng;
-            let leaf = *r.pick(&[
-                srgb(140, 92, 52),
-                srgb(190, 150, 100),
-                srgb(150, 155, 162),
-                srgb(62, 82, 122),
-                srgb(222, 220, 214),
-                srgb(140, 42, 36),
-            ]);
+            let leaf = pick_srgb(
+                r,
+                &[0x8C5C34, 0xBE9664, 0x969BA2, 0x3E527A, 0xDEDCD6, 0x8C2A24],
+            );
             let leaf = vary(leaf, r, 0.06);
             let leaf_mat = self.material(
                 leaf,
@@ -85,12 +81,7 @@ impl Builder {
         } else {
             self.rng.int(0, 4)
         };
-        let frame_colour = *self.rng.pick(&[
-            srgb(232, 232, 230),
-            srgb(160, 165, 172),
-            srgb(40, 40, 42),
-            srgb(120, 82, 50),
-        ]);
+        let frame_colour = pick_srgb(&mut self.rng, &[0xE8E8E6, 0xA0A5AC, 0x28282A, 0x785232]);
         for _ in 0..n {
             let width = self.rng.uniform(0.8, 2.6);
             let sill = self.rng.uniform(0.7, 1.1);
@@ -138,7 +129,7 @@ impl Builder {
             let (base, ink, pattern) = match kind {
                 0 => (
                     vary(srgb(242, 242, 240), r, 0.02),
-                    *r.pick(&[srgb(30, 60, 160), srgb(170, 30, 30), srgb(25, 25, 25)]),
+                    pick_srgb(r, &[0x1E3CA0, 0xAA1E1E, 0x191919]),
                     Pattern::Board,
                 ),
                 1 => (

@@ -4,7 +4,7 @@
 use super::class::*;
 use super::placement::{Frame, Obb};
 use super::{Builder, Group, Rect, WallSeg};
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern, Rgb};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern, Rgb};
 use crate::data::panorama::geometry::{Aabb, Shape};
 
 impl Builder {
@@ -114,12 +114,7 @@ impl Builder {
         let floor_kind = r.below(4);
         let (base, alt, pattern) = match floor_kind {
             0 => {
-                let c = *r.pick(&[
-                    srgb(200, 190, 170),
-                    srgb(165, 165, 160),
-                    srgb(220, 218, 210),
-                    srgb(170, 105, 75),
-                ]);
+                let c = pick_srgb(r, &[0xC8BEAA, 0xA5A5A0, 0xDCDAD2, 0xAA694B]);
                 let size = *r.pick(&[0.3f32, 0.4, 0.5, 0.6]);
                 (
                     vary(c, r, 0.08),
@@ -132,7 +127,7 @@ impl Builder {
                 )
             }
             1 => {
-                let c = *r.pick(&[srgb(150, 100, 60), srgb(185, 140, 90), srgb(110, 72, 45)]);
+                let c = pick_srgb(r, &[0x96643C, 0xB98C5A, 0x6E482D]);
                 (
                     vary(c, r, 0.1),
                     tint(c, 0.7),
@@ -143,13 +138,7 @@ impl Builder {
                 )
             }
             2 => {
-                let c = *r.pick(&[
-                    srgb(90, 90, 100),
-                    srgb(60, 72, 110),
-                    srgb(115, 62, 62),
-                    srgb(80, 100, 80),
-                    srgb(130, 120, 110),
-                ]);
+                let c = pick_srgb(r, &[0x5A5A64, 0x3C486E, 0x733E3E, 0x506450, 0x82786E]);
                 (
                     vary(c, r, 0.1),
                     c,
@@ -199,15 +188,12 @@ impl Builder {
     fn wall_material(&mut self) -> u16 {
         let r = &mut self.rng;
         let wall_colour = vary(
-            *r.pick(&[
-                srgb(230, 228, 220),
-                srgb(225, 218, 198),
-                srgb(200, 205, 212),
-                srgb(212, 225, 212),
-                srgb(235, 224, 196),
-                srgb(190, 200, 218),
-                srgb(215, 200, 190),
-            ]),
+            pick_srgb(
+                r,
+                &[
+                    0xE6E4DC, 0xE1DAC6, 0xC8CDD4, 0xD4E1D4, 0xEBE0C4, 0xBEC8DA, 0xD7C8BE,
+                ],
+            ),
             r,
             0.05,
         );
