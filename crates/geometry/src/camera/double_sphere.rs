@@ -32,6 +32,7 @@
 //! Parameters: `xi in (-1, 1]`, `alpha in [0, 1]` (checked by the camera file reader). Pixels are
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
+use super::extended_unified::eucm_mz;
 use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
@@ -132,11 +133,7 @@ impl CameraModel for DoubleSphere {
         let mx = (px[0] - self.cx) / self.fx;
         let my = (px[1] - self.cy) / self.fy;
         let r2 = mx * mx + my * my;
-        let disc = 1.0 - (2.0 * a - 1.0) * r2;
-        if disc.is_nan() || disc < 0.0 {
-            return None;
-        }
-        let mz = (1.0 - a * a * r2) / (a * disc.sqrt() + 1.0 - a);
+        let mz = eucm_mz(a, 1.0, r2)?;
         let disc2 = mz * mz + (1.0 - xi * xi) * r2;
         if disc2.is_nan() || disc2 < 0.0 {
             return None;

@@ -36,6 +36,18 @@ use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::normalize;
 
+/// `mz = (1 - beta alpha^2 r^2) / (alpha sqrt(1 - (2 alpha - 1) beta r^2) + 1 - alpha)` of the
+/// unprojection (Eqs. 26-29) at `r^2`, or `None` where the square root is imaginary (or NaN).
+/// With `beta = 1` it is the double sphere's first step (Usenko et al. 2018, Eqs. 44-47), bit for
+/// bit (`1 x = x`).
+pub(super) fn eucm_mz(alpha: f64, beta: f64, r2: f64) -> Option<f64> {
+    let disc = 1.0 - (2.0 * alpha - 1.0) * beta * r2;
+    if disc.is_nan() || disc < 0.0 {
+        return None;
+    }
+    Some((1.0 - beta * alpha * alpha * r2) / (alpha * disc.sqrt() + 1.0 - alpha))
+}
+
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExtendedUnified {
@@ -116,12 +128,7 @@ impl CameraModel for ExtendedUnified {
         let (a, b) = (self.alpha, self.beta);
         let mx = (px[0] - self.cx) / self.fx;
         let my = (px[1] - self.cy) / self.fy;
-        let r2 = mx * mx + my * my;
-        let disc = 1.0 - (2.0 * a - 1.0) * b * r2;
-        if disc.is_nan() || disc < 0.0 {
-            return None;
-        }
-        let mz = (1.0 - b * a * a * r2) / (a * disc.sqrt() + 1.0 - a);
+        let mz = eucm_mz(a, b, mx * mx + my * my)?;
         let ray = normalize([mx, my, mz])?;
         let d = (b * (ray[0] * ray[0] + ray[1] * ray[1]) + ray[2] * ray[2]).sqrt();
         (ray[2] > -unified_w(a) * d).then_some(ray)
@@ -140,19 +147,7 @@ mod tests {
     const ANGLE_TOL: f64 = 1e-11;
 
     fn cam(alpha: f64, beta: f64) -> ExtendedUnified {
-        ExtendedUnified {
-            intrinsics: Intrinsics {
-                fx: 300.0,
-                fy: 298.0,
-                cx: 320.5,
-                cy: 240.25,
-                width: 640,
-                height: 480,
-            },
-            alpha,
-            beta,
-            fov_deg: 180.0,
-        }
+        ExtendedUnified::unchecked(crate::camera::tests::vga(), alpha, beta, 180.0)
     }
 
     #[test]

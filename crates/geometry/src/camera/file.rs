@@ -597,48 +597,37 @@ mod tests {
 
     #[test]
     fn new_models_check_their_parameters_by_field() {
-        let ds = shipped_text("ds_example.toml");
-        assert_eq!(
-            field_of(&bad(&ds.replace("xi = -0.172", "xi = -1.0"))),
-            "xi"
-        );
-        assert_eq!(field_of(&bad(&ds.replace("xi = -0.172", "xi = 1.5"))), "xi");
-        assert_eq!(
-            field_of(&bad(&ds.replace("alpha = 0.593", "alpha = 1.2"))),
-            "alpha"
-        );
-        assert_eq!(field_of(&bad(&ds.replace("fx = 158.28", "fx = nan"))), "fx");
+        // (file, text replaced, replacement, the field the error names)
+        let cases = [
+            ("ds_example.toml", "xi = -0.172", "xi = -1.0", "xi"),
+            ("ds_example.toml", "xi = -0.172", "xi = 1.5", "xi"),
+            ("ds_example.toml", "alpha = 0.593", "alpha = 1.2", "alpha"),
+            ("ds_example.toml", "fx = 158.28", "fx = nan", "fx"),
+            ("ucm_example.toml", "alpha = 0.48", "alpha = 1.0", "alpha"),
+            ("ucm_example.toml", "alpha = 0.48", "alpha = -0.1", "alpha"),
+            ("eucm_example.toml", "beta = 1.2", "beta = 0.0", "beta"),
+            ("eucm_example.toml", "alpha = 0.45", "alpha = 2.0", "alpha"),
+            ("ocam_example.toml", "[-181.0,", "[181.0,", "poly"),
+            ("ocam_example.toml", "c = 1.0003", "c = -1.0", "c, d, e"),
+            ("ocam_example.toml", "[-181.0,", "[-181.0, inf,", "poly"),
+            ("equirect.toml", "width = 1024", "width = 0", "width"),
+        ];
+        for (name, from, to, field) in cases {
+            let text = shipped_text(name);
+            assert!(text.contains(from), "{name} has no `{from}`");
+            assert_eq!(
+                field_of(&bad(&text.replace(from, to))),
+                field,
+                "{name}: {to}"
+            );
+        }
         // theta_max is ~125.3 deg for these xi, alpha: a 260 degree lens does not fit.
+        let ds = shipped_text("ds_example.toml");
         let e = bad(&ds.replace("fov_deg = 153.4", "fov_deg = 260.0"));
         assert_eq!(field_of(&e), "fov_deg");
         assert!(e.to_string().contains("xi, alpha"), "{e}");
 
-        let ucm = shipped_text("ucm_example.toml");
-        assert_eq!(
-            field_of(&bad(&ucm.replace("alpha = 0.48", "alpha = 1.0"))),
-            "alpha"
-        );
-        assert_eq!(
-            field_of(&bad(&ucm.replace("alpha = 0.48", "alpha = -0.1"))),
-            "alpha"
-        );
-
-        let eucm = shipped_text("eucm_example.toml");
-        assert_eq!(
-            field_of(&bad(&eucm.replace("beta = 1.2", "beta = 0.0"))),
-            "beta"
-        );
-        assert_eq!(
-            field_of(&bad(&eucm.replace("alpha = 0.45", "alpha = 2.0"))),
-            "alpha"
-        );
-
         let ocam = shipped_text("ocam_example.toml");
-        assert_eq!(field_of(&bad(&ocam.replace("[-181.0,", "[181.0,"))), "poly");
-        assert_eq!(
-            field_of(&bad(&ocam.replace("c = 1.0003", "c = -1.0"))),
-            "c, d, e"
-        );
         // rho f' - f = 181 + 0.01 rho^2 - 2e-4 rho^3 vanishes near rho = 117 px (theta ~ 30 deg).
         let folding = ocam
             .lines()
@@ -650,8 +639,6 @@ mod tests {
         let e = bad(&folding);
         assert_eq!(field_of(&e), "fov_deg");
         assert!(e.to_string().contains("poly"), "{e}");
-        let e = bad(&ocam.replace("[-181.0,", "[-181.0, inf,"));
-        assert_eq!(field_of(&e), "poly");
         // inv_poly is optional.
         let stripped: String = ocam
             .lines()
@@ -664,10 +651,6 @@ mod tests {
         assert!(m.inv_poly.is_empty());
 
         let eq = shipped_text("equirect.toml");
-        assert_eq!(
-            field_of(&bad(&eq.replace("width = 1024", "width = 0"))),
-            "width"
-        );
         let msg = bad(&format!("{eq}fov_deg = 360.0\n")).to_string();
         assert!(msg.contains("fov_deg"), "{msg}");
     }

@@ -35,6 +35,12 @@ pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     c[0].hypot(c[1]).hypot(c[2]).atan2(dot(a, b))
 }
 
+/// A 640x480 camera's intrinsics with `fx != fy` and a fractional principal point: the test
+/// cameras of the unified family.
+pub(super) fn vga() -> Intrinsics {
+    Intrinsics::from_parts([300.0, 298.0, 320.5, 240.25], [640, 480])
+}
+
 /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
 pub(super) fn f195() -> KannalaBrandt {
     kb(

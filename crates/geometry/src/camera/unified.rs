@@ -157,18 +157,7 @@ mod tests {
     const ANGLE_TOL: f64 = 1e-12;
 
     fn cam(alpha: f64) -> Unified {
-        Unified {
-            intrinsics: Intrinsics {
-                fx: 300.0,
-                fy: 298.0,
-                cx: 320.5,
-                cy: 240.25,
-                width: 640,
-                height: 480,
-            },
-            alpha,
-            fov_deg: 180.0,
-        }
+        Unified::unchecked(crate::camera::tests::vga(), alpha, 180.0)
     }
 
     #[test]
