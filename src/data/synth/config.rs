@@ -60,27 +60,18 @@ pub enum ViewKind {
 impl ViewKind {
     /// The name used in files: `pers`, `fisheye`, `rectified`.
     pub fn as_str(&self) -> &'static str {
-        match self {
-            ViewKind::Pers => "pers",
-            ViewKind::Fisheye => "fisheye",
-            ViewKind::Rectified => "rectified",
-        }
+        let (name, _) = (Self::NAMES.iter())
+            .find(|(_, kind)| kind == self)
+            .expect("every kind has a name");
+        name
     }
 }
 
-impl std::str::FromStr for ViewKind {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "pers" => Ok(ViewKind::Pers),
-            "fisheye" => Ok(ViewKind::Fisheye),
-            "rectified" => Ok(ViewKind::Rectified),
-            other => Err(format!(
-                "unknown kind `{other}` (expected pers, fisheye or rectified)"
-            )),
-        }
-    }
-}
+calibconv_geometry::from_str_by_name!(ViewKind, "kind", {
+    "pers" => Pers,
+    "fisheye" => Fisheye,
+    "rectified" => Rectified,
+});
 
 /// Split fractions of the panoramas.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -32,7 +32,7 @@
 //! Parameters: `xi in (-1, 1]`, `alpha in [0, 1]` (checked by the camera file reader). Pixels are
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
-use super::extended_unified::eucm_mz;
+use super::extended_unified::eucm_m;
 use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
@@ -130,10 +130,7 @@ impl CameraModel for DoubleSphere {
     /// for a result outside the projection's domain, and for non-finite pixels.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let (a, xi) = (self.alpha, self.xi);
-        let mx = (px[0] - self.cx) / self.fx;
-        let my = (px[1] - self.cy) / self.fy;
-        let r2 = mx * mx + my * my;
-        let mz = eucm_mz(a, 1.0, r2)?;
+        let ([mx, my, mz], r2) = eucm_m(&self.intrinsics, a, 1.0, px)?;
         let disc2 = mz * mz + (1.0 - xi * xi) * r2;
         if disc2.is_nan() || disc2 < 0.0 {
             return None;
@@ -149,6 +146,7 @@ impl CameraModel for DoubleSphere {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::tests::assert_round_trips;
     use crate::vec3::angle_to_axis;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
@@ -211,15 +209,7 @@ mod tests {
     fn round_trips_up_to_theta_max() {
         let c = cam();
         let tm = c.theta_max();
-        for i in 0..=100 {
-            let t = tm * i as f64 / 100.0 * 0.999_999;
-            for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                let err =
-                    (angle_to_axis(back) - t).abs() + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                assert!(err < ANGLE_TOL, "theta {t} phi {phi}: {err}");
-            }
-        }
+        let thetas = (0..=100).map(|i| tm * i as f64 / 100.0 * 0.999_999);
+        assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, "TUM-VI-like");
     }
 }

@@ -36,16 +36,26 @@ use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::normalize;
 
-/// `mz = (1 - beta alpha^2 r^2) / (alpha sqrt(1 - (2 alpha - 1) beta r^2) + 1 - alpha)` of the
-/// unprojection (Eqs. 26-29) at `r^2`, or `None` where the square root is imaginary (or NaN).
-/// With `beta = 1` it is the double sphere's first step (Usenko et al. 2018, Eqs. 44-47), bit for
-/// bit (`1 x = x`).
-pub(super) fn eucm_mz(alpha: f64, beta: f64, r2: f64) -> Option<f64> {
+/// The unnormalised ray `m = [mx, my, mz]` of pixel `px` and its `r^2 = mx^2 + my^2` (Eqs.
+/// 26-29): `mx = (u - cx) / fx`, `my = (v - cy) / fy`,
+/// `mz = (1 - beta alpha^2 r^2) / (alpha sqrt(1 - (2 alpha - 1) beta r^2) + 1 - alpha)`; `None`
+/// where the square root is imaginary (or NaN). With `beta = 1` it is the double sphere's first
+/// step (Usenko et al. 2018, Eqs. 44-47), bit for bit (`1 x = x`).
+pub(super) fn eucm_m(
+    k: &Intrinsics,
+    alpha: f64,
+    beta: f64,
+    px: [f64; 2],
+) -> Option<([f64; 3], f64)> {
+    let mx = (px[0] - k.cx) / k.fx;
+    let my = (px[1] - k.cy) / k.fy;
+    let r2 = mx * mx + my * my;
     let disc = 1.0 - (2.0 * alpha - 1.0) * beta * r2;
     if disc.is_nan() || disc < 0.0 {
         return None;
     }
-    Some((1.0 - beta * alpha * alpha * r2) / (alpha * disc.sqrt() + 1.0 - alpha))
+    let mz = (1.0 - beta * alpha * alpha * r2) / (alpha * disc.sqrt() + 1.0 - alpha);
+    Some(([mx, my, mz], r2))
 }
 
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
@@ -126,10 +136,8 @@ impl CameraModel for ExtendedUnified {
     /// result outside the projection's domain, and for non-finite pixels.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let (a, b) = (self.alpha, self.beta);
-        let mx = (px[0] - self.cx) / self.fx;
-        let my = (px[1] - self.cy) / self.fy;
-        let mz = eucm_mz(a, b, mx * mx + my * my)?;
-        let ray = normalize([mx, my, mz])?;
+        let (m, _) = eucm_m(&self.intrinsics, a, b, px)?;
+        let ray = normalize(m)?;
         let d = (b * (ray[0] * ray[0] + ray[1] * ray[1]) + ray[2] * ray[2]).sqrt();
         (ray[2] > -unified_w(a) * d).then_some(ray)
     }
@@ -140,7 +148,7 @@ impl CameraModel for ExtendedUnified {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vec3::angle_to_axis;
+    use crate::camera::tests::assert_round_trips;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); near a fold the inverse loses
     /// ~1e-16 / (theta_max - theta) (<= 1e-12 at the 1e-4 rad margin used); 1e-11 rad is margin.
@@ -179,19 +187,9 @@ mod tests {
         for (a, b) in [(0.0, 1.0), (0.3, 1.5), (0.5, 1.0), (0.6, 1.2), (0.7, 0.5)] {
             let c = cam(a, b);
             let tm = c.theta_max().min(3.1) - 1e-4;
-            for i in 0..=100 {
-                let t = tm * i as f64 / 100.0;
-                for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                    let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                    let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                    let err = (angle_to_axis(back) - t).abs()
-                        + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                    assert!(
-                        err < ANGLE_TOL,
-                        "alpha {a} beta {b} theta {t} phi {phi}: {err}"
-                    );
-                }
-            }
+            let thetas = (0..=100).map(|i| tm * i as f64 / 100.0);
+            let what = format!("alpha {a} beta {b}");
+            assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, &what);
         }
     }
 }

@@ -65,7 +65,9 @@ impl PixelConvention {
 }
 
 /// A command-line enum's names: `NAMES`, the table of `(name, value)` in the order given, and
-/// `FromStr` through it ([`from_name`]; `$what` names the enum in the error).
+/// `FromStr` through it ([`from_name`]; `$what` names the enum in the error). Exported for the
+/// enums of `calibconv` too.
+#[macro_export]
 macro_rules! from_str_by_name {
     ($ty:ident, $what:literal, { $($name:literal => $value:ident),* $(,)? }) => {
         impl $ty {
@@ -81,8 +83,6 @@ macro_rules! from_str_by_name {
         }
     };
 }
-pub(crate) use from_str_by_name;
-
 from_str_by_name!(PixelConvention, "pixel convention", {
     "half-pixel" => HalfPixel,
     "paper" => Paper,
@@ -90,7 +90,7 @@ from_str_by_name!(PixelConvention, "pixel convention", {
 
 /// The value named `s` in `names` (a command-line value's `FromStr`), or the error that lists
 /// the names: ``unknown {what} `{s}` (expected a, b or c)``.
-pub(crate) fn from_name<T: Copy>(
+pub fn from_name<T: Copy>(
     what: &str,
     s: &str,
     names: &[(&str, T)],

@@ -151,7 +151,7 @@ impl CameraModel for Unified {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vec3::angle_to_axis;
+    use crate::camera::tests::assert_round_trips;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
     const ANGLE_TOL: f64 = 1e-12;
@@ -190,16 +190,9 @@ mod tests {
         for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
             let c = cam(alpha);
             let tm = c.theta_max().min(3.1);
-            for i in 0..=100 {
-                let t = tm * i as f64 / 100.0 * 0.9999;
-                for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                    let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                    let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                    let err = (angle_to_axis(back) - t).abs()
-                        + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                    assert!(err < ANGLE_TOL, "alpha {alpha} theta {t} phi {phi}: {err}");
-                }
-            }
+            let thetas = (0..=100).map(|i| tm * i as f64 / 100.0 * 0.9999);
+            let what = format!("alpha {alpha}");
+            assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, &what);
         }
     }
 

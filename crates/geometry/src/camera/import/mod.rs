@@ -42,10 +42,11 @@ mod opencv;
 mod tree;
 
 use super::{
-    from_str_by_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
-    KannalaBrandt, Pinhole, PinholeRadTan, Scaramuzza, Unified,
+    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
+    Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
+use crate::from_str_by_name;
 use crate::vec3::angle_to_axis;
 
 /// The source tools `calibconv camera import --from` reads.
