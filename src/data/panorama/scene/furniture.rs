@@ -115,22 +115,12 @@ impl Builder {
                 continue;
             };
             let c = self.fabric();
-            let mat = self.material(
-                c,
-                c,
-                Pattern::Fabric {
-                    freq: 70.0,
-                    amp: 0.12,
-                },
-            );
-            let cushion = self.material(
-                tint(c, 1.1),
-                c,
-                Pattern::Fabric {
-                    freq: 70.0,
-                    amp: 0.12,
-                },
-            );
+            let weave = Pattern::Fabric {
+                freq: 70.0,
+                amp: 0.12,
+            };
+            let mat = self.material(c, c, weave);
+            let cushion = self.material(tint(c, 1.1), c, weave);
             let feet = self.plain(srgb(40, 35, 30), 0.05);
             let arm = 0.12;
             self.begin();
