@@ -6,13 +6,6 @@ use std::path::PathBuf;
 /// Errors of the calibconv library.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// Reading or writing a file failed.
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
     /// A TOML file did not parse (syntax error, unknown key, wrong type).
     #[error("{path}: {message}")]
     Toml { path: PathBuf, message: String },
@@ -20,7 +13,8 @@ pub enum Error {
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
     /// A camera file, a calibration import or a kernel's offsets failed (camera models and
-    /// offsets live in the `calibconv-geometry` crate); its message unchanged.
+    /// offsets live in the `calibconv-geometry` crate), or reading or writing any file failed
+    /// (the geometry crate's `Io` variant, made by [`Error::io`]); its message unchanged.
     #[error(transparent)]
     Geometry(#[from] calibconv_geometry::Error),
     /// A function argument is outside what the operation supports.
@@ -89,12 +83,10 @@ impl From<calibconv_geometry::camera::Invalid> for Error {
 }
 
 impl Error {
-    /// An [`Error::Io`] for `path`.
+    /// Reading or writing `path` failed: the geometry crate's `Io` error (`{path}: {source}`,
+    /// the I/O error as its source), through [`Error::Geometry`].
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Error::Io {
-            path: path.into(),
-            source,
-        }
+        Error::Geometry(calibconv_geometry::Error::io(path, source))
     }
 
     /// An [`Error::Data`] for `path`.

@@ -265,6 +265,44 @@ def dump_json(value, indent=""):
     return json.dumps(value)
 
 
+def camera_matrix(cam):
+    """OpenCV's K of a camera dict (fx, fy, cx, cy)."""
+    return np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+
+
+def random_rays(rng, theta_max_deg):
+    """N_POINTS rays with theta uniform in [0, theta_max_deg] (the first on the axis), random
+    azimuth and length in [0.05, 20]."""
+    theta = np.radians(rng.uniform(0.0, theta_max_deg, N_POINTS))
+    theta[0] = 0.0
+    phi = rng.uniform(-math.pi, math.pi, N_POINTS)
+    length = rng.uniform(0.05, 20.0, N_POINTS)
+    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                     np.cos(theta)], axis=1) * length[:, None]
+
+
+def check_round_trip(project_points, K, D, normalized, pix, name):
+    """The normalized points (x/z, y/z) project back onto their pixels with `project_points`
+    (cv2.fisheye.projectPoints or cv2.projectPoints), within 1e-9 px."""
+    back, _ = project_points(
+        np.concatenate([normalized, np.ones((N_POINTS, 1))], axis=1).reshape(-1, 1, 3),
+        np.zeros(3), np.zeros(3), K, D)
+    err = np.abs(back.reshape(-1, 2) - pix).max()
+    assert err < 1e-9, f"{name}: undistort/project round trip {err:.3e} px"
+
+
+def camera_entry(cam, project, unproject):
+    """A camera of a fixture file: its fields, then its `project` and `unproject` records."""
+    print(f"  {cam['name']}: {N_POINTS} projections, {N_POINTS} unprojections")
+    return {**cam, "project": project, "unproject": unproject}
+
+
+def write_fixture(path, generator, cams):
+    """Writes `{"generator": ..., "cameras": [...]}` with `dump_json`."""
+    path.write_text(dump_json({"generator": generator, "cameras": cams}) + "\n")
+    print(f"wrote {path}")
+
+
 def make_fisheye_fixtures(path):
     rng = np.random.default_rng(19700101)
     out_cams = []
@@ -274,17 +312,12 @@ def make_fisheye_fixtures(path):
         grid = np.linspace(0.0, math.pi / 2, 100001)
         assert (distort_derivative(k, grid) > 0).all(), cam["name"]
         assert (np.diff(distort(k, grid)) > 0).all(), cam["name"]
-        K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+        K = camera_matrix(cam)
         D = k.reshape(4, 1)
 
         # Project: rays in the front hemisphere, theta uniform in [0, 85] deg (plus the axis),
         # random azimuth and length.
-        theta = np.radians(rng.uniform(0.0, PROJECT_THETA_MAX_DEG, N_POINTS))
-        theta[0] = 0.0
-        phi = rng.uniform(-math.pi, math.pi, N_POINTS)
-        length = rng.uniform(0.05, 20.0, N_POINTS)
-        rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
-                         np.cos(theta)], axis=1) * length[:, None]
+        rays = random_rays(rng, PROJECT_THETA_MAX_DEG)
         pixels, _ = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
                                               K, D)
         pixels = pixels.reshape(-1, 2)
@@ -314,30 +347,18 @@ def make_fisheye_fixtures(path):
         # OpenCV marks non-converged points with -1e6; none may be.
         assert np.isfinite(normalized).all() and (np.abs(normalized) < 1e5).all(), cam["name"]
         # Double check: the normalized point (x/z, y/z) projects back onto the pixel.
-        back, _ = cv2.fisheye.projectPoints(
-            np.concatenate([normalized, np.ones((N_POINTS, 1))], axis=1).reshape(-1, 1, 3),
-            np.zeros(3), np.zeros(3), K, D)
-        err = np.abs(back.reshape(-1, 2) - pix).max()
-        assert err < 1e-9, f"{cam['name']}: undistort/project round trip {err:.3e} px"
+        check_round_trip(cv2.fisheye.projectPoints, K, D, normalized, pix, cam["name"])
 
-        out_cams.append({
-            **cam,
-            "project": {"theta_max_deg": PROJECT_THETA_MAX_DEG, "rays": rays.tolist(),
-                        "pixels": pixels.tolist()},
-            "unproject": {"theta_max_deg": UNPROJECT_THETA_MAX_DEG,
-                          "criteria": "COUNT|EPS, 100, 1e-14", "pixels": pix.tolist(),
-                          "normalized": normalized.tolist()},
-        })
-        print(f"  {cam['name']}: {N_POINTS} projections, {N_POINTS} unprojections")
+        out_cams.append(camera_entry(
+            cam,
+            {"theta_max_deg": PROJECT_THETA_MAX_DEG, "rays": rays.tolist(),
+             "pixels": pixels.tolist()},
+            {"theta_max_deg": UNPROJECT_THETA_MAX_DEG, "criteria": "COUNT|EPS, 100, 1e-14",
+             "pixels": pix.tolist(), "normalized": normalized.tolist()}))
 
-    doc = {
-        "generator": f"tools/make_fixtures.py with OpenCV {cv2.__version__} "
-                     f"(cv2.fisheye.projectPoints, cv2.fisheye.undistortPoints), "
-                     f"NumPy {np.__version__}, float64",
-        "cameras": out_cams,
-    }
-    path.write_text(dump_json(doc) + "\n")
-    print(f"wrote {path}")
+    write_fixture(path, f"tools/make_fixtures.py with OpenCV {cv2.__version__} "
+                        f"(cv2.fisheye.projectPoints, cv2.fisheye.undistortPoints), "
+                        f"NumPy {np.__version__}, float64", out_cams)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -382,7 +403,7 @@ def make_radtan_fixtures(path):
     rng = np.random.default_rng(19700102)
     out_cams = []
     for cam in RADTAN_CAMERAS:
-        K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+        K = camera_matrix(cam)
         D = np.array([cam["k"][0], cam["k"][1], cam["p"][0], cam["p"][1], cam["k"][2]])
 
         # The distortion map must not fold over the projected range nor over the image: its
@@ -399,12 +420,7 @@ def make_radtan_fixtures(path):
         assert (det > 0).all(), cam["name"]
 
         # Project: rays within 40 deg of the axis (plus the axis), random azimuth and length.
-        theta = np.radians(rng.uniform(0.0, RADTAN_PROJECT_THETA_MAX_DEG, N_POINTS))
-        theta[0] = 0.0
-        phi = rng.uniform(-math.pi, math.pi, N_POINTS)
-        length = rng.uniform(0.05, 20.0, N_POINTS)
-        rays = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
-                         np.cos(theta)], axis=1) * length[:, None]
+        rays = random_rays(rng, RADTAN_PROJECT_THETA_MAX_DEG)
         pixels, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
         pixels = pixels.reshape(-1, 2)
         # Double check against the formula evaluated here.
@@ -423,29 +439,18 @@ def make_radtan_fixtures(path):
                                          RADTAN_UNDISTORT_CRITERIA).reshape(-1, 2)
         assert np.isfinite(normalized).all(), cam["name"]
         # Double check: the normalized point projects back onto the pixel.
-        back, _ = cv2.projectPoints(
-            np.concatenate([normalized, np.ones((N_POINTS, 1))], axis=1).reshape(-1, 1, 3),
-            np.zeros(3), np.zeros(3), K, D)
-        err = np.abs(back.reshape(-1, 2) - pix).max()
-        assert err < 1e-9, f"{cam['name']}: undistort/project round trip {err:.3e} px"
+        check_round_trip(cv2.projectPoints, K, D, normalized, pix, cam["name"])
 
-        out_cams.append({
-            **cam,
-            "project": {"theta_max_deg": RADTAN_PROJECT_THETA_MAX_DEG, "rays": rays.tolist(),
-                        "pixels": pixels.tolist()},
-            "unproject": {"criteria": "COUNT|EPS, 100, 1e-14", "pixels": pix.tolist(),
-                          "normalized": normalized.tolist()},
-        })
-        print(f"  {cam['name']}: {N_POINTS} projections, {N_POINTS} unprojections")
+        out_cams.append(camera_entry(
+            cam,
+            {"theta_max_deg": RADTAN_PROJECT_THETA_MAX_DEG, "rays": rays.tolist(),
+             "pixels": pixels.tolist()},
+            {"criteria": "COUNT|EPS, 100, 1e-14", "pixels": pix.tolist(),
+             "normalized": normalized.tolist()}))
 
-    doc = {
-        "generator": f"tools/make_fixtures.py with OpenCV {cv2.__version__} "
-                     f"(cv2.projectPoints, cv2.undistortPoints with criteria), NumPy {np.__version__}, "
-                     f"float64",
-        "cameras": out_cams,
-    }
-    path.write_text(dump_json(doc) + "\n")
-    print(f"wrote {path}")
+    write_fixture(path, f"tools/make_fixtures.py with OpenCV {cv2.__version__} "
+                        f"(cv2.projectPoints, cv2.undistortPoints with criteria), "
+                        f"NumPy {np.__version__}, float64", out_cams)
 
 
 def main():

@@ -40,37 +40,37 @@ from safetensors.torch import load_file, save_file
 
 sys.dont_write_bytecode = True  # no tools/__pycache__ in the working tree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reference_unet import UNet  # noqa: E402
+from reference_unet import UNet, randomise_batchnorm  # noqa: E402
 
 MODES = {"transposed": False, "bilinear": True}
 
 
-def randomise_batchnorm(model):
+def random_unet(seed, classes, bilinear, input_shape, **kwargs):
+    """A UNet(3, classes, bilinear, **kwargs) in eval mode with random weights and BatchNorm
+    statistics (torch seed `seed`), a random input of `input_shape` and its output."""
+    torch.manual_seed(seed)
+    model = UNet(3, classes, bilinear=bilinear, **kwargs)
+    randomise_batchnorm(model, 123)
+    model.eval()
+    x = torch.rand(*input_shape)
     with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, nn.BatchNorm2d):
-                m.weight.uniform_(0.5, 1.5)
-                m.bias.uniform_(-0.2, 0.2)
-                m.running_mean.uniform_(-0.3, 0.3)
-                m.running_var.uniform_(0.5, 2.0)
-                m.num_batches_tracked.fill_(123)
+        y = model(x)
+    return model, x, y
+
+
+def save_milesial(model, mask_values, path):
+    """What milesial's train.py saves: the state_dict plus the data set's mask values."""
+    state = model.state_dict()
+    state["mask_values"] = mask_values
+    torch.save(state, path)
 
 
 def torch_to_rust(out_dir):
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     for seed, (mode, bilinear) in enumerate(MODES.items()):
-        torch.manual_seed(100 + seed)
-        model = UNet(3, 3, bilinear=bilinear, base=8)
-        randomise_batchnorm(model)
-        model.eval()
-        x = torch.rand(2, 3, 37, 45)
-        with torch.no_grad():
-            y = model(x)
-        # milesial train.py: the state_dict plus the data set's mask values.
-        state = model.state_dict()
-        state["mask_values"] = [0, 1, 2]
-        torch.save(state, out_dir / f"{mode}.pth")
+        model, x, y = random_unet(100 + seed, 3, bilinear, (2, 3, 37, 45), base=8)
+        save_milesial(model, [0, 1, 2], out_dir / f"{mode}.pth")
         # Channels-last, DataParallel (`module.`), nested under `model`.
         wrapped = nn.DataParallel(model.to(memory_format=torch.channels_last))
         nested = wrapped.state_dict()
@@ -81,10 +81,8 @@ def torch_to_rust(out_dir):
         save_file({"input": x, "output": y.contiguous()}, out_dir / f"{mode}_io.safetensors",
                   metadata={"about": f"tools/make_pytorch_parity.py, torch {torch.__version__}"})
         one = UNet(3, 1, bilinear=bilinear, base=8)
-        randomise_batchnorm(one)
-        state = one.state_dict()
-        state["mask_values"] = [0, 1]
-        torch.save(state, out_dir / f"{mode}_1class.pth")
+        randomise_batchnorm(one, 123)
+        save_milesial(one, [0, 1], out_dir / f"{mode}_1class.pth")
         print(f"{mode}: {len(model.state_dict())} keys, output {tuple(y.shape)}")
 
 
@@ -92,16 +90,8 @@ def classic(out_dir):
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     for seed, (mode, bilinear) in enumerate(MODES.items()):
-        torch.manual_seed(200 + seed)
-        model = UNet(3, 2, bilinear=bilinear)
-        randomise_batchnorm(model)
-        model.eval()
-        x = torch.rand(1, 3, 37, 45)
-        with torch.no_grad():
-            y = model(x)
-        state = model.state_dict()
-        state["mask_values"] = [0, 1]
-        torch.save(state, out_dir / f"classic_{mode}.pth")
+        model, x, y = random_unet(200 + seed, 2, bilinear, (1, 3, 37, 45))
+        save_milesial(model, [0, 1], out_dir / f"classic_{mode}.pth")
         save_file({"input": x, "output": y.contiguous()},
                   out_dir / f"classic_{mode}_io.safetensors")
         n = sum(p.numel() for p in model.parameters())

@@ -29,38 +29,21 @@ from pathlib import Path
 
 import safetensors.torch
 import torch
-import torch.nn as nn
 
 # The reference network: tools/reference_unet.py (written from the public description, checked
 # against the published sizes), imported rather than repeated here.
 sys.dont_write_bytecode = True  # no tools/__pycache__ in the working tree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reference_unet import UNet  # noqa: E402
-
-def check_classic():
-    for bilinear, keys, params in [(False, 118, 31_037_698), (True, 110, 17_263_042)]:
-        m = UNet(3, 2, bilinear=bilinear)
-        n_keys = len(m.state_dict())
-        n_params = sum(p.numel() for p in m.parameters())
-        if (n_keys, n_params) != (keys, params):
-            sys.exit(f"classic U-Net (bilinear={bilinear}): {n_keys} keys, {n_params} parameters; "
-                     f"milesial/Pytorch-UNet has {keys}, {params}")
+from reference_unet import UNet, check_published_sizes, randomise_batchnorm  # noqa: E402
 
 
 def main(out_dir):
     out_dir = Path(out_dir)
-    check_classic()
+    check_published_sizes()
     for mode in ["transposed", "bilinear"]:
         torch.manual_seed(7)
         model = UNet(3, 4, bilinear=(mode == "bilinear"), base=4)
-        with torch.no_grad():
-            for m in model.modules():
-                if isinstance(m, nn.BatchNorm2d):
-                    m.weight.uniform_(0.5, 1.5)
-                    m.bias.uniform_(-0.2, 0.2)
-                    m.running_mean.uniform_(-0.3, 0.3)
-                    m.running_var.uniform_(0.5, 2.0)
-                    m.num_batches_tracked.fill_(3)
+        randomise_batchnorm(model, 3)
         x = torch.rand(2, 3, 37, 69)
         state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
         with torch.no_grad():

@@ -17,6 +17,8 @@ PyTorch implementation:
 `base` scales the widths (64 in the public network) so tests can use small networks.
 """
 
+import sys
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -105,11 +107,39 @@ class UNet(nn.Module):
         return self.outc(x)
 
 
-if __name__ == "__main__":
-    # The public network's published sizes (FORMATS.md): a self-check of this description.
-    for bilinear, keys, params in [(False, 118, 31_037_698), (True, 110, 17_263_042)]:
+# The public network's published sizes (FORMATS.md): (bilinear, state_dict keys, parameters) of
+# UNet(3, 2, bilinear).
+PUBLISHED_SIZES = [(False, 118, 31_037_698), (True, 110, 17_263_042)]
+
+
+def check_published_sizes():
+    """Exits unless UNet(3, 2, bilinear) has the published key and parameter counts (a
+    self-check of this description); returns [(bilinear, keys, parameters)]."""
+    sizes = []
+    for bilinear, keys, params in PUBLISHED_SIZES:
         net = UNet(3, 2, bilinear=bilinear)
         n_keys = len(net.state_dict())
         n_params = sum(p.numel() for p in net.parameters())
-        assert (n_keys, n_params) == (keys, params), (bilinear, n_keys, n_params)
+        if (n_keys, n_params) != (keys, params):
+            sys.exit(f"classic U-Net (bilinear={bilinear}): {n_keys} keys, {n_params} parameters; "
+                     f"milesial/Pytorch-UNet has {keys}, {params}")
+        sizes.append((bilinear, n_keys, n_params))
+    return sizes
+
+
+def randomise_batchnorm(model, batches_tracked):
+    """Random BatchNorm affine parameters and running statistics (so that eval-mode BatchNorm is
+    not the identity), drawn from torch's global generator in module order."""
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.2, 0.2)
+                m.running_mean.uniform_(-0.3, 0.3)
+                m.running_var.uniform_(0.5, 2.0)
+                m.num_batches_tracked.fill_(batches_tracked)
+
+
+if __name__ == "__main__":
+    for bilinear, n_keys, n_params in check_published_sizes():
         print(f"bilinear={bilinear}: {n_keys} keys, {n_params} parameters (as published)")

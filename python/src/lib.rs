@@ -63,6 +63,24 @@ fn rows<'py>(
         .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))
 }
 
+/// `f` of each row of the `[N, IN]` array `input` (checked by [`rows`], `what` in errors):
+/// `[N, OUT]`, NaN rows where `f` is `None` (the body of `project` and `unproject`).
+fn map_rows<'py, const IN: usize, const OUT: usize>(
+    py: Python<'py>,
+    input: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    what: &str,
+    f: impl Fn([f64; IN]) -> Option<[f64; OUT]>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let input = rows(input, what, IN)?;
+    let mut out = Array2::from_elem((input.nrows(), OUT), f64::NAN);
+    for (r, mut o) in input.outer_iter().zip(out.outer_iter_mut()) {
+        if let Some(v) = f(std::array::from_fn(|i| r[i])) {
+            o.assign(&numpy::ndarray::ArrayView1::from(&v));
+        }
+    }
+    Ok(out.into_pyarray(py))
+}
+
 #[pymethods]
 impl Camera {
     /// Reads a camera file (TOML, see `data/cameras/`).
@@ -141,15 +159,7 @@ impl Camera {
         py: Python<'py>,
         rays: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let rays = rows(&rays, "rays", 3)?;
-        let mut out = Array2::from_elem((rays.nrows(), 2), f64::NAN);
-        for (r, mut o) in rays.outer_iter().zip(out.outer_iter_mut()) {
-            if let Some(px) = self.inner.project([r[0], r[1], r[2]]) {
-                o[0] = px[0];
-                o[1] = px[1];
-            }
-        }
-        Ok(out.into_pyarray(py))
+        map_rows(py, &rays, "rays", |ray: [f64; 3]| self.inner.project(ray))
     }
 
     /// Unit rays `[N, 3]` of pixels `[N, 2]` (`u`, `v`); NaN rows where the model has no inverse.
@@ -158,14 +168,7 @@ impl Camera {
         py: Python<'py>,
         px: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let px = rows(&px, "pixels", 2)?;
-        let mut out = Array2::from_elem((px.nrows(), 3), f64::NAN);
-        for (p, mut o) in px.outer_iter().zip(out.outer_iter_mut()) {
-            if let Some(ray) = self.inner.unproject([p[0], p[1]]) {
-                o.assign(&numpy::ndarray::arr1(&ray));
-            }
-        }
-        Ok(out.into_pyarray(py))
+        map_rows(py, &px, "pixels", |px: [f64; 2]| self.inner.unproject(px))
     }
 
     fn __repr__(&self) -> String {

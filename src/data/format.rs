@@ -315,19 +315,11 @@ pub enum Split {
     Test,
 }
 
-impl std::str::FromStr for Split {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "train" => Ok(Split::Train),
-            "val" => Ok(Split::Val),
-            "test" => Ok(Split::Test),
-            other => Err(format!(
-                "unknown split `{other}` (expected train, val or test)"
-            )),
-        }
-    }
-}
+calibconv_geometry::from_str_by_name!(Split, "split", {
+    "train" => Train,
+    "val" => Val,
+    "test" => Test,
+});
 
 impl std::fmt::Display for Split {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -588,7 +580,8 @@ mod tests {
             "{e}"
         );
         let e = read_rgb(&dir.path().join("missing.png"), [3, 2]).unwrap_err();
-        assert!(matches!(e, Error::Io { .. }) && e.to_string().contains("missing.png"));
+        let io = matches!(e, Error::Geometry(calibconv_geometry::Error::Io { .. }));
+        assert!(io && e.to_string().contains("missing.png"));
     }
 
     #[test]

@@ -214,75 +214,12 @@ impl Dataset {
         if config.batch_size == 0 {
             return Err(Error::InvalidArgument("batch_size must be > 0".into()));
         }
-        let input = match config.input {
-            InputSize::Stored => [h, w],
-            InputSize::Exact([ih, iw]) => {
-                if ih < h || iw < w {
-                    return Err(Error::InvalidArgument(format!(
-                        "input size {ih}x{iw} is smaller than the stored images {h}x{w} \
-                         (nothing is resized; regenerate at the size you need)"
-                    )));
-                }
-                [ih, iw]
-            }
-            InputSize::Multiple(m) => {
-                if m == 0 {
-                    return Err(Error::InvalidArgument("input multiple must be > 0".into()));
-                }
-                [h.div_ceil(m) * m, w.div_ceil(m) * m]
-            }
-        };
+        let input = input_size(config.input, [h, w])?;
         if config.augment.hflip {
-            // Radially symmetric models mirror onto themselves about the vertical line through
-            // the principal point; radial-tangential (p2) and Scaramuzza (affine c, d, e) in
-            // general do not.
-            let symmetric = match &camera {
-                Camera::KannalaBrandt(_)
-                | Camera::Pinhole(_)
-                | Camera::DoubleSphere(_)
-                | Camera::Unified(_)
-                | Camera::ExtendedUnified(_)
-                | Camera::Equirectangular(_) => true,
-                Camera::PinholeRadTan(_) | Camera::Scaramuzza(_) => false,
-            };
-            if !symmetric {
-                return Err(Error::data(
-                    &camera_path,
-                    format!(
-                        "field `model`: horizontal flips need a mirror-symmetric model; a {} \
-                         camera is not one in general",
-                        camera.model_name()
-                    ),
-                ));
-            }
-            let cx = camera.project([0.0, 0.0, 1.0]).map_or(f64::NAN, |c| c[0]);
-            let off = cx - (w as f64 - 1.0) / 2.0;
-            let centred = off.abs() <= FLIP_MAX_PP_OFFSET_PX; // false for NaN
-            if !centred {
-                return Err(Error::data(
-                    &camera_path,
-                    format!(
-                        "field `cx`: horizontal flips need a centred principal point, but cx = \
-                         {cx} is {off:+.3} px from (W - 1) / 2 = {} (limit \
-                         {FLIP_MAX_PP_OFFSET_PX} px): a flipped image would no longer match \
-                         the calibration",
-                        (w as f64 - 1.0) / 2.0
-                    ),
-                ));
-            }
+            check_flippable(&camera, &camera_path)?;
         }
         let ids = manifest.splits.get(split).to_vec();
-        for id in &ids {
-            for sub in ["rgb", "depth", "labels", "mask"] {
-                let p = sample_path(root, sub, id);
-                if !p.is_file() {
-                    return Err(Error::data(
-                        &p,
-                        format!("missing: sample `{id}` of split {split} in manifest.json"),
-                    ));
-                }
-            }
-        }
+        check_samples(root, split, &ids)?;
         let inside = image_region(&camera);
         Ok(Dataset {
             inner: Arc::new(Inner {
@@ -464,6 +401,88 @@ impl Inner {
     }
 }
 
+/// The network input `[H, W]` of `[h, w]` stored images (see [`InputSize`]).
+fn input_size(input: InputSize, [h, w]: [usize; 2]) -> Result<[usize; 2]> {
+    Ok(match input {
+        InputSize::Stored => [h, w],
+        InputSize::Exact([ih, iw]) => {
+            if ih < h || iw < w {
+                return Err(Error::InvalidArgument(format!(
+                    "input size {ih}x{iw} is smaller than the stored images {h}x{w} \
+                     (nothing is resized; regenerate at the size you need)"
+                )));
+            }
+            [ih, iw]
+        }
+        InputSize::Multiple(m) => {
+            if m == 0 {
+                return Err(Error::InvalidArgument("input multiple must be > 0".into()));
+            }
+            [h.div_ceil(m) * m, w.div_ceil(m) * m]
+        }
+    })
+}
+
+/// Horizontal flips keep `camera` (read from `camera_path`) valid: a mirror-symmetric model
+/// with its principal point within [`FLIP_MAX_PP_OFFSET_PX`] of the image centre.
+fn check_flippable(camera: &Camera, camera_path: &Path) -> Result<()> {
+    let [w, _] = camera.size();
+    // Radially symmetric models mirror onto themselves about the vertical line through
+    // the principal point; radial-tangential (p2) and Scaramuzza (affine c, d, e) in
+    // general do not.
+    let symmetric = match camera {
+        Camera::KannalaBrandt(_)
+        | Camera::Pinhole(_)
+        | Camera::DoubleSphere(_)
+        | Camera::Unified(_)
+        | Camera::ExtendedUnified(_)
+        | Camera::Equirectangular(_) => true,
+        Camera::PinholeRadTan(_) | Camera::Scaramuzza(_) => false,
+    };
+    if !symmetric {
+        return Err(Error::data(
+            camera_path,
+            format!(
+                "field `model`: horizontal flips need a mirror-symmetric model; a {} \
+                 camera is not one in general",
+                camera.model_name()
+            ),
+        ));
+    }
+    let cx = camera.project([0.0, 0.0, 1.0]).map_or(f64::NAN, |c| c[0]);
+    let off = cx - (w as f64 - 1.0) / 2.0;
+    let centred = off.abs() <= FLIP_MAX_PP_OFFSET_PX; // false for NaN
+    if !centred {
+        return Err(Error::data(
+            camera_path,
+            format!(
+                "field `cx`: horizontal flips need a centred principal point, but cx = \
+                 {cx} is {off:+.3} px from (W - 1) / 2 = {} (limit \
+                 {FLIP_MAX_PP_OFFSET_PX} px): a flipped image would no longer match \
+                 the calibration",
+                (w as f64 - 1.0) / 2.0
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Every file of the samples `ids` of `split` exists under `root`.
+fn check_samples(root: &Path, split: Split, ids: &[String]) -> Result<()> {
+    for id in ids {
+        for sub in ["rgb", "depth", "labels", "mask"] {
+            let p = sample_path(root, sub, id);
+            if !p.is_file() {
+                return Err(Error::data(
+                    &p,
+                    format!("missing: sample `{id}` of split {split} in manifest.json"),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// A batch as plain buffers (built off the consumer's thread).
 struct RawBatch {
     /// `[B, H, W]`.
@@ -554,22 +573,14 @@ impl BatchSource for Dataset {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::synth::{synthesize, GenerateOptions, RawSynthConfig};
+    use crate::data::synth::config::tiny_config;
+    use crate::data::synth::{synthesize, GenerateOptions};
     use tch::Kind;
 
     /// A tiny F195 set (16 px wide) and a pinhole set, written once per test.
     fn tiny_sets(out: &Path) {
-        let mut raw = RawSynthConfig::default_config();
-        raw.out = out.to_path_buf();
-        raw.panoramas.count = 4;
-        raw.panoramas.height = 16;
-        raw.views.per_panorama = 3;
-        raw.views.supersample = 1;
+        let mut raw = tiny_config(out, [4, 16, 3, 24]);
         raw.sets.retain(|s| s.name == "f195" || s.name == "pers");
-        for s in raw.sets.iter_mut() {
-            s.camera = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(&s.camera);
-            s.width = 24;
-        }
         let plan = raw.resolve(Path::new("t.toml")).unwrap();
         synthesize(&plan, &GenerateOptions::default()).unwrap();
     }

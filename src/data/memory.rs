@@ -52,11 +52,8 @@ pub fn epoch_order(n: usize, seed: u64, epoch: u64) -> Vec<usize> {
 /// Samples in memory, batched in order or shuffled per epoch by a seed.
 #[derive(Debug)]
 pub struct MemorySource {
-    image: Tensor,
-    depth: Tensor,
-    labels: Tensor,
-    mask: Tensor,
-    ids: Vec<String>,
+    /// Every sample, `N` of them.
+    samples: Batch,
     batch_size: usize,
     shuffle: Option<u64>,
 }
@@ -102,11 +99,13 @@ impl MemorySource {
             )));
         }
         Ok(MemorySource {
-            image,
-            depth,
-            labels,
-            mask,
-            ids,
+            samples: Batch {
+                image,
+                depth,
+                labels,
+                mask,
+                ids,
+            },
             batch_size,
             shuffle,
         })
@@ -120,23 +119,24 @@ impl MemorySource {
     fn batch(&self, idx: &[usize]) -> Batch {
         let i: Vec<i64> = idx.iter().map(|&i| i as i64).collect();
         let i = Tensor::from_slice(&i);
+        let all = &self.samples;
         Batch {
-            image: self.image.index_select(0, &i),
-            depth: self.depth.index_select(0, &i),
-            labels: self.labels.index_select(0, &i),
-            mask: self.mask.index_select(0, &i),
-            ids: idx.iter().map(|&k| self.ids[k].clone()).collect(),
+            image: all.image.index_select(0, &i),
+            depth: all.depth.index_select(0, &i),
+            labels: all.labels.index_select(0, &i),
+            mask: all.mask.index_select(0, &i),
+            ids: idx.iter().map(|&k| all.ids[k].clone()).collect(),
         }
     }
 }
 
 impl BatchSource for MemorySource {
     fn len(&self) -> usize {
-        self.ids.len()
+        self.samples.ids.len()
     }
 
     fn input_size(&self) -> [i64; 2] {
-        let s = self.image.size();
+        let s = self.samples.image.size();
         [s[2], s[3]]
     }
 

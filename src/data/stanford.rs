@@ -226,16 +226,7 @@ impl Stanford {
                 format!("panorama is {w}x{h} (WxH), expected width = 2 height"),
             ));
         }
-        let rgb: Vec<[u8; 3]> = match rgb_img {
-            DynamicImage::ImageRgb8(b) => b.pixels().map(|px| px.0).collect(),
-            DynamicImage::ImageRgba8(b) => b.pixels().map(|px| [px[0], px[1], px[2]]).collect(),
-            other => {
-                return Err(Error::data(
-                    &p.rgb,
-                    format!("expected 8-bit RGB(A), found {:?}", other.color()),
-                ))
-            }
-        };
+        let rgb = rgb8_pixels(rgb_img, &p.rgb, "8-bit RGB(A)")?;
         let same_size = |path: &Path, img: &DynamicImage| {
             if (img.width() as usize, img.height() as usize) == (w, h) {
                 Ok(())
@@ -274,19 +265,7 @@ impl Stanford {
         };
         let sem_img = decode(&p.semantic)?;
         same_size(&p.semantic, &sem_img)?;
-        let sem: Vec<[u8; 3]> = match sem_img {
-            DynamicImage::ImageRgb8(b) => b.pixels().map(|px| px.0).collect(),
-            DynamicImage::ImageRgba8(b) => b.pixels().map(|px| [px[0], px[1], px[2]]).collect(),
-            other => {
-                return Err(Error::data(
-                    &p.semantic,
-                    format!(
-                        "expected 8-bit RGB semantic indices, found {:?}",
-                        other.color()
-                    ),
-                ))
-            }
-        };
+        let sem = rgb8_pixels(sem_img, &p.semantic, "8-bit RGB semantic indices")?;
         let mut labels = Vec::with_capacity(w * h);
         for (k, px) in sem.iter().enumerate() {
             match self.labels.class_of(*px) {
@@ -333,6 +312,19 @@ impl Stanford {
             ));
         }
         full.downsample(full.height / height)
+    }
+}
+
+/// The pixels of an 8-bit RGB or RGBA image read from `path` (alpha dropped), or an error
+/// saying it is not `expected`.
+fn rgb8_pixels(img: DynamicImage, path: &Path, expected: &str) -> Result<Vec<[u8; 3]>> {
+    match img {
+        DynamicImage::ImageRgb8(b) => Ok(b.pixels().map(|px| px.0).collect()),
+        DynamicImage::ImageRgba8(b) => Ok(b.pixels().map(|px| [px[0], px[1], px[2]]).collect()),
+        other => Err(Error::data(
+            path,
+            format!("expected {expected}, found {:?}", other.color()),
+        )),
     }
 }
 

@@ -1,6 +1,7 @@
 //! The geometry crate's one error type: what reading a camera, importing a calibration and
 //! computing offsets can fail with. Every variant that comes from a file names the file, and
-//! where it can, the field. `calibconv::Error` wraps it unchanged (same messages).
+//! where it can, the field. `calibconv::Error` wraps it unchanged (same messages), and makes
+//! its own I/O errors as [`Error::Io`] too (`calibconv::Error::io`).
 
 use std::path::PathBuf;
 

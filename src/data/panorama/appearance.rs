@@ -31,6 +31,16 @@ pub fn srgb(r: u8, g: u8, b: u8) -> Rgb {
     [r, g, b].map(|c| (c as f32 / 255.0).powf(2.2))
 }
 
+/// An 8-bit sRGB colour written `0xRRGGBB` to linear RGB ([`srgb`]): palettes are tables of these.
+pub fn hex(c: u32) -> Rgb {
+    srgb((c >> 16) as u8, (c >> 8) as u8, c as u8)
+}
+
+/// A colour of `palette` (`0xRRGGBB` values, [`hex`]) drawn uniformly by `rng`.
+pub fn pick_srgb(rng: &mut Rng, palette: &[u32]) -> Rgb {
+    hex(*rng.pick(palette))
+}
+
 /// `a + (b - a) w`, componentwise.
 pub fn mix(a: Rgb, b: Rgb, w: f32) -> Rgb {
     [0, 1, 2].map(|i| a[i] + (b[i] - a[i]) * w)
@@ -223,143 +233,28 @@ impl Material {
             0 => (p[2], p[1]),
             _ => (p[0], p[1]),
         };
-        let seed = self.seed;
-        let dull = |albedo: Rgb| Surface {
-            albedo,
-            emission: [0.0; 3],
-        };
         match self.pattern {
             Pattern::Plain { freq, amp } => {
-                let n = fbm(seed, p, freq as f64) - 0.5;
+                let n = fbm(self.seed, p, freq as f64) - 0.5;
                 dull(tint(self.base, 1.0 + 2.0 * amp * n))
             }
             Pattern::Fabric { freq, amp } => {
-                let n = value_noise(seed, p.map(|v| v * freq as f64)) - 0.5;
-                let m = fbm(seed ^ 1, p, 2.0) - 0.5;
+                let n = value_noise(self.seed, p.map(|v| v * freq as f64)) - 0.5;
+                let m = fbm(self.seed ^ 1, p, 2.0) - 0.5;
                 dull(tint(self.base, 1.0 + 2.0 * amp * n + 0.15 * m))
             }
             Pattern::Tiles {
                 size,
                 grout,
                 jitter,
-            } => {
-                let (size, grout) = (size as f64, grout as f64);
-                let (fs, ft) = ((s / size).floor(), (t / size).floor());
-                let cov = grid_coverage(
-                    line_coverage(s, size, grout, fp),
-                    line_coverage(t, size, grout, fp),
-                );
-                let tone = lattice(seed, fs as i64, ft as i64, 7) - 0.5;
-                let n = fbm(seed, p, 6.0) - 0.5;
-                let tile = tint(self.base, 1.0 + 2.0 * jitter * tone + 0.12 * n);
-                dull(mix(tile, self.alt, cov))
-            }
+            } => self.tiles(p, [s, t], fp, [size as f64, grout as f64], jitter),
             Pattern::Planks { width, length } => {
-                let (width, length) = (width as f64, length as f64);
-                let row = (t / width).floor();
-                // Staggered plank ends: each row shifts by a random fraction of a length.
-                let shift = lattice(seed, row as i64, 0, 3) as f64 * length;
-                let col = ((s + shift) / length).floor();
-                let gap = grid_coverage(
-                    line_coverage(t, width, 0.004, fp),
-                    line_coverage(s + shift, length, 0.004, fp),
-                );
-                let tone = lattice(seed, row as i64, col as i64, 5) - 0.5;
-                // Grain: noise stretched along the plank.
-                let g = value_noise(seed ^ 9, [s * 3.0, t * 60.0, row]) - 0.5;
-                let wood = mix(
-                    tint(self.base, 1.0 + 0.35 * tone),
-                    self.alt,
-                    (0.5 + g).clamp(0.0, 1.0) * 0.45,
-                );
-                dull(mix(wood, tint(self.base, 0.55), gap))
+                self.planks([s, t], fp, width as f64, length as f64)
             }
-            Pattern::Blocks => {
-                let (bw, bh, m) = (0.4, 0.2, 0.012);
-                let course = (t / bh).floor();
-                let off = if course as i64 % 2 == 0 {
-                    0.0
-                } else {
-                    bw / 2.0
-                };
-                let col = ((s + off) / bw).floor();
-                let cov = grid_coverage(
-                    line_coverage(s + off, bw, m, fp),
-                    line_coverage(t, bh, m, fp),
-                );
-                let tone = lattice(seed, col as i64, course as i64, 11) - 0.5;
-                dull(mix(tint(self.base, 1.0 + 0.12 * tone), self.alt, cov))
-            }
-            Pattern::Books { half_height } => {
-                let slot_w = 0.04;
-                let slot = ((s + 10.0) / slot_w).floor() as i64;
-                let r = lattice(seed, slot, 0, 13);
-                if r < 0.08 {
-                    return dull(self.alt); // a gap in the row
-                }
-                let height = 0.55 + 0.4 * lattice(seed, slot, 1, 13) as f64;
-                // Local y grows downwards; books stand on the compartment floor at +half_height.
-                let top = half_height as f64 * (1.0 - 2.0 * height);
-                if p[1] < top {
-                    return dull(self.alt);
-                }
-                let palette = [
-                    srgb(150, 40, 35),
-                    srgb(35, 60, 120),
-                    srgb(40, 100, 60),
-                    srgb(200, 180, 140),
-                    srgb(30, 30, 30),
-                    srgb(210, 120, 40),
-                    srgb(230, 230, 220),
-                    srgb(100, 40, 90),
-                ];
-                let c = palette
-                    [(lattice(seed, slot, 2, 13) * palette.len() as f32) as usize % palette.len()];
-                // A spine band.
-                let band = (p[1] - top) / (half_height as f64 * 2.0 * height);
-                let spine = if (0.15..0.2).contains(&band) {
-                    0.6
-                } else {
-                    1.0
-                };
-                dull(tint(c, spine * (0.8 + 0.4 * lattice(seed, slot, 3, 13))))
-            }
-            Pattern::Board => {
-                let line_h = 0.09;
-                let row = (t / line_h).floor();
-                let y = t - row * line_h;
-                let wiggle = 0.012 * (s * 55.0 + row).sin() * (s * 13.0).cos();
-                let written = lattice(seed, row as i64, 0, 17) < 0.55
-                    && value_noise(seed, [s * 6.0, row, 0.0]) > 0.45;
-                // A 1 cm stroke centred in its line, filtered over the footprint.
-                let ink = if written {
-                    line_coverage(y - line_h / 2.0 - wiggle + 0.005, line_h, 0.01, fp)
-                } else {
-                    0.0
-                };
-                let smudge = fbm(seed ^ 3, p, 3.0) - 0.5;
-                dull(mix(tint(self.base, 1.0 + 0.1 * smudge), self.alt, ink))
-            }
-            Pattern::Window { half, panes } => {
-                let (lx, ly) = (p[0], p[1]);
-                // Frame bars 6 cm wide centred on the pane edges (so 3 cm of border): lines
-                // at -h + k 2h / n for k = 0..=n, filtered over the footprint.
-                let bar = 0.06;
-                let (hx, hy) = (half[0] as f64, half[1] as f64);
-                let bars = |v: f64, h: f64, n: u8| {
-                    line_coverage(v + h + bar / 2.0, 2.0 * h / n as f64, bar, fp)
-                };
-                let cov = grid_coverage(bars(lx, hx, panes[0]), bars(ly, hy, panes[1]));
-                // Sky: brighter and bluer towards the top (local y grows downwards), clouds.
-                let up = (0.5 - ly / (2.0 * hy)) as f32;
-                let cloud = fbm(seed, p, 1.2);
-                let sky = mix(srgb(200, 215, 230), srgb(120, 160, 215), up);
-                let c = mix(sky, [1.0; 3], (cloud - 0.45).max(0.0) * 1.5);
-                Surface {
-                    albedo: mix([0.04; 3], self.alt, cov),
-                    emission: tint(c, 1.6 * (1.0 - cov)),
-                }
-            }
+            Pattern::Blocks => self.blocks([s, t], fp),
+            Pattern::Books { half_height } => self.books(p, s, half_height as f64),
+            Pattern::Board => self.board(p, [s, t], fp),
+            Pattern::Window { half, panes } => self.window(p, fp, half, panes),
             Pattern::Light { half } => {
                 let rim = 0.03;
                 let (lx, lz) = (p[0], p[2]);
@@ -372,13 +267,152 @@ impl Material {
                 }
             }
             Pattern::Screen => {
-                let glow = 0.03 + 0.04 * fbm(seed, p, 4.0);
+                let glow = 0.03 + 0.04 * fbm(self.seed, p, 4.0);
                 Surface {
                     albedo: [0.03; 3],
                     emission: [glow * 0.6, glow * 0.8, glow * 1.4],
                 }
             }
         }
+    }
+
+    /// [`Pattern::Tiles`] at `p`, surface coordinates `(s, t)`: `[size, grout]` in metres.
+    fn tiles(
+        &self,
+        p: [f64; 3],
+        [s, t]: [f64; 2],
+        fp: f64,
+        [size, grout]: [f64; 2],
+        jitter: f32,
+    ) -> Surface {
+        let seed = self.seed;
+        let (fs, ft) = ((s / size).floor(), (t / size).floor());
+        let cov = grid_coverage(
+            line_coverage(s, size, grout, fp),
+            line_coverage(t, size, grout, fp),
+        );
+        let tone = lattice(seed, fs as i64, ft as i64, 7) - 0.5;
+        let n = fbm(seed, p, 6.0) - 0.5;
+        let tile = tint(self.base, 1.0 + 2.0 * jitter * tone + 0.12 * n);
+        dull(mix(tile, self.alt, cov))
+    }
+
+    /// [`Pattern::Planks`] at surface coordinates `(s, t)`.
+    fn planks(&self, [s, t]: [f64; 2], fp: f64, width: f64, length: f64) -> Surface {
+        let seed = self.seed;
+        let row = (t / width).floor();
+        // Staggered plank ends: each row shifts by a random fraction of a length.
+        let shift = lattice(seed, row as i64, 0, 3) as f64 * length;
+        let col = ((s + shift) / length).floor();
+        let gap = grid_coverage(
+            line_coverage(t, width, 0.004, fp),
+            line_coverage(s + shift, length, 0.004, fp),
+        );
+        let tone = lattice(seed, row as i64, col as i64, 5) - 0.5;
+        // Grain: noise stretched along the plank.
+        let g = value_noise(seed ^ 9, [s * 3.0, t * 60.0, row]) - 0.5;
+        let wood = mix(
+            tint(self.base, 1.0 + 0.35 * tone),
+            self.alt,
+            (0.5 + g).clamp(0.0, 1.0) * 0.45,
+        );
+        dull(mix(wood, tint(self.base, 0.55), gap))
+    }
+
+    /// [`Pattern::Blocks`] at surface coordinates `(s, t)`.
+    fn blocks(&self, [s, t]: [f64; 2], fp: f64) -> Surface {
+        let (bw, bh, m) = (0.4, 0.2, 0.012);
+        let course = (t / bh).floor();
+        let off = if course as i64 % 2 == 0 {
+            0.0
+        } else {
+            bw / 2.0
+        };
+        let col = ((s + off) / bw).floor();
+        let cov = grid_coverage(
+            line_coverage(s + off, bw, m, fp),
+            line_coverage(t, bh, m, fp),
+        );
+        let tone = lattice(self.seed, col as i64, course as i64, 11) - 0.5;
+        dull(mix(tint(self.base, 1.0 + 0.12 * tone), self.alt, cov))
+    }
+
+    /// [`Pattern::Books`] at `p` (local y down), surface coordinate `s` along the shelf.
+    fn books(&self, p: [f64; 3], s: f64, half_height: f64) -> Surface {
+        let seed = self.seed;
+        let slot_w = 0.04;
+        let slot = ((s + 10.0) / slot_w).floor() as i64;
+        let r = lattice(seed, slot, 0, 13);
+        if r < 0.08 {
+            return dull(self.alt); // a gap in the row
+        }
+        let height = 0.55 + 0.4 * lattice(seed, slot, 1, 13) as f64;
+        // Local y grows downwards; books stand on the compartment floor at +half_height.
+        let top = half_height * (1.0 - 2.0 * height);
+        if p[1] < top {
+            return dull(self.alt);
+        }
+        let palette = [
+            0x962823, 0x233C78, 0x28643C, 0xC8B48C, 0x1E1E1E, 0xD27828, 0xE6E6DC, 0x64285A,
+        ];
+        let i = (lattice(seed, slot, 2, 13) * palette.len() as f32) as usize % palette.len();
+        let c = hex(palette[i]);
+        // A spine band.
+        let band = (p[1] - top) / (half_height * 2.0 * height);
+        let spine = if (0.15..0.2).contains(&band) {
+            0.6
+        } else {
+            1.0
+        };
+        dull(tint(c, spine * (0.8 + 0.4 * lattice(seed, slot, 3, 13))))
+    }
+
+    /// [`Pattern::Board`] at `p`, surface coordinates `(s, t)`.
+    fn board(&self, p: [f64; 3], [s, t]: [f64; 2], fp: f64) -> Surface {
+        let seed = self.seed;
+        let line_h = 0.09;
+        let row = (t / line_h).floor();
+        let y = t - row * line_h;
+        let wiggle = 0.012 * (s * 55.0 + row).sin() * (s * 13.0).cos();
+        let written = lattice(seed, row as i64, 0, 17) < 0.55
+            && value_noise(seed, [s * 6.0, row, 0.0]) > 0.45;
+        // A 1 cm stroke centred in its line, filtered over the footprint.
+        let ink = if written {
+            line_coverage(y - line_h / 2.0 - wiggle + 0.005, line_h, 0.01, fp)
+        } else {
+            0.0
+        };
+        let smudge = fbm(seed ^ 3, p, 3.0) - 0.5;
+        dull(mix(tint(self.base, 1.0 + 0.1 * smudge), self.alt, ink))
+    }
+
+    /// [`Pattern::Window`] at `p` (local x, y).
+    fn window(&self, p: [f64; 3], fp: f64, half: [f32; 2], panes: [u8; 2]) -> Surface {
+        let (lx, ly) = (p[0], p[1]);
+        // Frame bars 6 cm wide centred on the pane edges (so 3 cm of border): lines
+        // at -h + k 2h / n for k = 0..=n, filtered over the footprint.
+        let bar = 0.06;
+        let (hx, hy) = (half[0] as f64, half[1] as f64);
+        let bars =
+            |v: f64, h: f64, n: u8| line_coverage(v + h + bar / 2.0, 2.0 * h / n as f64, bar, fp);
+        let cov = grid_coverage(bars(lx, hx, panes[0]), bars(ly, hy, panes[1]));
+        // Sky: brighter and bluer towards the top (local y grows downwards), clouds.
+        let up = (0.5 - ly / (2.0 * hy)) as f32;
+        let cloud = fbm(self.seed, p, 1.2);
+        let sky = mix(srgb(200, 215, 230), srgb(120, 160, 215), up);
+        let c = mix(sky, [1.0; 3], (cloud - 0.45).max(0.0) * 1.5);
+        Surface {
+            albedo: mix([0.04; 3], self.alt, cov),
+            emission: tint(c, 1.6 * (1.0 - cov)),
+        }
+    }
+}
+
+/// A surface that only reflects.
+fn dull(albedo: Rgb) -> Surface {
+    Surface {
+        albedo,
+        emission: [0.0; 3],
     }
 }
 

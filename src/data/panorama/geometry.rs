@@ -225,119 +225,139 @@ impl Shape {
     /// The nearest hit with `T_MIN < t < t_max`, if any.
     pub fn intersect(&self, ray: &Ray, t_max: f64) -> Option<Hit> {
         match *self {
-            Shape::Plane { y } => {
-                let t = (y - ray.o[1]) / ray.d[1];
-                (t > T_MIN && t < t_max).then(|| Hit {
-                    t,
-                    n: [0.0, -ray.d[1].signum(), 0.0],
-                    local: ray.at(t),
-                    axis: 1,
-                })
+            Shape::Plane { y } => hit_plane(ray, t_max, y),
+            Shape::Wall { axis, at, lo, hi } => hit_wall(ray, t_max, axis, at, [lo, hi]),
+            Shape::Box { c, h, cos, sin } => hit_box(ray, t_max, c, h, [cos, sin]),
+            Shape::Cylinder { x, z, r, y0, y1 } => hit_cylinder(ray, t_max, [x, z], r, [y0, y1]),
+        }
+    }
+}
+
+/// [`Shape::Plane`] `y`.
+fn hit_plane(ray: &Ray, t_max: f64, y: f64) -> Option<Hit> {
+    let t = (y - ray.o[1]) / ray.d[1];
+    (t > T_MIN && t < t_max).then(|| Hit {
+        t,
+        n: [0.0, -ray.d[1].signum(), 0.0],
+        local: ray.at(t),
+        axis: 1,
+    })
+}
+
+/// [`Shape::Wall`]: the plane `coord[axis] = at` for the other coordinate in `[lo, hi]`.
+fn hit_wall(ray: &Ray, t_max: f64, axis: usize, at: f64, [lo, hi]: [f64; 2]) -> Option<Hit> {
+    let t = (at - ray.o[axis]) / ray.d[axis];
+    if !(t > T_MIN && t < t_max) {
+        return None;
+    }
+    let p = ray.at(t);
+    let other = 2 - axis;
+    if p[other] < lo || p[other] > hi {
+        return None;
+    }
+    let mut n = [0.0; 3];
+    n[axis] = -ray.d[axis].signum();
+    Some(Hit {
+        t,
+        n,
+        local: p,
+        axis: axis as u8,
+    })
+}
+
+/// [`Shape::Box`] of centre `c` and half sizes `h`, turned by the angle of `[cos, sin]`: the slab
+/// test in the box frame.
+fn hit_box(ray: &Ray, t_max: f64, c: V3, h: V3, [cos, sin]: [f64; 2]) -> Option<Hit> {
+    // Into the box frame: x_l = cos x_w - sin z_w, z_l = sin x_w + cos z_w.
+    let (ox, oz) = (ray.o[0] - c[0], ray.o[2] - c[2]);
+    let o = [cos * ox - sin * oz, ray.o[1] - c[1], sin * ox + cos * oz];
+    let d = [
+        cos * ray.d[0] - sin * ray.d[2],
+        ray.d[1],
+        sin * ray.d[0] + cos * ray.d[2],
+    ];
+    let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
+    let mut axis = 0;
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            if o[a].abs() > h[a] {
+                return None;
             }
-            Shape::Wall { axis, at, lo, hi } => {
-                let t = (at - ray.o[axis]) / ray.d[axis];
-                if !(t > T_MIN && t < t_max) {
-                    return None;
-                }
+            continue;
+        }
+        let inv = 1.0 / d[a];
+        let ta = (-h[a] - o[a]) * inv;
+        let tb = (h[a] - o[a]) * inv;
+        let (near, far) = if ta < tb { (ta, tb) } else { (tb, ta) };
+        if near > t0 {
+            t0 = near;
+            axis = a;
+        }
+        t1 = t1.min(far);
+    }
+    if t0 > t1 || !(t0 > T_MIN && t0 < t_max) {
+        return None;
+    }
+    let mut nl = [0.0; 3];
+    nl[axis] = -d[axis].signum();
+    // Back to the world: x_w = cos x_l + sin z_l, z_w = -sin x_l + cos z_l.
+    let n = [cos * nl[0] + sin * nl[2], nl[1], -sin * nl[0] + cos * nl[2]];
+    Some(Hit {
+        t: t0,
+        n,
+        local: add(o, scale(d, t0)),
+        axis: axis as u8,
+    })
+}
+
+/// [`Shape::Cylinder`] of axis `(x, z)`, radius `r`, from `y0` to `y1`: its side (the near root
+/// only) and its two caps, the nearest.
+fn hit_cylinder(
+    ray: &Ray,
+    t_max: f64,
+    [x, z]: [f64; 2],
+    r: f64,
+    [y0, y1]: [f64; 2],
+) -> Option<Hit> {
+    let mut best: Option<Hit> = None;
+    let (ox, oz) = (ray.o[0] - x, ray.o[2] - z);
+    let a = ray.d[0] * ray.d[0] + ray.d[2] * ray.d[2];
+    if a > 0.0 {
+        let b = ox * ray.d[0] + oz * ray.d[2];
+        let c = ox * ox + oz * oz - r * r;
+        let disc = b * b - a * c;
+        if disc >= 0.0 {
+            // The near root only: rays start outside every cylinder.
+            let t = (-b - disc.sqrt()) / a;
+            if t > T_MIN && t < t_max {
                 let p = ray.at(t);
-                let other = 2 - axis;
-                if p[other] < lo || p[other] > hi {
-                    return None;
+                if p[1] >= y0 && p[1] <= y1 {
+                    best = Some(Hit {
+                        t,
+                        n: [(p[0] - x) / r, 0.0, (p[2] - z) / r],
+                        local: p,
+                        axis: 0,
+                    });
                 }
-                let mut n = [0.0; 3];
-                n[axis] = -ray.d[axis].signum();
-                Some(Hit {
-                    t,
-                    n,
-                    local: p,
-                    axis: axis as u8,
-                })
-            }
-            Shape::Box { c, h, cos, sin } => {
-                // Into the box frame: x_l = cos x_w - sin z_w, z_l = sin x_w + cos z_w.
-                let (ox, oz) = (ray.o[0] - c[0], ray.o[2] - c[2]);
-                let o = [cos * ox - sin * oz, ray.o[1] - c[1], sin * ox + cos * oz];
-                let d = [
-                    cos * ray.d[0] - sin * ray.d[2],
-                    ray.d[1],
-                    sin * ray.d[0] + cos * ray.d[2],
-                ];
-                let (mut t0, mut t1) = (f64::NEG_INFINITY, f64::INFINITY);
-                let mut axis = 0;
-                for a in 0..3 {
-                    if d[a] == 0.0 {
-                        if o[a].abs() > h[a] {
-                            return None;
-                        }
-                        continue;
-                    }
-                    let inv = 1.0 / d[a];
-                    let ta = (-h[a] - o[a]) * inv;
-                    let tb = (h[a] - o[a]) * inv;
-                    let (near, far) = if ta < tb { (ta, tb) } else { (tb, ta) };
-                    if near > t0 {
-                        t0 = near;
-                        axis = a;
-                    }
-                    t1 = t1.min(far);
-                }
-                if t0 > t1 || !(t0 > T_MIN && t0 < t_max) {
-                    return None;
-                }
-                let mut nl = [0.0; 3];
-                nl[axis] = -d[axis].signum();
-                // Back to the world: x_w = cos x_l + sin z_l, z_w = -sin x_l + cos z_l.
-                let n = [cos * nl[0] + sin * nl[2], nl[1], -sin * nl[0] + cos * nl[2]];
-                Some(Hit {
-                    t: t0,
-                    n,
-                    local: add(o, scale(d, t0)),
-                    axis: axis as u8,
-                })
-            }
-            Shape::Cylinder { x, z, r, y0, y1 } => {
-                let mut best: Option<Hit> = None;
-                let (ox, oz) = (ray.o[0] - x, ray.o[2] - z);
-                let a = ray.d[0] * ray.d[0] + ray.d[2] * ray.d[2];
-                if a > 0.0 {
-                    let b = ox * ray.d[0] + oz * ray.d[2];
-                    let c = ox * ox + oz * oz - r * r;
-                    let disc = b * b - a * c;
-                    if disc >= 0.0 {
-                        // The near root only: rays start outside every cylinder.
-                        let t = (-b - disc.sqrt()) / a;
-                        if t > T_MIN && t < t_max {
-                            let p = ray.at(t);
-                            if p[1] >= y0 && p[1] <= y1 {
-                                best = Some(Hit {
-                                    t,
-                                    n: [(p[0] - x) / r, 0.0, (p[2] - z) / r],
-                                    local: p,
-                                    axis: 0,
-                                });
-                            }
-                        }
-                    }
-                }
-                for cap in [y0, y1] {
-                    let t = (cap - ray.o[1]) / ray.d[1];
-                    if t > T_MIN && t < best.map_or(t_max, |h| h.t) {
-                        let p = ray.at(t);
-                        let (dx, dz) = (p[0] - x, p[2] - z);
-                        if dx * dx + dz * dz <= r * r {
-                            best = Some(Hit {
-                                t,
-                                n: [0.0, -ray.d[1].signum(), 0.0],
-                                local: p,
-                                axis: 1,
-                            });
-                        }
-                    }
-                }
-                best
             }
         }
     }
+    for cap in [y0, y1] {
+        let t = (cap - ray.o[1]) / ray.d[1];
+        if t > T_MIN && t < best.map_or(t_max, |h| h.t) {
+            let p = ray.at(t);
+            let (dx, dz) = (p[0] - x, p[2] - z);
+            if dx * dx + dz * dz <= r * r {
+                best = Some(Hit {
+                    t,
+                    n: [0.0, -ray.d[1].signum(), 0.0],
+                    local: p,
+                    axis: 1,
+                });
+            }
+        }
+    }
+    best
 }
 
 #[cfg(test)]

@@ -60,27 +60,18 @@ pub enum ViewKind {
 impl ViewKind {
     /// The name used in files: `pers`, `fisheye`, `rectified`.
     pub fn as_str(&self) -> &'static str {
-        match self {
-            ViewKind::Pers => "pers",
-            ViewKind::Fisheye => "fisheye",
-            ViewKind::Rectified => "rectified",
-        }
+        let (name, _) = (Self::NAMES.iter())
+            .find(|(_, kind)| kind == self)
+            .expect("every kind has a name");
+        name
     }
 }
 
-impl std::str::FromStr for ViewKind {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "pers" => Ok(ViewKind::Pers),
-            "fisheye" => Ok(ViewKind::Fisheye),
-            "rectified" => Ok(ViewKind::Rectified),
-            other => Err(format!(
-                "unknown kind `{other}` (expected pers, fisheye or rectified)"
-            )),
-        }
-    }
-}
+calibconv_geometry::from_str_by_name!(ViewKind, "kind", {
+    "pers" => Pers,
+    "fisheye" => Fisheye,
+    "rectified" => Rectified,
+});
 
 /// Split fractions of the panoramas.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -235,8 +226,133 @@ impl RawSynthConfig {
 
     /// Checks every field and loads the cameras; `path` names the configuration in errors.
     pub fn resolve(&self, path: &Path) -> Result<SynthPlan> {
-        let bad = |field: &str, msg: String| Error::data(path, format!("field `{field}`: {msg}"));
-        let p = &self.panoramas;
+        let source = self.panoramas.resolve(path)?;
+        let v = &self.views;
+        v.check(path)?;
+        if self.sets.is_empty() {
+            return Err(field_error(path, "set", "no [[set]] to generate".into()));
+        }
+        let mut names = HashSet::new();
+        let sets = (self.sets.iter().enumerate())
+            .map(|(i, raw)| self.resolve_set(path, i, raw, &mut names))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(SynthPlan {
+            seed: self.seed,
+            out: self.out.clone(),
+            source,
+            per_panorama: v.per_panorama,
+            sampling: ViewSampling {
+                pitch_max_deg: v.pitch_max_deg,
+                roll_max_deg: v.roll_max_deg,
+            },
+            supersample: v.supersample,
+            sets,
+        })
+    }
+
+    /// `set[i]` checked (a folder name not in `names` yet, which it joins; a width; a camera of
+    /// the kind) with its camera loaded and scaled to the stored width.
+    fn resolve_set(
+        &self,
+        path: &Path,
+        i: usize,
+        raw: &RawSet,
+        names: &mut HashSet<String>,
+    ) -> Result<SetPlan> {
+        let bad = |field: &str, msg: String| field_error(path, field, msg);
+        let field = |f: &str| format!("set[{i}].{f}");
+        let ok_name = !raw.name.is_empty()
+            && raw
+                .name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            && !raw.name.starts_with('.');
+        if !ok_name {
+            return Err(bad(
+                &field("name"),
+                format!(
+                    "`{}` is not a folder name (letters, digits, - _ . only)",
+                    raw.name
+                ),
+            ));
+        }
+        if !names.insert(raw.name.clone()) {
+            return Err(bad(&field("name"), format!("`{}` appears twice", raw.name)));
+        }
+        if raw.width < MIN_WIDTH {
+            return Err(bad(
+                &field("width"),
+                format!("must be >= {MIN_WIDTH}, found {}", raw.width),
+            ));
+        }
+        let cam = self.load_camera(&raw.camera).map_err(|e| {
+            Error::data(
+                path,
+                format!("field `{}`: cannot use camera file: {e}", field("camera")),
+            )
+        })?;
+        let scale = raw.width as f64 / cam.size()[0] as f64;
+        let scaled = cam.rescaled([scale, scale], PixelConvention::HalfPixel);
+        let model_error = |want: &str| {
+            bad(
+                &field("camera"),
+                format!(
+                    "kind `{}` needs a {want} camera, {} is not one",
+                    raw.kind.as_str(),
+                    raw.camera.display()
+                ),
+            )
+        };
+        if raw.rectify_hfov_deg.is_some() && raw.kind != ViewKind::Rectified {
+            return Err(bad(
+                &field("rectify_hfov_deg"),
+                "only for kind = \"rectified\"".into(),
+            ));
+        }
+        let (camera, fisheye) = match raw.kind {
+            ViewKind::Pers => {
+                if !matches!(cam, Camera::Pinhole(_) | Camera::PinholeRadTan(_)) {
+                    return Err(model_error("perspective (pinhole, pinhole-radtan)"));
+                }
+                (scaled, None)
+            }
+            ViewKind::Fisheye => {
+                if max_ray_angle(&cam).is_none() {
+                    return Err(model_error(
+                        "fisheye (kannala-brandt, double-sphere, unified, extended-unified, \
+                         scaramuzza)",
+                    ));
+                }
+                (scaled, None)
+            }
+            ViewKind::Rectified => {
+                let pin = rectified_camera(&scaled, raw.rectify_hfov_deg)
+                    .map_err(|e| bad(&field("camera"), e.to_string()))?;
+                (pin, Some(scaled))
+            }
+        };
+        Ok(SetPlan {
+            name: raw.name.clone(),
+            kind: raw.kind,
+            camera_path: raw.camera.clone(),
+            camera,
+            fisheye,
+            rectify_hfov_deg: raw.rectify_hfov_deg,
+        })
+    }
+}
+
+/// The error of a configuration `path` whose `field` is invalid.
+fn field_error(path: &Path, field: &str, msg: String) -> Error {
+    Error::data(path, format!("field `{field}`: {msg}"))
+}
+
+impl RawPanoramas {
+    /// The checked source: a height, split fractions in `[0, 1]` summing to 1, a count for
+    /// procedural panoramas, a root for Stanford's.
+    fn resolve(&self, path: &Path) -> Result<SourceSpec> {
+        let bad = |field: &str, msg: String| field_error(path, field, msg);
+        let p = self;
         if p.height < MIN_PANO_HEIGHT {
             return Err(bad(
                 "panoramas.height",
@@ -261,7 +377,7 @@ impl RawSynthConfig {
                 ),
             ));
         }
-        let source = match p.source {
+        Ok(match p.source {
             SourceKind::Procedural => {
                 if p.count == 0 {
                     return Err(bad("panoramas.count", "must be > 0".into()));
@@ -290,8 +406,15 @@ impl RawSynthConfig {
                     val: s.val,
                 }
             }
-        };
-        let v = &self.views;
+        })
+    }
+}
+
+impl RawViews {
+    /// Views per panorama > 0, supersampling in `1..=8`, pitch in `[0, 90)`, roll in `[0, 180]`.
+    fn check(&self, path: &Path) -> Result<()> {
+        let bad = |field: &str, msg: String| field_error(path, field, msg);
+        let v = self;
         if v.per_panorama == 0 {
             return Err(bad("views.per_panorama", "must be > 0".into()));
         }
@@ -313,104 +436,7 @@ impl RawSynthConfig {
                 format!("must be in [0, 180], found {}", v.roll_max_deg),
             ));
         }
-        if self.sets.is_empty() {
-            return Err(bad("set", "no [[set]] to generate".into()));
-        }
-        let mut names = HashSet::new();
-        let mut sets = Vec::new();
-        for (i, raw) in self.sets.iter().enumerate() {
-            let field = |f: &str| format!("set[{i}].{f}");
-            let ok_name = !raw.name.is_empty()
-                && raw
-                    .name
-                    .chars()
-                    .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-                && !raw.name.starts_with('.');
-            if !ok_name {
-                return Err(bad(
-                    &field("name"),
-                    format!(
-                        "`{}` is not a folder name (letters, digits, - _ . only)",
-                        raw.name
-                    ),
-                ));
-            }
-            if !names.insert(raw.name.clone()) {
-                return Err(bad(&field("name"), format!("`{}` appears twice", raw.name)));
-            }
-            if raw.width < MIN_WIDTH {
-                return Err(bad(
-                    &field("width"),
-                    format!("must be >= {MIN_WIDTH}, found {}", raw.width),
-                ));
-            }
-            let cam = self.load_camera(&raw.camera).map_err(|e| {
-                Error::data(
-                    path,
-                    format!("field `{}`: cannot use camera file: {e}", field("camera")),
-                )
-            })?;
-            let scale = raw.width as f64 / cam.size()[0] as f64;
-            let scaled = cam.rescaled([scale, scale], PixelConvention::HalfPixel);
-            let model_error = |want: &str| {
-                bad(
-                    &field("camera"),
-                    format!(
-                        "kind `{}` needs a {want} camera, {} is not one",
-                        raw.kind.as_str(),
-                        raw.camera.display()
-                    ),
-                )
-            };
-            if raw.rectify_hfov_deg.is_some() && raw.kind != ViewKind::Rectified {
-                return Err(bad(
-                    &field("rectify_hfov_deg"),
-                    "only for kind = \"rectified\"".into(),
-                ));
-            }
-            let (camera, fisheye) = match raw.kind {
-                ViewKind::Pers => {
-                    if !matches!(cam, Camera::Pinhole(_) | Camera::PinholeRadTan(_)) {
-                        return Err(model_error("perspective (pinhole, pinhole-radtan)"));
-                    }
-                    (scaled, None)
-                }
-                ViewKind::Fisheye => {
-                    if max_ray_angle(&cam).is_none() {
-                        return Err(model_error(
-                            "fisheye (kannala-brandt, double-sphere, unified, extended-unified, \
-                             scaramuzza)",
-                        ));
-                    }
-                    (scaled, None)
-                }
-                ViewKind::Rectified => {
-                    let pin = rectified_camera(&scaled, raw.rectify_hfov_deg)
-                        .map_err(|e| bad(&field("camera"), e.to_string()))?;
-                    (pin, Some(scaled))
-                }
-            };
-            sets.push(SetPlan {
-                name: raw.name.clone(),
-                kind: raw.kind,
-                camera_path: raw.camera.clone(),
-                camera,
-                fisheye,
-                rectify_hfov_deg: raw.rectify_hfov_deg,
-            });
-        }
-        Ok(SynthPlan {
-            seed: self.seed,
-            out: self.out.clone(),
-            source,
-            per_panorama: v.per_panorama,
-            sampling: ViewSampling {
-                pitch_max_deg: v.pitch_max_deg,
-                roll_max_deg: v.roll_max_deg,
-            },
-            supersample: v.supersample,
-            sets,
-        })
+        Ok(())
     }
 }
 
@@ -543,20 +569,32 @@ impl SynthPlan {
     }
 }
 
+/// The default configuration's sets, small: `count` panoramas `height` high, `per_panorama`
+/// views of each set, `width` px wide, no supersampling, cameras read from this repository;
+/// written to `out`.
+#[cfg(test)]
+pub(crate) fn tiny_config(
+    out: &Path,
+    [count, height, per_panorama, width]: [usize; 4],
+) -> RawSynthConfig {
+    let mut raw = RawSynthConfig::default_config();
+    raw.out = out.to_path_buf();
+    raw.panoramas.count = count;
+    raw.panoramas.height = height;
+    raw.views.per_panorama = per_panorama;
+    raw.views.supersample = 1;
+    for s in raw.sets.iter_mut() {
+        s.camera = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(&s.camera);
+        s.width = width;
+    }
+    raw
+}
+
 /// A plan of the default configuration's four sets, tiny (3 panoramas 16 high, 2 views, 16 px
 /// wide), cameras read from this repository; written to `out`.
 #[cfg(test)]
 pub(crate) fn tiny_plan(out: &Path) -> SynthPlan {
-    let mut raw = RawSynthConfig::default_config();
-    raw.out = out.to_path_buf();
-    raw.panoramas.count = 3;
-    raw.panoramas.height = 16;
-    raw.views.per_panorama = 2;
-    raw.views.supersample = 1;
-    for s in raw.sets.iter_mut() {
-        s.camera = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(&s.camera);
-        s.width = 16;
-    }
+    let raw = tiny_config(out, [3, 16, 2, 16]);
     raw.resolve(Path::new("test.toml")).unwrap()
 }
 

@@ -32,14 +32,14 @@
 //! Parameters: `xi in (-1, 1]`, `alpha in [0, 1]` (checked by the camera file reader). Pixels are
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
-use super::unified::unified_w;
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::extended_unified::eucm_m;
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
-    Invalid,
+    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
+use super::unified::unified_w;
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
 
 /// A Double Sphere camera. All fields are plain parameters (nothing derived is cached).
 #[derive(Clone, Debug, PartialEq)]
@@ -55,46 +55,9 @@ pub struct DoubleSphere {
 
 deref_intrinsics!(DoubleSphere);
 
-raw_camera_file! {
-    /// A Double Sphere camera file as written.
-    fisheye struct Raw {
-        xi: f64,
-        alpha: f64,
-    }
-}
-
-impl CameraFile for DoubleSphere {
-    const MODEL: &'static str = "double-sphere";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("xi", self.xi), ("alpha", self.alpha)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        DoubleSphere::new(r.intrinsics(), r.xi, r.alpha, r.fov_deg)
-    }
-}
+plain_fisheye_file!(DoubleSphere, "double-sphere", [xi, alpha]);
 
 impl DoubleSphere {
-    /// A checked camera (see [`DoubleSphere::validate`]).
-    pub fn new(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        checked(
-            Self::unchecked(intrinsics, xi, alpha, fov_deg),
-            Self::validate,
-        )
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, xi: f64, alpha: f64, fov_deg: f64) -> Self {
-        DoubleSphere {
-            intrinsics,
-            xi,
-            alpha,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
@@ -120,12 +83,19 @@ impl DoubleSphere {
         (-self.w2()).clamp(-1.0, 1.0).acos()
     }
 
-    /// `(d1, k = xi d1 + z, d2, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64, f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for DoubleSphere {
+    /// `(d1, k = xi d1 + z, d2)`.
+    type Parts = (f64, f64, f64);
+
+    /// `den = alpha d2 + (1 - alpha) k` (Eqs. 40-42), inside `z > -w2 d1`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, (f64, f64, f64))> {
         let d1 = x.hypot(y).hypot(z);
         if d1 == 0.0 || !d1.is_finite() || z <= -self.w2() * d1 {
             return None;
@@ -133,47 +103,34 @@ impl DoubleSphere {
         let k = self.xi * d1 + z;
         let d2 = x.hypot(y).hypot(k);
         let den = self.alpha * d2 + (1.0 - self.alpha) * k;
-        (den > 0.0).then_some((d1, k, d2, den))
+        (den > 0.0).then_some((den, (d1, k, d2)))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `k = xi d1 + z` and `den` the denominator of the projection:
+    /// With `k = xi d1 + z`:
     ///
     /// ```text
     /// dk/dx = xi x / d1          dk/dy = xi y / d1          dk/dz = xi z / d1 + 1
     /// dd2/dx = (x + k dk/dx) / d2   dd2/dy = (y + k dk/dy) / d2   dd2/dz = k dk/dz / d2
     /// dden = alpha dd2 + (1 - alpha) dk
-    /// du/dp = fx (e_x / den - x dden / den^2),   dv/dp = fy (e_y / den - y dden / den^2)
     /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d1, k, d2, den) = self.parts(ray)?;
-        let [x, y, z] = ray;
+    fn den_gradient(&self, [x, y, z]: [f64; 3], (d1, k, d2): (f64, f64, f64)) -> [f64; 3] {
         let dk = [self.xi * x / d1, self.xi * y / d1, self.xi * z / d1 + 1.0];
         let dd2 = [(x + k * dk[0]) / d2, (y + k * dk[1]) / d2, k * dk[2] / d2];
-        let dden: [f64; 3] = [0, 1, 2].map(|i| self.alpha * dd2[i] + (1.0 - self.alpha) * dk[i]);
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        [0, 1, 2].map(|i| self.alpha * dd2[i] + (1.0 - self.alpha) * dk[i])
     }
 }
 
 impl CameraModel for DoubleSphere {
     /// Eqs. 40-42 (module docs), or `None` outside `z > -w2 |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, _, _, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Eqs. 44-47 (module docs), normalised; `None` outside the disc `r^2 <= 1 / (2 alpha - 1)`,
     /// for a result outside the projection's domain, and for non-finite pixels.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let (a, xi) = (self.alpha, self.xi);
-        let mx = (px[0] - self.cx) / self.fx;
-        let my = (px[1] - self.cy) / self.fy;
-        let r2 = mx * mx + my * my;
-        let disc = 1.0 - (2.0 * a - 1.0) * r2;
-        if disc.is_nan() || disc < 0.0 {
-            return None;
-        }
-        let mz = (1.0 - a * a * r2) / (a * disc.sqrt() + 1.0 - a);
+        let ([mx, my, mz], r2) = eucm_m(&self.intrinsics, a, 1.0, px)?;
         let disc2 = mz * mz + (1.0 - xi * xi) * r2;
         if disc2.is_nan() || disc2 < 0.0 {
             return None;
@@ -189,6 +146,7 @@ Some(self.intrinsics.project_divided(ray, den))
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::tests::assert_round_trips;
     use crate::vec3::angle_to_axis;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
@@ -251,15 +209,7 @@ mod tests {
     fn round_trips_up_to_theta_max() {
         let c = cam();
         let tm = c.theta_max();
-        for i in 0..=100 {
-            let t = tm * i as f64 / 100.0 * 0.999_999;
-            for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                let err =
-                    (angle_to_axis(back) - t).abs() + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                assert!(err < ANGLE_TOL, "theta {t} phi {phi}: {err}");
-            }
-        }
+        let thetas = (0..=100).map(|i| tm * i as f64 / 100.0 * 0.999_999);
+        assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, "TUM-VI-like");
     }
 }

@@ -28,14 +28,35 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::unified::{unified_den, unified_w};
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, checked, raw_camera_file, CameraFile, Checked,
-    Invalid,
+    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
+use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
+
+/// The unnormalised ray `m = [mx, my, mz]` of pixel `px` and its `r^2 = mx^2 + my^2` (Eqs.
+/// 26-29): `mx = (u - cx) / fx`, `my = (v - cy) / fy`,
+/// `mz = (1 - beta alpha^2 r^2) / (alpha sqrt(1 - (2 alpha - 1) beta r^2) + 1 - alpha)`; `None`
+/// where the square root is imaginary (or NaN). With `beta = 1` it is the double sphere's first
+/// step (Usenko et al. 2018, Eqs. 44-47), bit for bit (`1 x = x`).
+pub(super) fn eucm_m(
+    k: &Intrinsics,
+    alpha: f64,
+    beta: f64,
+    px: [f64; 2],
+) -> Option<([f64; 3], f64)> {
+    let mx = (px[0] - k.cx) / k.fx;
+    let my = (px[1] - k.cy) / k.fy;
+    let r2 = mx * mx + my * my;
+    let disc = 1.0 - (2.0 * alpha - 1.0) * beta * r2;
+    if disc.is_nan() || disc < 0.0 {
+        return None;
+    }
+    let mz = (1.0 - beta * alpha * alpha * r2) / (alpha * disc.sqrt() + 1.0 - alpha);
+    Some(([mx, my, mz], r2))
+}
 
 /// An Extended Unified Camera Model camera. Plain parameters, nothing cached.
 #[derive(Clone, Debug, PartialEq)]
@@ -51,51 +72,9 @@ pub struct ExtendedUnified {
 
 deref_intrinsics!(ExtendedUnified);
 
-raw_camera_file! {
-    /// An Extended Unified Camera Model file as written.
-    fisheye struct Raw {
-        alpha: f64,
-        beta: f64,
-    }
-}
-
-impl CameraFile for ExtendedUnified {
-    const MODEL: &'static str = "extended-unified";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("alpha", self.alpha), ("beta", self.beta)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        ExtendedUnified::new(r.intrinsics(), r.alpha, r.beta, r.fov_deg)
-    }
-}
+plain_fisheye_file!(ExtendedUnified, "extended-unified", [alpha, beta]);
 
 impl ExtendedUnified {
-    /// A checked camera (see [`ExtendedUnified::validate`]).
-    pub fn new(
-        intrinsics: Intrinsics,
-        alpha: f64,
-        beta: f64,
-        fov_deg: f64,
-    ) -> Result<Self, Invalid> {
-        checked(
-            Self::unchecked(intrinsics, alpha, beta, fov_deg),
-            Self::validate,
-        )
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, beta: f64, fov_deg: f64) -> Self {
-        ExtendedUnified {
-            intrinsics,
-            alpha,
-            beta,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
@@ -118,55 +97,47 @@ impl ExtendedUnified {
         std::f64::consts::PI - (1.0 - w * w).max(0.0).sqrt().atan2(w * self.beta.sqrt())
     }
 
-    /// `(d, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for ExtendedUnified {
+    /// The ellipsoid norm `d`.
+    type Parts = f64;
+
+    /// `den = alpha d + (1 - alpha) z` with `d = sqrt(beta (x^2 + y^2) + z^2)` (Eqs. 22-24),
+    /// inside `z > -w d`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, f64)> {
         let d = (self.beta * (x * x + y * y) + z * z).sqrt();
-        unified_den(self.alpha, d, z).map(|den| (d, den))
+        unified_den(self.alpha, d, z).map(|den| (den, d))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `den = alpha d + (1 - alpha) z`:
-    ///
-    /// ```text
-    /// dden/dp = [alpha beta x / d, alpha beta y / d, alpha z / d + 1 - alpha]
-    /// du/dp = fx (e_x / den - x dden/dp / den^2),   dv/dp = fy (e_y / den - y dden/dp / den^2)
-    /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d, den) = self.parts(ray)?;
+    /// `dden/dp = [alpha beta x / d, alpha beta y / d, alpha z / d + 1 - alpha]`.
+    fn den_gradient(&self, ray: [f64; 3], d: f64) -> [f64; 3] {
         let (a, b) = (self.alpha, self.beta);
-        let dden = [
+        [
             a * b * ray[0] / d,
             a * b * ray[1] / d,
             a * ray[2] / d + (1.0 - a),
-        ];
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        ]
     }
 }
 
 impl CameraModel for ExtendedUnified {
     /// Eqs. 22-24 (module docs), or `None` outside `z > -w d`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Eqs. 26-29 (module docs); `None` outside the disc `r^2 <= 1 / (beta (2 alpha - 1))`, for a
     /// result outside the projection's domain, and for non-finite pixels.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let (a, b) = (self.alpha, self.beta);
-        let mx = (px[0] - self.cx) / self.fx;
-        let my = (px[1] - self.cy) / self.fy;
-        let r2 = mx * mx + my * my;
-        let disc = 1.0 - (2.0 * a - 1.0) * b * r2;
-        if disc.is_nan() || disc < 0.0 {
-            return None;
-        }
-        let mz = (1.0 - b * a * a * r2) / (a * disc.sqrt() + 1.0 - a);
-        let ray = normalize([mx, my, mz])?;
+        let (m, _) = eucm_m(&self.intrinsics, a, b, px)?;
+        let ray = normalize(m)?;
         let d = (b * (ray[0] * ray[0] + ray[1] * ray[1]) + ray[2] * ray[2]).sqrt();
         (ray[2] > -unified_w(a) * d).then_some(ray)
     }
@@ -177,26 +148,14 @@ Some(self.intrinsics.project_divided(ray, den))
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vec3::angle_to_axis;
+    use crate::camera::tests::assert_round_trips;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); near a fold the inverse loses
     /// ~1e-16 / (theta_max - theta) (<= 1e-12 at the 1e-4 rad margin used); 1e-11 rad is margin.
     const ANGLE_TOL: f64 = 1e-11;
 
     fn cam(alpha: f64, beta: f64) -> ExtendedUnified {
-        ExtendedUnified {
-            intrinsics: Intrinsics {
-                fx: 300.0,
-                fy: 298.0,
-                cx: 320.5,
-                cy: 240.25,
-                width: 640,
-                height: 480,
-            },
-            alpha,
-            beta,
-            fov_deg: 180.0,
-        }
+        ExtendedUnified::unchecked(crate::camera::tests::vga(), alpha, beta, 180.0)
     }
 
     #[test]
@@ -228,19 +187,9 @@ mod tests {
         for (a, b) in [(0.0, 1.0), (0.3, 1.5), (0.5, 1.0), (0.6, 1.2), (0.7, 0.5)] {
             let c = cam(a, b);
             let tm = c.theta_max().min(3.1) - 1e-4;
-            for i in 0..=100 {
-                let t = tm * i as f64 / 100.0;
-                for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                    let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                    let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                    let err = (angle_to_axis(back) - t).abs()
-                        + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                    assert!(
-                        err < ANGLE_TOL,
-                        "alpha {a} beta {b} theta {t} phi {phi}: {err}"
-                    );
-                }
-            }
+            let thetas = (0..=100).map(|i| tm * i as f64 / 100.0);
+            let what = format!("alpha {a} beta {b}");
+            assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, &what);
         }
     }
 }

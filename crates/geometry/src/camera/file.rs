@@ -187,6 +187,14 @@ mod tests {
         }
     }
 
+    /// `text` is refused naming `field`, with every one of `words` in the message.
+    fn assert_refused(text: &str, field: &str, words: &[&str]) {
+        let e = bad(text);
+        assert_eq!(field_of(&e), field, "{e}");
+        let msg = e.to_string();
+        assert!(words.iter().all(|w| msg.contains(w)), "{msg}");
+    }
+
     #[test]
     fn shipped_files_hold_the_documented_values() {
         let f195 = load(shipped("f195.toml")).unwrap();
@@ -523,13 +531,7 @@ mod tests {
             f195_text().replace("model =", "# model ="),
             f195_text().replace("\"kannala-brandt\"", "3"),
         ] {
-            let e = bad(&text);
-            assert_eq!(field_of(&e), "model");
-            let msg = e.to_string();
-            assert!(
-                msg.contains("kannala-brandt") && msg.contains("pinhole"),
-                "{msg}"
-            );
+            assert_refused(&text, "model", &["kannala-brandt", "pinhole"]);
         }
     }
 
@@ -537,13 +539,7 @@ mod tests {
     fn polynomial_folding_inside_the_declared_fov_is_rejected() {
         // d' = 1 - 1.5 theta^2 + ... vanishes near 46.8 deg, long before 97.5 deg.
         let text = f195_text().replace("k1 = 3.37012024344156e-19", "k1 = -0.5");
-        let e = bad(&text);
-        assert_eq!(field_of(&e), "k1..k4");
-        let msg = e.to_string();
-        assert!(
-            msg.contains("stops increasing") && msg.contains("97.500"),
-            "{msg}"
-        );
+        assert_refused(&text, "k1..k4", &["stops increasing", "97.500"]);
         // The same polynomial is fine for a 90 degree lens.
         let ok = text.replace("fov_deg = 195.0", "fov_deg = 90.0");
         assert!(parse(&ok, Path::new("ok.toml")).is_ok());
@@ -597,48 +593,36 @@ mod tests {
 
     #[test]
     fn new_models_check_their_parameters_by_field() {
-        let ds = shipped_text("ds_example.toml");
-        assert_eq!(
-            field_of(&bad(&ds.replace("xi = -0.172", "xi = -1.0"))),
-            "xi"
-        );
-        assert_eq!(field_of(&bad(&ds.replace("xi = -0.172", "xi = 1.5"))), "xi");
-        assert_eq!(
-            field_of(&bad(&ds.replace("alpha = 0.593", "alpha = 1.2"))),
-            "alpha"
-        );
-        assert_eq!(field_of(&bad(&ds.replace("fx = 158.28", "fx = nan"))), "fx");
+        // (file, text replaced, replacement, the field the error names)
+        let cases = [
+            ("ds_example.toml", "xi = -0.172", "xi = -1.0", "xi"),
+            ("ds_example.toml", "xi = -0.172", "xi = 1.5", "xi"),
+            ("ds_example.toml", "alpha = 0.593", "alpha = 1.2", "alpha"),
+            ("ds_example.toml", "fx = 158.28", "fx = nan", "fx"),
+            ("ucm_example.toml", "alpha = 0.48", "alpha = 1.0", "alpha"),
+            ("ucm_example.toml", "alpha = 0.48", "alpha = -0.1", "alpha"),
+            ("eucm_example.toml", "beta = 1.2", "beta = 0.0", "beta"),
+            ("eucm_example.toml", "alpha = 0.45", "alpha = 2.0", "alpha"),
+            ("ocam_example.toml", "[-181.0,", "[181.0,", "poly"),
+            ("ocam_example.toml", "c = 1.0003", "c = -1.0", "c, d, e"),
+            ("ocam_example.toml", "[-181.0,", "[-181.0, inf,", "poly"),
+            ("equirect.toml", "width = 1024", "width = 0", "width"),
+        ];
+        for (name, from, to, field) in cases {
+            let text = shipped_text(name);
+            assert!(text.contains(from), "{name} has no `{from}`");
+            assert_eq!(
+                field_of(&bad(&text.replace(from, to))),
+                field,
+                "{name}: {to}"
+            );
+        }
         // theta_max is ~125.3 deg for these xi, alpha: a 260 degree lens does not fit.
-        let e = bad(&ds.replace("fov_deg = 153.4", "fov_deg = 260.0"));
-        assert_eq!(field_of(&e), "fov_deg");
-        assert!(e.to_string().contains("xi, alpha"), "{e}");
-
-        let ucm = shipped_text("ucm_example.toml");
-        assert_eq!(
-            field_of(&bad(&ucm.replace("alpha = 0.48", "alpha = 1.0"))),
-            "alpha"
-        );
-        assert_eq!(
-            field_of(&bad(&ucm.replace("alpha = 0.48", "alpha = -0.1"))),
-            "alpha"
-        );
-
-        let eucm = shipped_text("eucm_example.toml");
-        assert_eq!(
-            field_of(&bad(&eucm.replace("beta = 1.2", "beta = 0.0"))),
-            "beta"
-        );
-        assert_eq!(
-            field_of(&bad(&eucm.replace("alpha = 0.45", "alpha = 2.0"))),
-            "alpha"
-        );
+        let ds = shipped_text("ds_example.toml");
+        let wide = ds.replace("fov_deg = 153.4", "fov_deg = 260.0");
+        assert_refused(&wide, "fov_deg", &["xi, alpha"]);
 
         let ocam = shipped_text("ocam_example.toml");
-        assert_eq!(field_of(&bad(&ocam.replace("[-181.0,", "[181.0,"))), "poly");
-        assert_eq!(
-            field_of(&bad(&ocam.replace("c = 1.0003", "c = -1.0"))),
-            "c, d, e"
-        );
         // rho f' - f = 181 + 0.01 rho^2 - 2e-4 rho^3 vanishes near rho = 117 px (theta ~ 30 deg).
         let folding = ocam
             .lines()
@@ -647,11 +631,7 @@ mod tests {
                 false => format!("{l}\n"),
             })
             .collect::<String>();
-        let e = bad(&folding);
-        assert_eq!(field_of(&e), "fov_deg");
-        assert!(e.to_string().contains("poly"), "{e}");
-        let e = bad(&ocam.replace("[-181.0,", "[-181.0, inf,"));
-        assert_eq!(field_of(&e), "poly");
+        assert_refused(&folding, "fov_deg", &["poly"]);
         // inv_poly is optional.
         let stripped: String = ocam
             .lines()
@@ -664,10 +644,6 @@ mod tests {
         assert!(m.inv_poly.is_empty());
 
         let eq = shipped_text("equirect.toml");
-        assert_eq!(
-            field_of(&bad(&eq.replace("width = 1024", "width = 0"))),
-            "width"
-        );
         let msg = bad(&format!("{eq}fov_deg = 360.0\n")).to_string();
         assert!(msg.contains("fov_deg"), "{msg}");
     }
@@ -679,8 +655,6 @@ mod tests {
         let text = shipped_text("radtan_example.toml")
             .replace("k1 = -0.28340811", "k1 = -0.5")
             .replace("k2 = 0.07395907", "k2 = 0.0");
-        let e = bad(&text);
-        assert_eq!(field_of(&e), "k1, k2, p1, p2, k3");
-        assert!(e.to_string().contains("folds inside the image"), "{e}");
+        assert_refused(&text, "k1, k2, p1, p2, k3", &["folds inside the image"]);
     }
 }

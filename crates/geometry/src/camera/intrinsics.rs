@@ -4,6 +4,7 @@
 
 use super::schema::{check_finite, check_fov, check_size, Checked, Invalid};
 use super::PixelConvention;
+use crate::vec3::finite3;
 
 /// Focal lengths, principal point and image size, in pixels (top-left pixel centre at 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -124,6 +125,39 @@ impl Intrinsics {
             })
         };
         [row(self.fx, ray[0], 0), row(self.fy, ray[1], 1)]
+    }
+}
+
+/// A model whose projection divides by a denominator of the ray (the unified family: Usenko et
+/// al. 2018 Eqs. 14, 22, 40): `u = fx x / den + cx`, `v = fy y / den + cy`. The model gives its
+/// denominator and the denominator's gradient; its `project` ([`Divided::project_by_den`]) and
+/// `project_jacobian` ([`Divided::jacobian_by_den`], the quotient rule of
+/// [`Intrinsics::divided_jacobian`]) are written once here.
+pub(crate) trait Divided: std::ops::Deref<Target = Intrinsics> {
+    /// What the denominator is computed from and its gradient needs (the ray's norms).
+    type Parts;
+    /// `(den, parts)` of a finite ray inside the model's domain, or `None` outside it.
+    fn den(&self, ray: [f64; 3]) -> Option<(f64, Self::Parts)>;
+    /// The gradient `d den / d[x, y, z]` at a ray inside the domain.
+    fn den_gradient(&self, ray: [f64; 3], parts: Self::Parts) -> [f64; 3];
+
+    /// [`Intrinsics::project_divided`], or `None` for a non-finite ray or one outside the domain.
+    fn project_by_den(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
+        if !finite3(ray) {
+            return None;
+        }
+        let (den, _) = self.den(ray)?;
+        Some(self.project_divided(ray, den))
+    }
+
+    /// [`Intrinsics::divided_jacobian`] with [`Divided::den_gradient`], or `None` where
+    /// [`Divided::project_by_den`] is `None`.
+    fn jacobian_by_den(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        if !finite3(ray) {
+            return None;
+        }
+        let (den, parts) = self.den(ray)?;
+        Some(self.divided_jacobian(ray, den, self.den_gradient(ray, parts)))
     }
 }
 

@@ -307,7 +307,6 @@ mod tests {
     /// d' >= 2e-6 on the grid of the test below (measured worst: 8e-11 rad).
     const NEAR_FOLD_ANGLE_TOL: f64 = 1e-9;
 
-
     /// A made-up lens whose polynomial turns back: d' = 1 - 1.5 theta^2 = 0 at theta = sqrt(2/3).
     fn folding() -> KannalaBrandt {
         kb(

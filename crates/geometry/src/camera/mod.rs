@@ -64,18 +64,17 @@ impl PixelConvention {
     }
 }
 
-impl PixelConvention {
-    /// Every convention with its name on the command line and in experiment files.
-    const NAMES: [(&'static str, PixelConvention); 2] = [
-        ("half-pixel", PixelConvention::HalfPixel),
-        ("paper", PixelConvention::Paper),
-    ];
-}
-
-/// `FromStr` for a command-line enum from its `NAMES` table (name, value), through
-/// [`from_name`]; `$what` names the enum in the error.
+/// A command-line enum's names: `NAMES`, the table of `(name, value)` in the order given, and
+/// `FromStr` through it ([`from_name`]; `$what` names the enum in the error). Exported for the
+/// enums of `calibconv` too.
+#[macro_export]
 macro_rules! from_str_by_name {
-    ($ty:ty, $what:literal) => {
+    ($ty:ident, $what:literal, { $($name:literal => $value:ident),* $(,)? }) => {
+        impl $ty {
+            /// Every value with its name on the command line and in files.
+            const NAMES: [(&'static str, $ty); [$($name),*].len()] = [$(($name, $ty::$value)),*];
+        }
+
         impl std::str::FromStr for $ty {
             type Err = String;
             fn from_str(s: &str) -> std::result::Result<Self, String> {
@@ -84,13 +83,14 @@ macro_rules! from_str_by_name {
         }
     };
 }
-pub(crate) use from_str_by_name;
-
-from_str_by_name!(PixelConvention, "pixel convention");
+from_str_by_name!(PixelConvention, "pixel convention", {
+    "half-pixel" => HalfPixel,
+    "paper" => Paper,
+});
 
 /// The value named `s` in `names` (a command-line value's `FromStr`), or the error that lists
 /// the names: ``unknown {what} `{s}` (expected a, b or c)``.
-pub(crate) fn from_name<T: Copy>(
+pub fn from_name<T: Copy>(
     what: &str,
     s: &str,
     names: &[(&str, T)],

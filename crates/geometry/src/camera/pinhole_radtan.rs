@@ -26,11 +26,11 @@
 //! (`u = -0.5` and `u = width - 0.5`) on the principal row. Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use crate::vec3::{finite3, normalize};
 use super::intrinsics::deref_intrinsics;
 use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
+use crate::vec3::{finite3, normalize};
 
 /// Newton iterations allowed when undistorting. Newton converges quadratically from `(x'', y'')`
 /// in 3 to 6 steps for realistic lenses (measured on the test cameras); halved steps near the
@@ -364,7 +364,6 @@ mod tests {
     const PX_TOL: f64 = 1e-9;
     /// A bisected root or a sum of two atans: a few ulps; 1e-12 is margin.
     const ROUND_OFF_TOL: f64 = 1e-12;
-
 
     #[test]
     fn r_max_is_the_fold_of_the_radial_part() {

@@ -33,13 +33,13 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
-use crate::vec3::{finite3, normalize};
 use super::schema::{
     check_finite, check_fov, check_fov_in_domain, check_size, checked, float_list, raw_camera_file,
     write_fields, CameraFile, Checked, Invalid,
 };
 use super::solve::{increasing_root, last_ok};
 use super::{Camera, CameraModel, PixelConvention};
+use crate::vec3::{finite3, normalize};
 
 /// Convergence threshold on the Newton step, in pixels of `rho`: far below anything visible,
 /// far above the ~1e-13 px round-off of `rho ~ 1e3`, so the test can fire.

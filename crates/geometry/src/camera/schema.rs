@@ -117,6 +117,61 @@ macro_rules! raw_camera_file {
 }
 pub(crate) use raw_camera_file;
 
+/// The schema and constructors of a fisheye model whose fields are `intrinsics`, its float
+/// parameters `$param` (in file order) and `fov_deg`, with nothing derived (double sphere,
+/// unified, extended unified): its `Raw` ([`raw_camera_file!`], `fisheye struct`), its
+/// [`CameraFile`] (`model = $name`) and `new` / `unchecked` taking `(intrinsics, $param..,
+/// fov_deg)`. The model writes its own `validate`, which `new` calls.
+macro_rules! plain_fisheye_file {
+    ($model:ident, $name:literal, [$($param:ident),+]) => {
+        $crate::camera::schema::raw_camera_file! {
+            #[doc = concat!("A `", $name, "` camera file as written.")]
+            fisheye struct Raw {
+                $($param: f64,)+
+            }
+        }
+
+        impl $crate::camera::schema::CameraFile for $model {
+            const MODEL: &'static str = $name;
+            type Raw = Raw;
+            fn fields(&self) -> Vec<(&'static str, f64)> {
+                let params = [$((stringify!($param), self.$param)),+];
+                self.intrinsics.with_fov(self.fov_deg, &params)
+            }
+            fn from_raw(r: Raw) -> Result<Self, $crate::camera::Invalid> {
+                $model::new(r.intrinsics(), $(r.$param,)+ r.fov_deg)
+            }
+        }
+
+        impl $model {
+            #[doc = concat!("A checked camera (see [`", stringify!($model), "::validate`]).")]
+            pub fn new(
+                intrinsics: $crate::camera::Intrinsics,
+                $($param: f64,)+
+                fov_deg: f64,
+            ) -> Result<Self, $crate::camera::Invalid> {
+                let cam = Self::unchecked(intrinsics, $($param,)+ fov_deg);
+                $crate::camera::schema::checked(cam, Self::validate)
+            }
+
+            /// The camera without the checks: for probing the model's domain before its field
+            /// of view is known.
+            pub(crate) fn unchecked(
+                intrinsics: $crate::camera::Intrinsics,
+                $($param: f64,)+
+                fov_deg: f64,
+            ) -> Self {
+                $model {
+                    intrinsics,
+                    $($param,)+
+                    fov_deg,
+                }
+            }
+        }
+    };
+}
+pub(crate) use plain_fisheye_file;
+
 /// The first non-finite field, if any.
 pub(crate) fn check_finite<'a>(fields: impl IntoIterator<Item = (&'a str, f64)>) -> Checked {
     match fields.into_iter().find(|(_, v)| !v.is_finite()) {

@@ -35,6 +35,32 @@ pub(super) fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
     c[0].hypot(c[1]).hypot(c[2]).atan2(dot(a, b))
 }
 
+/// A 640x480 camera's intrinsics with `fx != fy` and a fractional principal point: the test
+/// cameras of the unified family.
+pub(super) fn vga() -> Intrinsics {
+    Intrinsics::from_parts([300.0, 298.0, 320.5, 240.25], [640, 480])
+}
+
+/// Every ray at an angle in `thetas` to the optical axis and an azimuth in `phis` projects and
+/// unprojects back to within `tol` radians: `|angle_to_axis(back) - theta|` plus the azimuth
+/// error `|back_x ray_y - back_y ray_x|`. `what` names the camera in the failure.
+pub(super) fn assert_round_trips<C: CameraModel>(
+    cam: &C,
+    thetas: impl IntoIterator<Item = f64>,
+    phis: &[f64],
+    tol: f64,
+    what: &str,
+) {
+    for t in thetas {
+        for &phi in phis {
+            let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
+            let back = cam.unproject(cam.project(ray).unwrap()).unwrap();
+            let err = (angle_to_axis(back) - t).abs() + (back[0] * ray[1] - back[1] * ray[0]).abs();
+            assert!(err < tol, "{what} theta {t} phi {phi}: {err}");
+        }
+    }
+}
+
 /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
 pub(super) fn f195() -> KannalaBrandt {
     kb(

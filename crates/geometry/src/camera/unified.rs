@@ -30,10 +30,10 @@
 //! cross-check each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
-use crate::vec3::{finite3, normalize};
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
-use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
+use super::schema::{check_fov_in_domain, plain_fisheye_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
+use crate::vec3::normalize;
 
 /// The denominator `den = alpha d + (1 - alpha) z` of the unified-model family's projection
 /// (Eqs. 14, 22) for a ray with `z` and norm `d` (the model's own: Euclidean, or with `beta`),
@@ -70,41 +70,9 @@ pub struct Unified {
 
 deref_intrinsics!(Unified);
 
-raw_camera_file! {
-    /// A Unified Camera Model file as written.
-    fisheye struct Raw {
-        alpha: f64,
-    }
-}
-
-impl CameraFile for Unified {
-    const MODEL: &'static str = "unified";
-    type Raw = Raw;
-    fn fields(&self) -> Vec<(&'static str, f64)> {
-        self.intrinsics
-            .with_fov(self.fov_deg, &[("alpha", self.alpha)])
-    }
-    fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        Unified::new(r.intrinsics(), r.alpha, r.fov_deg)
-    }
-}
+plain_fisheye_file!(Unified, "unified", [alpha]);
 
 impl Unified {
-    /// A checked camera (see [`Unified::validate`]).
-    pub fn new(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Result<Self, Invalid> {
-        checked(Self::unchecked(intrinsics, alpha, fov_deg), Self::validate)
-    }
-
-    /// The camera without the checks: for probing the model's domain before its field of view
-    /// is known.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, alpha: f64, fov_deg: f64) -> Self {
-        Unified {
-            intrinsics,
-            alpha,
-            fov_deg,
-        }
-    }
-
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
     /// `alpha in [0, 1)`, and `fov_deg / 2` below [`Unified::theta_max`]; the error names the field.
     pub fn validate(&self) -> Checked {
@@ -127,36 +95,34 @@ impl Unified {
         (-unified_w(self.alpha)).clamp(-1.0, 1.0).acos()
     }
 
-    /// `(d, den)` of a ray inside the domain, or `None`.
-    fn parts(&self, ray: [f64; 3]) -> Option<(f64, f64)> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
+    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
+    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
+        self.jacobian_by_den(ray)
+    }
+}
+
+impl Divided for Unified {
+    /// The ray's norm `d`.
+    type Parts = f64;
+
+    /// `den = alpha d + (1 - alpha) z` with `d = |ray|` (Eq. 14), inside `z > -w d`.
+    fn den(&self, [x, y, z]: [f64; 3]) -> Option<(f64, f64)> {
         let d = x.hypot(y).hypot(z);
-        unified_den(self.alpha, d, z).map(|den| (d, den))
+        unified_den(self.alpha, d, z).map(|den| (den, d))
     }
 
-    /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `den = alpha d + (1 - alpha) z`:
-    ///
-    /// ```text
-    /// dden/dp = alpha p / d + (1 - alpha) e_z
-    /// du/dp = fx (e_x / den - x dden/dp / den^2),   dv/dp = fy (e_y / den - y dden/dp / den^2)
-    /// ```
-    pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
-        let (d, den) = self.parts(ray)?;
+    /// `dden/dp = alpha p / d + (1 - alpha) e_z`.
+    fn den_gradient(&self, ray: [f64; 3], d: f64) -> [f64; 3] {
         let a = self.alpha;
-        let dden = [a * ray[0] / d, a * ray[1] / d, a * ray[2] / d + (1.0 - a)];
-        Some(self.intrinsics.divided_jacobian(ray, den, dden))
+        [a * ray[0] / d, a * ray[1] / d, a * ray[2] / d + (1.0 - a)]
     }
 }
 
 impl CameraModel for Unified {
     /// Eq. 14 (module docs), or `None` outside `z > -w |ray|`, for a zero or non-finite ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        let (_, den) = self.parts(ray)?;
-Some(self.intrinsics.project_divided(ray, den))
+        self.project_by_den(ray)
     }
 
     /// Mei's closed form (module docs), normalised; `None` where its square root is imaginary,
@@ -185,24 +151,13 @@ Some(self.intrinsics.project_divided(ray, den))
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vec3::angle_to_axis;
+    use crate::camera::tests::assert_round_trips;
 
     /// Closed-form round trips: a few ulps of the ray (~1e-15 rad); 1e-12 rad is margin.
     const ANGLE_TOL: f64 = 1e-12;
 
     fn cam(alpha: f64) -> Unified {
-        Unified {
-            intrinsics: Intrinsics {
-                fx: 300.0,
-                fy: 298.0,
-                cx: 320.5,
-                cy: 240.25,
-                width: 640,
-                height: 480,
-            },
-            alpha,
-            fov_deg: 180.0,
-        }
+        Unified::unchecked(crate::camera::tests::vga(), alpha, 180.0)
     }
 
     #[test]
@@ -235,16 +190,9 @@ mod tests {
         for alpha in [0.0, 0.3, 0.5, 0.6, 0.8] {
             let c = cam(alpha);
             let tm = c.theta_max().min(3.1);
-            for i in 0..=100 {
-                let t = tm * i as f64 / 100.0 * 0.9999;
-                for phi in [0.0f64, 1.0, 2.5, 4.0] {
-                    let ray = [t.sin() * phi.cos(), t.sin() * phi.sin(), t.cos()];
-                    let back = c.unproject(c.project(ray).unwrap()).unwrap();
-                    let err = (angle_to_axis(back) - t).abs()
-                        + (back[0] * ray[1] - back[1] * ray[0]).abs();
-                    assert!(err < ANGLE_TOL, "alpha {alpha} theta {t} phi {phi}: {err}");
-                }
-            }
+            let thetas = (0..=100).map(|i| tm * i as f64 / 100.0 * 0.9999);
+            let what = format!("alpha {alpha}");
+            assert_round_trips(&c, thetas, &[0.0, 1.0, 2.5, 4.0], ANGLE_TOL, &what);
         }
     }
 

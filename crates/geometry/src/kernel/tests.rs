@@ -10,6 +10,11 @@ fn symmetric_kb() -> Camera {
     Camera::KannalaBrandt(KannalaBrandt::new(intrinsics, [0.0, -0.01, 0.0, 0.0], 195.0).unwrap())
 }
 
+/// The offsets of a 3x3 "same" layer on a `size` map, no padding frame.
+fn offsets_3x3(cam: &Camera, size: [usize; 2]) -> Result<Offsets> {
+    compute_offsets(cam, size, &LayerGeometry::same(3), &InputFrame::default())
+}
+
 #[test]
 fn rotation_takes_the_optical_axis_to_the_ray() {
     for r in [
@@ -54,13 +59,7 @@ fn pinhole_offsets_at_the_principal_point_are_the_focal_mismatch() {
     let d = kernel_focal(3, cam.fov(), w).unwrap();
     let ratio = fx / d - 1.0;
     assert!(ratio.abs() < 0.01, "focal mismatch {ratio}");
-    let off = compute_offsets(
-        &cam,
-        [h, w],
-        &LayerGeometry::same(3),
-        &InputFrame::default(),
-    )
-    .unwrap();
+    let off = offsets_3x3(&cam, [h, w]).unwrap();
     for i in 0..3 {
         for j in 0..3 {
             let [dy, dx] = off.get([i, j], [50, 50]);
@@ -77,13 +76,7 @@ fn pinhole_offsets_at_the_principal_point_are_the_focal_mismatch() {
 #[test]
 fn offsets_are_mirror_symmetric_about_the_principal_point() {
     let cam = symmetric_kb();
-    let off = compute_offsets(
-        &cam,
-        [96, 128],
-        &LayerGeometry::same(3),
-        &InputFrame::default(),
-    )
-    .unwrap();
+    let off = offsets_3x3(&cam, [96, 128]).unwrap();
     let [ho, wo] = off.output_size;
     for oy in (0..ho).step_by(7) {
         for ox in (0..wo).step_by(5) {
@@ -149,13 +142,7 @@ fn dilation_scales_the_virtual_kernel() {
     };
     let off = compute_offsets(&cam, [96, 128], &g, &InputFrame::default()).unwrap();
     assert_eq!(off.output_size, [96, 128]);
-    let one = compute_offsets(
-        &cam,
-        [96, 128],
-        &LayerGeometry::same(3),
-        &InputFrame::default(),
-    )
-    .unwrap();
+    let one = offsets_3x3(&cam, [96, 128]).unwrap();
     let [dy2, _] = off.get([0, 1], [47, 63]);
     let [dy1, _] = one.get([0, 1], [47, 63]);
     assert!((dy2 - 2.0 * dy1).abs() < 0.05, "{dy2} vs 2 x {dy1}");
@@ -203,13 +190,7 @@ fn deterministic() {
 #[test]
 fn too_small_feature_maps_are_rejected_clearly() {
     let cam = symmetric_kb();
-    let e = compute_offsets(
-        &cam,
-        [3, 3],
-        &LayerGeometry::same(3),
-        &InputFrame::default(),
-    )
-    .unwrap_err();
+    let e = offsets_3x3(&cam, [3, 3]).unwrap_err();
     assert!(e.to_string().contains("feature map"), "{e}");
     let even = LayerGeometry {
         kernel: [2, 2],
@@ -229,13 +210,7 @@ fn pyramid_sizes_floor_like_maxpool() {
 #[test]
 fn offsets_too_large_to_hold_are_refused_naming_the_size() {
     let cam = symmetric_kb();
-    let e = compute_offsets(
-        &cam,
-        [100_000, 100_000],
-        &LayerGeometry::same(3),
-        &InputFrame::default(),
-    )
-    .unwrap_err();
+    let e = offsets_3x3(&cam, [100_000, 100_000]).unwrap_err();
     assert!(matches!(e, Error::InvalidArgument(_)), "{e}");
     assert!(e.to_string().contains("100000x100000"), "{e}");
     // Sizes that overflow `usize` are refused too, not wrapped.

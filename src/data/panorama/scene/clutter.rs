@@ -7,7 +7,7 @@ use std::f64::consts::PI;
 use super::class::*;
 use super::placement::Frame;
 use super::Builder;
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern};
 use crate::data::rng::Rng;
 
 impl Builder {
@@ -25,61 +25,36 @@ impl Builder {
                     let screen = self.material([0.03; 3], [0.03; 3], Pattern::Screen);
                     let body = self.plain(srgb(30, 30, 32), 0.03);
                     let w = self.rng.uniform(0.25, 0.35);
-                    self.cuboid(
+                    // Foot, neck, screen.
+                    let (h, screen_e) = (height, [height + 0.1, height + 0.1 + w * 1.2]);
+                    self.cuboids(
                         &item,
-                        [0.0, 0.0],
-                        [height, height + 0.015],
-                        [0.1, 0.08],
                         CLUTTER,
-                        body,
-                    );
-                    self.cuboid(
-                        &item,
-                        [0.0, -0.02],
-                        [height, height + 0.12],
-                        [0.025, 0.015],
-                        CLUTTER,
-                        body,
-                    );
-                    self.cuboid(
-                        &item,
-                        [0.0, 0.0],
-                        [height + 0.1, height + 0.1 + w * 1.2],
-                        [w, 0.02],
-                        CLUTTER,
-                        screen,
+                        &[
+                            ([0.0, 0.0], [h, h + 0.015], [0.1, 0.08], body),
+                            ([0.0, -0.02], [h, h + 0.12], [0.025, 0.015], body),
+                            ([0.0, 0.0], screen_e, [w, 0.02], screen),
+                        ],
                     );
                 }
                 1 => {
-                    let c = *self.rng.pick(&[srgb(40, 40, 44), srgb(190, 192, 196)]);
+                    let c = pick_srgb(&mut self.rng, &[0x28282C, 0xBEC0C4]);
                     let m = self.plain(c, 0.03);
-                    self.cuboid(
+                    // Base and lid.
+                    let h = height;
+                    self.cuboids(
                         &item,
-                        [0.0, 0.0],
-                        [height, height + 0.02],
-                        [0.17, 0.12],
                         CLUTTER,
-                        m,
-                    );
-                    self.cuboid(
-                        &item,
-                        [0.0, -0.12],
-                        [height + 0.02, height + 0.24],
-                        [0.17, 0.006],
-                        CLUTTER,
-                        m,
+                        &[
+                            ([0.0, 0.0], [h, h + 0.02], [0.17, 0.12], m),
+                            ([0.0, -0.12], [h + 0.02, h + 0.24], [0.17, 0.006], m),
+                        ],
                     );
                 }
                 2 => {
                     let m = self.plain(srgb(240, 240, 235), 0.02);
-                    self.cuboid(
-                        &item,
-                        [0.0, 0.0],
-                        [height, height + 0.01],
-                        [0.105, 0.15],
-                        CLUTTER,
-                        m,
-                    );
+                    let e = [height, height + 0.01];
+                    self.cuboid(&item, [0.0, 0.0], e, [0.105, 0.15], CLUTTER, m);
                 }
                 3 => {
                     let c = vary(srgb(200, 60, 50), &mut self.rng, 0.3);
@@ -90,126 +65,105 @@ impl Builder {
                     let c = vary(srgb(60, 90, 150), &mut self.rng, 0.3);
                     let m = self.plain(c, 0.05);
                     let h = self.rng.uniform(0.03, 0.12);
-                    self.cuboid(
-                        &item,
-                        [0.0, 0.0],
-                        [height, height + h],
-                        [0.12, 0.09],
-                        CLUTTER,
-                        m,
-                    );
+                    let e = [height, height + h];
+                    self.cuboid(&item, [0.0, 0.0], e, [0.12, 0.09], CLUTTER, m);
                 }
             }
             self.end();
         }
     }
 
+    /// 2 to 10 pieces on the floor: cabinets against walls (one in five), free-standing boxes,
+    /// bins, plants and appliances.
     pub(super) fn floor_clutter(&mut self) {
         let n = self.rng.int(2, 10);
         for _ in 0..n {
-            let kind = self.rng.below(5);
-            match kind {
-                // Cabinet against a wall.
-                0 => {
-                    let hx = self.rng.uniform(0.2, 0.5);
-                    let hz = self.rng.uniform(0.2, 0.3);
-                    let top = self.rng.uniform(0.7, 1.3);
-                    let Some(f) = self.against_wall(hx, hz, [0.0, top], 10) else {
-                        continue;
-                    };
-                    let c = vary(
-                        *self.rng.pick(&[
-                            srgb(180, 182, 186),
-                            srgb(210, 200, 175),
-                            srgb(90, 92, 98),
-                        ]),
-                        &mut self.rng,
-                        0.06,
-                    );
-                    let m = self.plain(c, 0.04);
-                    let handle = self.plain(tint(c, 0.5), 0.02);
-                    self.begin();
-                    self.cuboid(&f, [0.0, 0.0], [0.0, top], [hx, hz], CLUTTER, m);
-                    let drawers = self.rng.int(1, 4);
-                    for k in 0..drawers {
-                        let e = top * (k as f64 + 0.5) / drawers as f64;
-                        self.cuboid(
-                            &f,
-                            [0.0, hz + 0.01],
-                            [e - 0.01, e + 0.01],
-                            [hx * 0.3, 0.01],
-                            CLUTTER,
-                            handle,
-                        );
-                    }
-                    self.end();
-                }
-                // Boxes, bins, plants: free-standing.
-                _ => {
-                    let r = self.rng.uniform(0.15, 0.35);
-                    let turn = |r: &mut Rng| r.uniform(0.0, PI);
-                    let Some(f) = self.free_floor(15, 0.0, [r, r], 0.05, turn) else {
-                        continue;
-                    };
-                    self.begin();
-                    match kind {
-                        1 => {
-                            let c = vary(srgb(170, 130, 85), &mut self.rng, 0.1);
-                            let m = self.plain(c, 0.1);
-                            let h = self.rng.uniform(0.2, 0.6);
-                            self.cuboid(&f, [0.0, 0.0], [0.0, h], [r, r * 0.8], CLUTTER, m);
-                            if self.rng.chance(0.4) {
-                                let h2 = h + self.rng.uniform(0.15, 0.4);
-                                let g = f.sub(0.0, 0.0, self.rng.uniform(-0.3, 0.3));
-                                self.cuboid(
-                                    &g,
-                                    [0.0, 0.0],
-                                    [h, h2],
-                                    [r * 0.7, r * 0.6],
-                                    CLUTTER,
-                                    m,
-                                );
-                            }
-                        }
-                        2 => {
-                            let c = *self.rng.pick(&[
-                                srgb(60, 90, 160),
-                                srgb(80, 80, 85),
-                                srgb(40, 120, 60),
-                            ]);
-                            let m = self.plain(c, 0.05);
-                            let h = self.rng.uniform(0.3, 0.6);
-                            self.cylinder(&f, [0.0, 0.0], r * 0.7, [0.0, h], CLUTTER, m);
-                        }
-                        3 => {
-                            let c = vary(srgb(150, 80, 50), &mut self.rng, 0.1);
-                            let pot = self.plain(c, 0.05);
-                            let c = vary(srgb(55, 110, 45), &mut self.rng, 0.1);
-                            let leaves = self.material(
-                                c,
-                                srgb(30, 70, 25),
-                                Pattern::Fabric {
-                                    freq: 25.0,
-                                    amp: 0.35,
-                                },
-                            );
-                            let h = self.rng.uniform(0.25, 0.4);
-                            self.cylinder(&f, [0.0, 0.0], r * 0.6, [0.0, h], CLUTTER, pot);
-                            let top = h + self.rng.uniform(0.4, 1.0);
-                            self.cylinder(&f, [0.0, 0.0], r, [h, top], CLUTTER, leaves);
-                        }
-                        _ => {
-                            // A printer / appliance.
-                            let m = self.plain(srgb(215, 215, 210), 0.03);
-                            let d = self.plain(srgb(50, 50, 52), 0.03);
-                            self.cuboid(&f, [0.0, 0.0], [0.0, 0.7], [r, r], CLUTTER, d);
-                            self.cuboid(&f, [0.0, 0.0], [0.7, 1.0], [r, r], CLUTTER, m);
-                        }
-                    }
-                    self.end();
-                }
+            match self.rng.below(5) {
+                0 => self.cabinet(),
+                kind => self.free_standing(kind),
             }
         }
+    }
+
+    /// A cabinet with drawer handles against a wall.
+    fn cabinet(&mut self) {
+        let hx = self.rng.uniform(0.2, 0.5);
+        let hz = self.rng.uniform(0.2, 0.3);
+        let top = self.rng.uniform(0.7, 1.3);
+        let Some(f) = self.against_wall(hx, hz, [0.0, top], 10) else {
+            return;
+        };
+        let c = vary(
+            pick_srgb(&mut self.rng, &[0xB4B6BA, 0xD2C8AF, 0x5A5C62]),
+            &mut self.rng,
+            0.06,
+        );
+        let m = self.plain(c, 0.04);
+        let handle = self.plain(tint(c, 0.5), 0.02);
+        self.begin();
+        self.cuboid(&f, [0.0, 0.0], [0.0, top], [hx, hz], CLUTTER, m);
+        let drawers = self.rng.int(1, 4);
+        for k in 0..drawers {
+            let e = top * (k as f64 + 0.5) / drawers as f64;
+            let (at, half) = ([0.0, hz + 0.01], [hx * 0.3, 0.01]);
+            self.cuboid(&f, at, [e - 0.01, e + 0.01], half, CLUTTER, handle);
+        }
+        self.end();
+    }
+
+    /// A free-standing piece of kind 1 (boxes), 2 (a bin), 3 (a plant) or 4 (an appliance).
+    fn free_standing(&mut self, kind: u64) {
+        let r = self.rng.uniform(0.15, 0.35);
+        let turn = |r: &mut Rng| r.uniform(0.0, PI);
+        let Some(f) = self.free_floor(15, 0.0, [r, r], 0.05, turn) else {
+            return;
+        };
+        self.begin();
+        match kind {
+            1 => {
+                let c = vary(srgb(170, 130, 85), &mut self.rng, 0.1);
+                let m = self.plain(c, 0.1);
+                let h = self.rng.uniform(0.2, 0.6);
+                self.cuboid(&f, [0.0, 0.0], [0.0, h], [r, r * 0.8], CLUTTER, m);
+                if self.rng.chance(0.4) {
+                    let h2 = h + self.rng.uniform(0.15, 0.4);
+                    let g = f.sub(0.0, 0.0, self.rng.uniform(-0.3, 0.3));
+                    let half = [r * 0.7, r * 0.6];
+                    self.cuboid(&g, [0.0, 0.0], [h, h2], half, CLUTTER, m);
+                }
+            }
+            2 => {
+                let c = pick_srgb(&mut self.rng, &[0x3C5AA0, 0x505055, 0x28783C]);
+                let m = self.plain(c, 0.05);
+                let h = self.rng.uniform(0.3, 0.6);
+                self.cylinder(&f, [0.0, 0.0], r * 0.7, [0.0, h], CLUTTER, m);
+            }
+            3 => {
+                let c = vary(srgb(150, 80, 50), &mut self.rng, 0.1);
+                let pot = self.plain(c, 0.05);
+                let c = vary(srgb(55, 110, 45), &mut self.rng, 0.1);
+                let leaves = self.material(
+                    c,
+                    srgb(30, 70, 25),
+                    Pattern::Fabric {
+                        freq: 25.0,
+                        amp: 0.35,
+                    },
+                );
+                let h = self.rng.uniform(0.25, 0.4);
+                self.cylinder(&f, [0.0, 0.0], r * 0.6, [0.0, h], CLUTTER, pot);
+                let top = h + self.rng.uniform(0.4, 1.0);
+                self.cylinder(&f, [0.0, 0.0], r, [h, top], CLUTTER, leaves);
+            }
+            _ => {
+                // A printer / appliance.
+                let m = self.plain(srgb(215, 215, 210), 0.03);
+                let d = self.plain(srgb(50, 50, 52), 0.03);
+                self.cuboid(&f, [0.0, 0.0], [0.0, 0.7], [r, r], CLUTTER, d);
+                self.cuboid(&f, [0.0, 0.0], [0.7, 1.0], [r, r], CLUTTER, m);
+            }
+        }
+        self.end();
     }
 
     /// Pictures, posters, radiators and air conditioners on the walls.
@@ -242,12 +196,7 @@ impl Builder {
             match kind {
                 0 => {
                     let c = vary(
-                        *self.rng.pick(&[
-                            srgb(180, 60, 50),
-                            srgb(60, 120, 170),
-                            srgb(220, 200, 120),
-                            srgb(90, 140, 80),
-                        ]),
+                        pick_srgb(&mut self.rng, &[0xB43C32, 0x3C78AA, 0xDCC878, 0x5A8C50]),
                         &mut self.rng,
                         0.2,
                     );
@@ -260,22 +209,16 @@ impl Builder {
                         },
                     );
                     let frame = self.plain(srgb(30, 30, 30), 0.02);
-                    self.cuboid(&f, [0.0, 0.0], e, [width / 2.0, 0.015], CLUTTER, m);
-                    self.cuboid(
+                    // The picture, then the bottom and top of its frame.
+                    let (hw, bar) = (width / 2.0, [width / 2.0 + 0.02, 0.02]);
+                    self.cuboids(
                         &f,
-                        [0.0, 0.0],
-                        [e[0] - 0.02, e[0]],
-                        [width / 2.0 + 0.02, 0.02],
                         CLUTTER,
-                        frame,
-                    );
-                    self.cuboid(
-                        &f,
-                        [0.0, 0.0],
-                        [e[1], e[1] + 0.02],
-                        [width / 2.0 + 0.02, 0.02],
-                        CLUTTER,
-                        frame,
+                        &[
+                            ([0.0, 0.0], e, [hw, 0.015], m),
+                            ([0.0, 0.0], [e[0] - 0.02, e[0]], bar, frame),
+                            ([0.0, 0.0], [e[1], e[1] + 0.02], bar, frame),
+                        ],
                     );
                 }
                 1 => {

@@ -6,19 +6,16 @@ use std::f64::consts::{FRAC_PI_2, PI};
 use super::class::*;
 use super::placement::Frame;
 use super::{Builder, Rect};
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern, Rgb};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern, Rgb};
 use crate::data::rng::Rng;
 
 impl Builder {
     pub(super) fn bookcases(&mut self) {
         let n = self.rng.int(0, 3);
-        let wood = *self.rng.pick(&[
-            srgb(150, 105, 65),
-            srgb(200, 170, 125),
-            srgb(160, 162, 168),
-            srgb(90, 60, 40),
-            srgb(225, 225, 220),
-        ]);
+        let wood = pick_srgb(
+            &mut self.rng,
+            &[0x966941, 0xC8AA7D, 0xA0A2A8, 0x5A3C28, 0xE1E1DC],
+        );
         for _ in 0..n {
             let hx = self.rng.uniform(0.4, 1.0);
             let hz = self.rng.uniform(0.15, 0.22);
@@ -39,59 +36,25 @@ impl Builder {
             let t = 0.025;
             self.begin();
             // Back panel (against the wall, local -z), sides, top, plinth.
-            self.cuboid(
+            let (side, panel) = ([t / 2.0, hz], [hx - t, hz]);
+            self.cuboids(
                 &f,
-                [0.0, -hz + 0.01],
-                [0.0, top],
-                [hx, 0.01],
                 BOOKCASE,
-                back,
-            );
-            self.cuboid(
-                &f,
-                [-hx + t / 2.0, 0.0],
-                [0.0, top],
-                [t / 2.0, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [hx - t / 2.0, 0.0],
-                [0.0, top],
-                [t / 2.0, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [top - t, top],
-                [hx, hz],
-                BOOKCASE,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [0.0, 0.08],
-                [hx - t, hz],
-                BOOKCASE,
-                frame_mat,
+                &[
+                    ([0.0, -hz + 0.01], [0.0, top], [hx, 0.01], back),
+                    ([-hx + t / 2.0, 0.0], [0.0, top], side, frame_mat),
+                    ([hx - t / 2.0, 0.0], [0.0, top], side, frame_mat),
+                    ([0.0, 0.0], [top - t, top], [hx, hz], frame_mat),
+                    ([0.0, 0.0], [0.0, 0.08], panel, frame_mat),
+                ],
             );
             let shelves = ((top - 0.1) / self.rng.uniform(0.3, 0.4)).floor().max(1.0) as usize;
             let pitch = (top - t - 0.08) / shelves as f64;
             for k in 0..shelves {
                 let e0 = 0.08 + k as f64 * pitch;
                 if k > 0 {
-                    self.cuboid(
-                        &f,
-                        [0.0, 0.0],
-                        [e0 - t / 2.0, e0 + t / 2.0],
-                        [hx - t, hz],
-                        BOOKCASE,
-                        frame_mat,
-                    );
+                    let shelf = [e0 - t / 2.0, e0 + t / 2.0];
+                    self.cuboid(&f, [0.0, 0.0], shelf, panel, BOOKCASE, frame_mat);
                 }
                 if self.rng.chance(0.85) {
                     // Books: a slab recessed 2-8 cm from the front, as tall as the compartment.
@@ -118,16 +81,22 @@ impl Builder {
         }
     }
 
+    /// Four square legs 5 cm wide at `(+-corner[0], +-corner[1])` in `f`, from the floor to
+    /// elevation `top`.
+    fn legs(&mut self, f: &Frame, corner: [f64; 2], top: f64, class: u8, mat: u16) {
+        for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+            let at = [sx * corner[0], sz * corner[1]];
+            self.cuboid(f, at, [0.0, top], [0.025, 0.025], class, mat);
+        }
+    }
+
     pub(super) fn fabric(&mut self) -> Rgb {
-        let c = *self.rng.pick(&[
-            srgb(95, 70, 50),
-            srgb(120, 120, 125),
-            srgb(50, 65, 110),
-            srgb(140, 45, 40),
-            srgb(60, 95, 70),
-            srgb(35, 35, 38),
-            srgb(190, 175, 150),
-        ]);
+        let c = pick_srgb(
+            &mut self.rng,
+            &[
+                0x5F4632, 0x78787D, 0x32416E, 0x8C2D28, 0x3C5F46, 0x232326, 0xBEAF96,
+            ],
+        );
         vary(c, &mut self.rng, 0.08)
     }
 
@@ -146,49 +115,26 @@ impl Builder {
                 continue;
             };
             let c = self.fabric();
-            let mat = self.material(
-                c,
-                c,
-                Pattern::Fabric {
-                    freq: 70.0,
-                    amp: 0.12,
-                },
-            );
-            let cushion = self.material(
-                tint(c, 1.1),
-                c,
-                Pattern::Fabric {
-                    freq: 70.0,
-                    amp: 0.12,
-                },
-            );
+            let weave = Pattern::Fabric {
+                freq: 70.0,
+                amp: 0.12,
+            };
+            let mat = self.material(c, c, weave);
+            let cushion = self.material(tint(c, 1.1), c, weave);
             let feet = self.plain(srgb(40, 35, 30), 0.05);
             let arm = 0.12;
             self.begin();
-            self.cuboid(&f, [0.0, 0.0], [0.06, seat - 0.1], [hx, hz], SOFA, mat);
-            self.cuboid(
+            // Base, back, two arms.
+            let (arm_e, arm_half) = ([seat - 0.1, seat + 0.15], [arm / 2.0, hz - 0.05]);
+            self.cuboids(
                 &f,
-                [0.0, -hz + 0.1],
-                [seat - 0.1, back_top],
-                [hx, 0.1],
                 SOFA,
-                mat,
-            );
-            self.cuboid(
-                &f,
-                [-hx + arm / 2.0, 0.05],
-                [seat - 0.1, seat + 0.15],
-                [arm / 2.0, hz - 0.05],
-                SOFA,
-                mat,
-            );
-            self.cuboid(
-                &f,
-                [hx - arm / 2.0, 0.05],
-                [seat - 0.1, seat + 0.15],
-                [arm / 2.0, hz - 0.05],
-                SOFA,
-                mat,
+                &[
+                    ([0.0, 0.0], [0.06, seat - 0.1], [hx, hz], mat),
+                    ([0.0, -hz + 0.1], [seat - 0.1, back_top], [hx, 0.1], mat),
+                    ([-hx + arm / 2.0, 0.05], arm_e, arm_half, mat),
+                    ([hx - arm / 2.0, 0.05], arm_e, arm_half, mat),
+                ],
             );
             let cushions = if hx > 0.95 { 3 } else { 2 };
             let inner = hx - arm;
@@ -204,16 +150,7 @@ impl Builder {
                     cushion,
                 );
             }
-            for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                self.cuboid(
-                    &f,
-                    [sx * (hx - 0.06), sz * (hz - 0.06)],
-                    [0.0, 0.06],
-                    [0.025, 0.025],
-                    SOFA,
-                    feet,
-                );
-            }
+            self.legs(&f, [hx - 0.06, hz - 0.06], 0.06, SOFA, feet);
             self.end();
         }
     }
@@ -223,42 +160,29 @@ impl Builder {
         let hs = 0.23;
         let seat = 0.46;
         self.begin();
-        self.cuboid(
+        // Seat and back rest.
+        let back_e = [seat + 0.08, seat + 0.5];
+        self.cuboids(
             f,
-            [0.0, 0.0],
-            [seat - 0.05, seat],
-            [hs, hs],
             CHAIR,
-            seat_mat,
-        );
-        self.cuboid(
-            f,
-            [0.0, -hs + 0.02],
-            [seat + 0.08, seat + 0.5],
-            [hs - 0.01, 0.02],
-            CHAIR,
-            seat_mat,
+            &[
+                ([0.0, 0.0], [seat - 0.05, seat], [hs, hs], seat_mat),
+                ([0.0, -hs + 0.02], back_e, [hs - 0.01, 0.02], seat_mat),
+            ],
         );
         if office {
             self.cylinder(f, [0.0, 0.0], 0.025, [0.08, seat - 0.05], CHAIR, leg_mat);
             self.cylinder(f, [0.0, 0.0], 0.3, [0.03, 0.08], CHAIR, leg_mat);
             // Arm rests.
             for sx in [-1.0, 1.0] {
-                self.cuboid(
+                let at = [sx * (hs + 0.02), 0.0];
+                self.cuboids(
                     f,
-                    [sx * (hs + 0.02), 0.0],
-                    [seat + 0.16, seat + 0.19],
-                    [0.025, 0.14],
                     CHAIR,
-                    leg_mat,
-                );
-                self.cuboid(
-                    f,
-                    [sx * (hs + 0.02), 0.0],
-                    [seat, seat + 0.16],
-                    [0.01, 0.015],
-                    CHAIR,
-                    leg_mat,
+                    &[
+                        (at, [seat + 0.16, seat + 0.19], [0.025, 0.14], leg_mat),
+                        (at, [seat, seat + 0.16], [0.01, 0.015], leg_mat),
+                    ],
                 );
             }
         } else {
@@ -287,9 +211,7 @@ impl Builder {
                 amp: 0.1,
             },
         );
-        let leg_c = *self
-            .rng
-            .pick(&[srgb(40, 40, 42), srgb(170, 172, 178), srgb(120, 85, 55)]);
+        let leg_c = pick_srgb(&mut self.rng, &[0x28282A, 0xAAACB2, 0x785537]);
         let legs = self.plain(leg_c, 0.03);
         (seat, legs, self.rng.chance(0.5))
     }
@@ -299,13 +221,7 @@ impl Builder {
         let n = self.rng.int(0, ((area / 10.0) as usize + 1).min(5));
         let (chair_seat, chair_legs, office) = self.chair_style();
         let r = &mut self.rng;
-        let top_c = *r.pick(&[
-            srgb(160, 115, 70),
-            srgb(210, 185, 145),
-            srgb(235, 235, 230),
-            srgb(120, 122, 128),
-            srgb(70, 50, 35),
-        ]);
+        let top_c = pick_srgb(r, &[0xA07346, 0xD2B991, 0xEBEBE6, 0x787A80, 0x463223]);
         for _ in 0..n {
             let hx = self.rng.uniform(0.4, 1.2);
             let hz = self.rng.uniform(0.3, 0.5);
@@ -345,68 +261,60 @@ impl Builder {
             let leg_mat = self.plain(leg_c, 0.03);
             let t = self.rng.uniform(0.025, 0.05);
             self.begin();
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [height - t, height],
-                [hx, hz],
-                TABLE,
-                top_mat,
-            );
+            let top = [height - t, height];
+            self.cuboid(&f, [0.0, 0.0], top, [hx, hz], TABLE, top_mat);
             if self.rng.chance(0.8) {
-                for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-                    self.cuboid(
-                        &f,
-                        [sx * (hx - 0.06), sz * (hz - 0.06)],
-                        [0.0, height - t],
-                        [0.025, 0.025],
-                        TABLE,
-                        leg_mat,
-                    );
-                }
+                self.legs(&f, [hx - 0.06, hz - 0.06], height - t, TABLE, leg_mat);
             } else {
                 // Panel ends (desk style).
                 for sx in [-1.0, 1.0] {
-                    self.cuboid(
-                        &f,
-                        [sx * (hx - 0.03), 0.0],
-                        [0.0, height - t],
-                        [0.015, hz - 0.04],
-                        TABLE,
-                        leg_mat,
-                    );
+                    let (at, half) = ([sx * (hx - 0.03), 0.0], [0.015, hz - 0.04]);
+                    self.cuboid(&f, at, [0.0, height - t], half, TABLE, leg_mat);
                 }
             }
             self.end();
             self.table_clutter(&f, hx, hz, height);
-            // Chairs facing the table, pulled out 0.15-0.45 m, turned +-20 degrees.
-            let mut spots = Vec::new();
-            for side in [-1.0, 1.0] {
-                for k in 0..chairs_long {
-                    let x = -hx + 2.0 * hx * (k as f64 + 0.5) / chairs_long as f64;
-                    spots.push((
-                        x,
-                        side * (hz + self.rng.uniform(0.05, 0.35)),
-                        if side > 0.0 { PI } else { 0.0 },
-                    ));
-                }
-            }
-            if chairs_end > 0 {
-                let side = if self.rng.chance(0.5) { -1.0 } else { 1.0 };
+            let style = (chair_seat, chair_legs, office);
+            self.table_chairs(&f, [hx, hz], [chairs_long, chairs_end], style);
+        }
+    }
+
+    /// Chairs around the table at `f` of half sizes `[hx, hz]`: `chairs_long` on each long side,
+    /// `chairs_end` (0 or 1) at one end, facing the table, pulled out 0.15-0.45 m, turned +-20
+    /// degrees; about one place in seven stays empty. The style is [`Builder::chair_style`]'s.
+    fn table_chairs(
+        &mut self,
+        f: &Frame,
+        [hx, hz]: [f64; 2],
+        [chairs_long, chairs_end]: [usize; 2],
+        (seat, legs, office): (u16, u16, bool),
+    ) {
+        let mut spots = Vec::new();
+        for side in [-1.0, 1.0] {
+            for k in 0..chairs_long {
+                let x = -hx + 2.0 * hx * (k as f64 + 0.5) / chairs_long as f64;
                 spots.push((
-                    side * (hx + self.rng.uniform(0.05, 0.35)),
-                    0.0,
-                    -side * FRAC_PI_2,
+                    x,
+                    side * (hz + self.rng.uniform(0.05, 0.35)),
+                    if side > 0.0 { PI } else { 0.0 },
                 ));
             }
-            for (x, z, facing) in spots {
-                if self.rng.chance(0.15) {
-                    continue; // an empty place
-                }
-                let jitter = self.rng.uniform(-0.35, 0.35);
-                let cf = f.sub(x, z, facing + jitter);
-                self.chair(&cf, chair_seat, chair_legs, office);
+        }
+        if chairs_end > 0 {
+            let side = if self.rng.chance(0.5) { -1.0 } else { 1.0 };
+            spots.push((
+                side * (hx + self.rng.uniform(0.05, 0.35)),
+                0.0,
+                -side * FRAC_PI_2,
+            ));
+        }
+        for (x, z, facing) in spots {
+            if self.rng.chance(0.15) {
+                continue; // an empty place
             }
+            let jitter = self.rng.uniform(-0.35, 0.35);
+            let cf = f.sub(x, z, facing + jitter);
+            self.chair(&cf, seat, legs, office);
         }
     }
 

@@ -40,19 +40,21 @@ pub mod class {
     //! that is not a class does not compile): one constant per class, named as the class.
     #![allow(missing_docs)]
     use crate::data::class_id;
-    pub const BEAM: u8 = class_id("beam");
-    pub const BOARD: u8 = class_id("board");
-    pub const BOOKCASE: u8 = class_id("bookcase");
-    pub const CEILING: u8 = class_id("ceiling");
-    pub const CHAIR: u8 = class_id("chair");
-    pub const CLUTTER: u8 = class_id("clutter");
-    pub const COLUMN: u8 = class_id("column");
-    pub const DOOR: u8 = class_id("door");
-    pub const FLOOR: u8 = class_id("floor");
-    pub const SOFA: u8 = class_id("sofa");
-    pub const TABLE: u8 = class_id("table");
-    pub const WALL: u8 = class_id("wall");
-    pub const WINDOW: u8 = class_id("window");
+
+    /// `pub const NAME: u8 = class_id("name");` for each class, and [`ALL`] listing them.
+    macro_rules! class_ids {
+        ($($id:ident = $name:literal),* $(,)?) => {
+            $(pub const $id: u8 = class_id($name);)*
+            /// Every class id with its name, in `CLASSES` order.
+            pub const ALL: [(&str, u8); [$($name),*].len()] = [$(($name, $id)),*];
+        };
+    }
+
+    class_ids! {
+        BEAM = "beam", BOARD = "board", BOOKCASE = "bookcase", CEILING = "ceiling",
+        CHAIR = "chair", CLUTTER = "clutter", COLUMN = "column", DOOR = "door", FLOOR = "floor",
+        SOFA = "sofa", TABLE = "table", WALL = "wall", WINDOW = "window",
+    }
 }
 
 /// Most ceiling lights in a scene (each costs one shadow ray per pixel).
@@ -288,6 +290,10 @@ impl Scene {
     }
 }
 
+/// One box of a piece as [`Builder::cuboid`] takes it: local centre `(lx, lz)` in the piece's
+/// frame, elevation range `[e0, e1]`, half sizes `(hx, hz)`, material.
+type Part = ([f64; 2], [f64; 2], [f64; 2], u16);
+
 struct Builder {
     rng: Rng,
     seed: u64,
@@ -397,6 +403,13 @@ impl Builder {
         );
     }
 
+    /// The boxes `parts` of one class in `frame` ([`Builder::cuboid`] of each, in order).
+    fn cuboids(&mut self, frame: &Frame, class: u8, parts: &[Part]) {
+        for &(at, e, half, mat) in parts {
+            self.cuboid(frame, at, e, half, class, mat);
+        }
+    }
+
     /// An upright cylinder in `frame`: local centre `at = (lx, lz)`, radius `r`, elevation
     /// range `e = [e0, e1]`.
     fn cylinder(&mut self, frame: &Frame, at: [f64; 2], r: f64, e: [f64; 2], class: u8, mat: u16) {
@@ -455,23 +468,9 @@ mod tests {
 
     #[test]
     fn class_ids_follow_classes() {
-        let ids = [
-            ("beam", BEAM),
-            ("board", BOARD),
-            ("bookcase", BOOKCASE),
-            ("ceiling", CEILING),
-            ("chair", CHAIR),
-            ("clutter", CLUTTER),
-            ("column", COLUMN),
-            ("door", DOOR),
-            ("floor", FLOOR),
-            ("sofa", SOFA),
-            ("table", TABLE),
-            ("wall", WALL),
-            ("window", WINDOW),
-        ];
-        for (name, id) in ids {
-            assert_eq!(CLASSES[id as usize], name);
+        assert_eq!(ALL.len(), CLASSES.len());
+        for (k, (name, id)) in ALL.into_iter().enumerate() {
+            assert_eq!((CLASSES[id as usize], id as usize), (name, k));
         }
     }
 

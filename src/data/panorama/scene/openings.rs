@@ -4,7 +4,7 @@
 use super::class::*;
 use super::placement::Obb;
 use super::Builder;
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern};
 
 impl Builder {
     pub(super) fn doors(&mut self) {
@@ -31,14 +31,10 @@ impl Builder {
                 yaw: w.yaw(),
             });
             let r = &mut self.rng;
-            let leaf = *r.pick(&[
-                srgb(140, 92, 52),
-                srgb(190, 150, 100),
-                srgb(150, 155, 162),
-                srgb(62, 82, 122),
-                srgb(222, 220, 214),
-                srgb(140, 42, 36),
-            ]);
+            let leaf = pick_srgb(
+                r,
+                &[0x8C5C34, 0xBE9664, 0x969BA2, 0x3E527A, 0xDEDCD6, 0x8C2A24],
+            );
             let leaf = vary(leaf, r, 0.06);
             let leaf_mat = self.material(
                 leaf,
@@ -57,31 +53,17 @@ impl Builder {
             let handle_mat = self.plain(srgb(180, 180, 185), 0.02);
             self.begin();
             let (hw, fw) = (width / 2.0, frame_w);
-            // Leaf: 4 cm thick, 2 cm proud of the wall; frame: 3 cm proud.
-            self.cuboid(&f, [0.0, 0.0], [0.0, top], [hw, 0.02], DOOR, leaf_mat);
-            self.cuboid(
+            // Leaf: 4 cm thick, 2 cm proud of the wall; frame (two jambs, a head): 3 cm proud.
+            let (jamb_e, jamb) = ([0.0, top + fw], [fw / 2.0, 0.03]);
+            self.cuboids(
                 &f,
-                [-hw - fw / 2.0, 0.0],
-                [0.0, top + fw],
-                [fw / 2.0, 0.03],
                 DOOR,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [hw + fw / 2.0, 0.0],
-                [0.0, top + fw],
-                [fw / 2.0, 0.03],
-                DOOR,
-                frame_mat,
-            );
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [top, top + fw],
-                [hw + fw, 0.03],
-                DOOR,
-                frame_mat,
+                &[
+                    ([0.0, 0.0], [0.0, top], [hw, 0.02], leaf_mat),
+                    ([-hw - fw / 2.0, 0.0], jamb_e, jamb, frame_mat),
+                    ([hw + fw / 2.0, 0.0], jamb_e, jamb, frame_mat),
+                    ([0.0, 0.0], [top, top + fw], [hw + fw, 0.03], frame_mat),
+                ],
             );
             let handles: &[f64] = if double { &[-0.08, 0.08] } else { &[hw - 0.1] };
             for &hx in handles {
@@ -99,12 +81,7 @@ impl Builder {
         } else {
             self.rng.int(0, 4)
         };
-        let frame_colour = *self.rng.pick(&[
-            srgb(232, 232, 230),
-            srgb(160, 165, 172),
-            srgb(40, 40, 42),
-            srgb(120, 82, 50),
-        ]);
+        let frame_colour = pick_srgb(&mut self.rng, &[0xE8E8E6, 0xA0A5AC, 0x28282A, 0x785232]);
         for _ in 0..n {
             let width = self.rng.uniform(0.8, 2.6);
             let sill = self.rng.uniform(0.7, 1.1);
@@ -129,23 +106,11 @@ impl Builder {
             );
             let sill_mat = self.plain(tint(self.wall_colour, 0.95), 0.05);
             self.begin();
-            self.cuboid(
-                &f,
-                [0.0, 0.0],
-                [sill, top],
-                [width / 2.0, 0.02],
-                WINDOW,
-                mat,
-            );
+            let hw = width / 2.0;
+            self.cuboid(&f, [0.0, 0.0], [sill, top], [hw, 0.02], WINDOW, mat);
             // The sill belongs to the wall.
-            self.cuboid(
-                &f,
-                [0.0, 0.06],
-                [sill - 0.04, sill],
-                [width / 2.0 + 0.05, 0.06],
-                WALL,
-                sill_mat,
-            );
+            let ledge = [hw + 0.05, 0.06];
+            self.cuboid(&f, [0.0, 0.06], [sill - 0.04, sill], ledge, WALL, sill_mat);
             self.end();
         }
     }
@@ -164,7 +129,7 @@ impl Builder {
             let (base, ink, pattern) = match kind {
                 0 => (
                     vary(srgb(242, 242, 240), r, 0.02),
-                    *r.pick(&[srgb(30, 60, 160), srgb(170, 30, 30), srgb(25, 25, 25)]),
+                    pick_srgb(r, &[0x1E3CA0, 0xAA1E1E, 0x191919]),
                     Pattern::Board,
                 ),
                 1 => (
@@ -185,42 +150,23 @@ impl Builder {
             let rim = self.plain(srgb(175, 178, 182), 0.03);
             self.begin();
             let (hw, t) = (width / 2.0, 0.025);
-            self.cuboid(&f, [0.0, 0.0], [bottom, top], [hw, 0.015], BOARD, mat);
-            self.cuboid(
+            // The surface, then its rim: bottom and top bars, left and right posts.
+            let (bar, post) = ([hw + t, 0.02], [t / 2.0, 0.02]);
+            self.cuboids(
                 &f,
-                [0.0, 0.0],
-                [bottom - t, bottom],
-                [hw + t, 0.02],
                 BOARD,
-                rim,
-            );
-            self.cuboid(&f, [0.0, 0.0], [top, top + t], [hw + t, 0.02], BOARD, rim);
-            self.cuboid(
-                &f,
-                [-hw - t / 2.0, 0.0],
-                [bottom, top],
-                [t / 2.0, 0.02],
-                BOARD,
-                rim,
-            );
-            self.cuboid(
-                &f,
-                [hw + t / 2.0, 0.0],
-                [bottom, top],
-                [t / 2.0, 0.02],
-                BOARD,
-                rim,
+                &[
+                    ([0.0, 0.0], [bottom, top], [hw, 0.015], mat),
+                    ([0.0, 0.0], [bottom - t, bottom], bar, rim),
+                    ([0.0, 0.0], [top, top + t], bar, rim),
+                    ([-hw - t / 2.0, 0.0], [bottom, top], post, rim),
+                    ([hw + t / 2.0, 0.0], [bottom, top], post, rim),
+                ],
             );
             // A marker tray on whiteboards.
             if kind == 0 {
-                self.cuboid(
-                    &f,
-                    [0.0, 0.04],
-                    [bottom - 0.05, bottom - 0.03],
-                    [hw * 0.6, 0.04],
-                    BOARD,
-                    rim,
-                );
+                let tray_e = [bottom - 0.05, bottom - 0.03];
+                self.cuboid(&f, [0.0, 0.04], tray_e, [hw * 0.6, 0.04], BOARD, rim);
             }
             self.end();
         }

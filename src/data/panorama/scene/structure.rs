@@ -4,7 +4,7 @@
 use super::class::*;
 use super::placement::{Frame, Obb};
 use super::{Builder, Group, Rect, WallSeg};
-use crate::data::panorama::appearance::{srgb, tint, vary, Pattern};
+use crate::data::panorama::appearance::{pick_srgb, srgb, tint, vary, Pattern, Rgb};
 use crate::data::panorama::geometry::{Aabb, Shape};
 
 impl Builder {
@@ -77,105 +77,9 @@ impl Builder {
     /// Floor, ceiling, walls and their materials (group 0).
     pub(super) fn structure(&mut self) {
         self.begin();
-        let r = &mut self.rng;
-        let floor_kind = r.below(4);
-        let (base, alt, pattern) = match floor_kind {
-            0 => {
-                let c = *r.pick(&[
-                    srgb(200, 190, 170),
-                    srgb(165, 165, 160),
-                    srgb(220, 218, 210),
-                    srgb(170, 105, 75),
-                ]);
-                let size = *r.pick(&[0.3f32, 0.4, 0.5, 0.6]);
-                (
-                    vary(c, r, 0.08),
-                    tint(c, 0.6),
-                    Pattern::Tiles {
-                        size,
-                        grout: 0.006,
-                        jitter: 0.08,
-                    },
-                )
-            }
-            1 => {
-                let c = *r.pick(&[srgb(150, 100, 60), srgb(185, 140, 90), srgb(110, 72, 45)]);
-                (
-                    vary(c, r, 0.1),
-                    tint(c, 0.7),
-                    Pattern::Planks {
-                        width: r.uniform(0.1, 0.2) as f32,
-                        length: r.uniform(0.8, 1.8) as f32,
-                    },
-                )
-            }
-            2 => {
-                let c = *r.pick(&[
-                    srgb(90, 90, 100),
-                    srgb(60, 72, 110),
-                    srgb(115, 62, 62),
-                    srgb(80, 100, 80),
-                    srgb(130, 120, 110),
-                ]);
-                (
-                    vary(c, r, 0.1),
-                    c,
-                    Pattern::Fabric {
-                        freq: 45.0,
-                        amp: 0.15,
-                    },
-                )
-            }
-            _ => {
-                let c = vary(srgb(150, 150, 145), r, 0.1);
-                (
-                    c,
-                    c,
-                    Pattern::Plain {
-                        freq: 1.5,
-                        amp: 0.2,
-                    },
-                )
-            }
-        };
-        let floor = self.material(base, alt, pattern);
-        let r = &mut self.rng;
-        let ceiling_colour = vary(srgb(232, 232, 226), r, 0.04);
-        let ceiling_pattern = if r.chance(0.6) {
-            Pattern::Tiles {
-                size: 0.6,
-                grout: 0.012,
-                jitter: 0.03,
-            }
-        } else {
-            Pattern::Plain {
-                freq: 1.0,
-                amp: 0.05,
-            }
-        };
-        let ceiling = self.material(ceiling_colour, tint(ceiling_colour, 0.75), ceiling_pattern);
-        let r = &mut self.rng;
-        let wall_colour = vary(
-            *r.pick(&[
-                srgb(230, 228, 220),
-                srgb(225, 218, 198),
-                srgb(200, 205, 212),
-                srgb(212, 225, 212),
-                srgb(235, 224, 196),
-                srgb(190, 200, 218),
-                srgb(215, 200, 190),
-            ]),
-            r,
-            0.05,
-        );
-        let wall = if r.chance(0.2) {
-            // Painted concrete blocks: the wall colour with slightly darker mortar.
-            self.material(wall_colour, tint(wall_colour, 0.8), Pattern::Blocks)
-        } else {
-            self.plain(wall_colour, 0.06)
-        };
-        self.wall_colour = wall_colour;
-        self.ceiling_colour = ceiling_colour;
+        let floor = self.floor_material();
+        let ceiling = self.ceiling_material();
+        let wall = self.wall_material();
         let (floor_y, ceil_y) = (self.y(0.0), self.y(self.height));
         self.push(Shape::Plane { y: floor_y }, FLOOR, floor);
         self.push(Shape::Plane { y: ceil_y }, CEILING, ceiling);
@@ -204,18 +108,122 @@ impl Builder {
         });
     }
 
+    /// The floor's material: tiles, planks, carpet or plain concrete.
+    fn floor_material(&mut self) -> u16 {
+        let r = &mut self.rng;
+        let floor_kind = r.below(4);
+        let (base, alt, pattern) = match floor_kind {
+            0 => {
+                let c = pick_srgb(r, &[0xC8BEAA, 0xA5A5A0, 0xDCDAD2, 0xAA694B]);
+                let size = *r.pick(&[0.3f32, 0.4, 0.5, 0.6]);
+                (
+                    vary(c, r, 0.08),
+                    tint(c, 0.6),
+                    Pattern::Tiles {
+                        size,
+                        grout: 0.006,
+                        jitter: 0.08,
+                    },
+                )
+            }
+            1 => {
+                let c = pick_srgb(r, &[0x96643C, 0xB98C5A, 0x6E482D]);
+                (
+                    vary(c, r, 0.1),
+                    tint(c, 0.7),
+                    Pattern::Planks {
+                        width: r.uniform(0.1, 0.2) as f32,
+                        length: r.uniform(0.8, 1.8) as f32,
+                    },
+                )
+            }
+            2 => {
+                let c = pick_srgb(r, &[0x5A5A64, 0x3C486E, 0x733E3E, 0x506450, 0x82786E]);
+                (
+                    vary(c, r, 0.1),
+                    c,
+                    Pattern::Fabric {
+                        freq: 45.0,
+                        amp: 0.15,
+                    },
+                )
+            }
+            _ => {
+                let c = vary(srgb(150, 150, 145), r, 0.1);
+                (
+                    c,
+                    c,
+                    Pattern::Plain {
+                        freq: 1.5,
+                        amp: 0.2,
+                    },
+                )
+            }
+        };
+        self.material(base, alt, pattern)
+    }
+
+    /// The ceiling's material (tiles or plain), remembering its colour for the beams.
+    fn ceiling_material(&mut self) -> u16 {
+        let r = &mut self.rng;
+        let ceiling_colour = vary(srgb(232, 232, 226), r, 0.04);
+        let ceiling_pattern = if r.chance(0.6) {
+            Pattern::Tiles {
+                size: 0.6,
+                grout: 0.012,
+                jitter: 0.03,
+            }
+        } else {
+            Pattern::Plain {
+                freq: 1.0,
+                amp: 0.05,
+            }
+        };
+        self.ceiling_colour = ceiling_colour;
+        self.material(ceiling_colour, tint(ceiling_colour, 0.75), ceiling_pattern)
+    }
+
+    /// The walls' material (painted blocks or plain paint), remembering its colour for the sills
+    /// and columns.
+    fn wall_material(&mut self) -> u16 {
+        let r = &mut self.rng;
+        let wall_colour = vary(
+            pick_srgb(
+                r,
+                &[
+                    0xE6E4DC, 0xE1DAC6, 0xC8CDD4, 0xD4E1D4, 0xEBE0C4, 0xBEC8DA, 0xD7C8BE,
+                ],
+            ),
+            r,
+            0.05,
+        );
+        self.wall_colour = wall_colour;
+        if r.chance(0.2) {
+            // Painted concrete blocks: the wall colour with slightly darker mortar.
+            self.material(wall_colour, tint(wall_colour, 0.8), Pattern::Blocks)
+        } else {
+            self.plain(wall_colour, 0.06)
+        }
+    }
+
+    /// A plain material for a structural part: half the time `tint(like, t)` (the ceiling's or
+    /// walls' colour), else a variation of `grey` by `amount`; blotches of amplitude `amp`.
+    fn matching_plain(&mut self, like: Rgb, t: f32, grey: Rgb, amount: f32, amp: f32) -> u16 {
+        let colour = if self.rng.chance(0.5) {
+            tint(like, t)
+        } else {
+            vary(grey, &mut self.rng, amount)
+        };
+        self.plain(colour, amp)
+    }
+
     /// Ceiling beams spanning one rectangle of the plan.
     pub(super) fn beams(&mut self) {
         if !self.rng.chance(0.35) {
             return;
         }
         let n = self.rng.int(1, 2);
-        let colour = if self.rng.chance(0.5) {
-            tint(self.ceiling_colour, 0.92)
-        } else {
-            vary(srgb(175, 175, 170), &mut self.rng, 0.06)
-        };
-        let mat = self.plain(colour, 0.12);
+        let mat = self.matching_plain(self.ceiling_colour, 0.92, srgb(175, 175, 170), 0.06, 0.12);
         for _ in 0..n {
             let q = *self.rng.pick(&self.rects.clone());
             let along_x = self.rng.chance(0.5);
@@ -254,12 +262,7 @@ impl Builder {
             return;
         }
         let n = self.rng.int(1, 3);
-        let colour = if self.rng.chance(0.5) {
-            tint(self.wall_colour, 0.9)
-        } else {
-            vary(srgb(170, 170, 165), &mut self.rng, 0.08)
-        };
-        let mat = self.plain(colour, 0.1);
+        let mat = self.matching_plain(self.wall_colour, 0.9, srgb(170, 170, 165), 0.08, 0.1);
         let e = [0.0, self.height];
         for _ in 0..n {
             let half = self.rng.uniform(0.15, 0.32);

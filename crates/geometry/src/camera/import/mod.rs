@@ -42,10 +42,11 @@ mod opencv;
 mod tree;
 
 use super::{
-    from_str_by_name, Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid,
-    KannalaBrandt, Pinhole, PinholeRadTan, Scaramuzza, Unified,
+    Camera, CameraModel, DoubleSphere, ExtendedUnified, Intrinsics, Invalid, KannalaBrandt,
+    Pinhole, PinholeRadTan, Scaramuzza, Unified,
 };
 use crate::error::{Error, Result};
+use crate::from_str_by_name;
 use crate::vec3::angle_to_axis;
 
 /// The source tools `calibconv camera import --from` reads.
@@ -63,18 +64,13 @@ pub enum Format {
     OcamCalib,
 }
 
-impl Format {
-    /// Every format with its name on the command line (`--from`).
-    const NAMES: [(&'static str, Format); 5] = [
-        ("kalibr", Format::Kalibr),
-        ("opencv", Format::OpenCv),
-        ("basalt", Format::Basalt),
-        ("colmap", Format::Colmap),
-        ("ocamcalib", Format::OcamCalib),
-    ];
-}
-
-from_str_by_name!(Format, "format");
+from_str_by_name!(Format, "format", {
+    "kalibr" => Kalibr,
+    "opencv" => OpenCv,
+    "basalt" => Basalt,
+    "colmap" => Colmap,
+    "ocamcalib" => OcamCalib,
+});
 
 impl std::fmt::Display for Format {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -95,15 +91,10 @@ pub enum OpenCvModel {
     Standard,
 }
 
-impl OpenCvModel {
-    /// Both models with their names on the command line (`--opencv-model`).
-    const NAMES: [(&'static str, OpenCvModel); 2] = [
-        ("fisheye", OpenCvModel::Fisheye),
-        ("standard", OpenCvModel::Standard),
-    ];
-}
-
-from_str_by_name!(OpenCvModel, "OpenCV model");
+from_str_by_name!(OpenCvModel, "OpenCV model", {
+    "fisheye" => Fisheye,
+    "standard" => Standard,
+});
 
 /// Choices the source file may leave open.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

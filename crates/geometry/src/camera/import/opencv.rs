@@ -60,26 +60,7 @@ fn matrix(v: &Value, path: &Path, field: &str) -> Result<Vec<f64>> {
 
 pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> {
     let tree = parse_tree(text, path)?;
-    let (k_key, k_value) = first_key(&tree, &OPENCV_K_KEYS).ok_or_else(|| {
-        camera_error(
-            path,
-            "camera_matrix",
-            format!("no camera matrix (looked for {OPENCV_K_KEYS:?})"),
-        )
-    })?;
-    let k = matrix(k_value, path, k_key)?;
-    expect_len(&k, 9, path, k_key, "a 3x3 camera matrix")?;
-    if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
-        return Err(camera_error(
-            path,
-            k_key,
-            format!(
-                "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew is not supported), found \
-                 {k:?}"
-            ),
-        ));
-    }
-    let f = [k[0], k[4], k[2], k[5]];
+    let f = focal_and_centre(&tree, path)?;
     let (d_key, d_value) = first_key(&tree, &OPENCV_D_KEYS).ok_or_else(|| {
         camera_error(
             path,
@@ -106,9 +87,53 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
         None => OpenCvModel::Standard,
     };
     let mut notes = Vec::new();
-    let (model, name) = match model {
+    let (model, name) = coefficients(model, f, &d, d_key, path, &mut notes)?;
+    Ok(Parsed {
+        model,
+        size,
+        source: format!("opencv ({name} model)"),
+        notes,
+    })
+}
+
+/// `[fx, fy, cx, cy]` of the file's camera matrix, which must be `[[fx, 0, cx], [0, fy, cy],
+/// [0, 0, 1]]`.
+fn focal_and_centre(tree: &Value, path: &Path) -> Result<[f64; 4]> {
+    let (k_key, k_value) = first_key(tree, &OPENCV_K_KEYS).ok_or_else(|| {
+        camera_error(
+            path,
+            "camera_matrix",
+            format!("no camera matrix (looked for {OPENCV_K_KEYS:?})"),
+        )
+    })?;
+    let k = matrix(k_value, path, k_key)?;
+    expect_len(&k, 9, path, k_key, "a 3x3 camera matrix")?;
+    if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
+        return Err(camera_error(
+            path,
+            k_key,
+            format!(
+                "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew is not supported), found \
+                 {k:?}"
+            ),
+        ));
+    }
+    Ok([k[0], k[4], k[2], k[5]])
+}
+
+/// The model of the distortion coefficients `d` (read from `d_key`) for OpenCV's `model`, and
+/// its name; `notes` gets a line per convention converted.
+fn coefficients(
+    model: OpenCvModel,
+    f: [f64; 4],
+    d: &[f64],
+    d_key: &str,
+    path: &Path,
+    notes: &mut Vec<String>,
+) -> Result<(Model, &'static str)> {
+    Ok(match model {
         OpenCvModel::Fisheye => {
-            expect_len(&d, 4, path, d_key, "fisheye [k1, k2, k3, k4]")?;
+            expect_len(d, 4, path, d_key, "fisheye [k1, k2, k3, k4]")?;
             (
                 Model::KannalaBrandt {
                     f,
@@ -152,12 +177,6 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
                 "standard",
             )
         }
-    };
-    Ok(Parsed {
-        model,
-        size,
-        source: format!("opencv ({name} model)"),
-        notes,
     })
 }
 
