@@ -20,3 +20,13 @@ pub fn load(path: impl AsRef<Path>) -> Result<Camera> {
 pub fn parse(text: &str, path: &Path) -> Result<Camera> {
     Ok(calibconv_geometry::camera::parse(text, path)?)
 }
+
+/// A camera file shipped in `data/cameras/` (`NAME.toml`), for the unit tests.
+///
+/// # Panics
+/// If the file is missing or invalid.
+#[cfg(test)]
+pub(crate) fn shipped(name: &str) -> Camera {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("data/cameras/{name}.toml"));
+    load(&path).unwrap_or_else(|e| panic!("{e}"))
+}

@@ -354,7 +354,7 @@ fn the_command_draws_a_point_cloud_and_no_ply_leaves_the_files_out() {
         .write(&file);
     common::ok(common::calibconv_in(
         dir,
-        &["train", "-q", &common::s(&file)],
+        &["train", "-q", common::s(&file)],
     ));
     let out = dir.join("out");
     let report = |extra: &[&str]| {

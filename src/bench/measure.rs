@@ -216,7 +216,7 @@ pub(super) fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
         let offsets = sizes
             .iter()
             .map(|&s| compute_offsets(camera, s, &LayerGeometry::same(3), &frame))
-            .collect::<Result<Vec<_>>>()?;
+            .collect::<std::result::Result<Vec<_>, _>>()?;
         let offsets_s = start.elapsed().as_secs_f64();
         let start = Instant::now();
         let mut plan_bytes = 0;

@@ -46,7 +46,7 @@ fn pyramid_offsets(
     let levels: Vec<Offsets> = sizes
         .iter()
         .map(|&size| compute_offsets(camera, size, &LayerGeometry::same(3), frame))
-        .collect::<calibconv::Result<_>>()?;
+        .collect::<Result<_, calibconv_geometry::Error>>()?;
     let offsets_secs = start.elapsed().as_secs_f64();
     let anchors: usize = sizes.iter().map(|s| s[0] * s[1]).sum();
     let mut summary_levels = Vec::new();

@@ -186,11 +186,7 @@ mod tests {
 
     #[test]
     fn samples_follow_the_data_contract_and_the_seed() {
-        let cam = crate::camera::load(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/cameras/f195.toml"
-        ))
-        .unwrap();
+        let cam = crate::camera::shipped("f195");
         // F195 (1080x960) padded by 8 px on the right, at 1/8: 136x120.
         let frame = InputFrame {
             padding: [8, 0],

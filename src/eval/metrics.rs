@@ -95,20 +95,21 @@ pub const DEPTH_METRICS: [Metric; 7] = [
 /// Segmentation metrics, in table order.
 pub const SEGMENTATION_METRICS: [Metric; 3] = [Metric::MIoU, Metric::MAcc, Metric::PixelAcc];
 
-/// Every metric.
-pub const ALL_METRICS: [Metric; 11] = [
-    Metric::Loss,
-    Metric::Mre,
-    Metric::Mae,
-    Metric::Rmse,
-    Metric::RmseLog,
-    Metric::Delta1,
-    Metric::Delta2,
-    Metric::Delta3,
-    Metric::MIoU,
-    Metric::MAcc,
-    Metric::PixelAcc,
-];
+/// Every metric: the loss, then the depth and the segmentation metrics in table order.
+pub const ALL_METRICS: [Metric; 11] = {
+    let mut all = [Metric::Loss; 11];
+    let mut i = 0;
+    while i < DEPTH_METRICS.len() {
+        all[1 + i] = DEPTH_METRICS[i];
+        i += 1;
+    }
+    let mut j = 0;
+    while j < SEGMENTATION_METRICS.len() {
+        all[1 + DEPTH_METRICS.len() + j] = SEGMENTATION_METRICS[j];
+        j += 1;
+    }
+    all
+};
 
 impl Metric {
     /// The name in files: `loss`, `mre`, `mae`, `rmse`, `rmse_log`, `delta1..3`, `miou`,
@@ -209,18 +210,11 @@ impl fmt::Display for Averaging {
     }
 }
 
-impl FromStr for Averaging {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "per-image" => Ok(Averaging::PerImage),
-            "pooled" => Ok(Averaging::Pooled),
-            _ => Err(format!(
-                "unknown averaging `{s}` (expected per-image or pooled)"
-            )),
-        }
-    }
-}
+// `FromStr`: "unknown averaging `x` (expected per-image or pooled)" for anything else.
+calibconv_geometry::from_str_by_name!(Averaging, "averaging", {
+    "per-image" => PerImage,
+    "pooled" => Pooled,
+});
 
 impl fmt::Display for Metric {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -591,6 +585,17 @@ mod tests {
     use tch::Device;
 
     use super::*;
+
+    #[test]
+    fn averaging_names_round_trip_and_an_unknown_one_lists_them() {
+        for a in [Averaging::PerImage, Averaging::Pooled] {
+            assert_eq!(a.to_string().parse::<Averaging>(), Ok(a));
+        }
+        assert_eq!(
+            "mean".parse::<Averaging>(),
+            Err("unknown averaging `mean` (expected per-image or pooled)".to_string())
+        );
+    }
 
     /// Hand-computed values in float64 with a few operations: rounding only.
     const TOL: f64 = 1e-12;

@@ -248,11 +248,7 @@ mod tests {
 
     #[test]
     fn folders_that_are_not_data_sets_are_clear_errors() {
-        let camera = crate::camera::load(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/cameras/pers.toml"
-        ))
-        .unwrap();
+        let camera = crate::camera::shipped("pers");
         let dir = tempfile::tempdir().unwrap();
         let missing = SourceSpec::Dataset {
             path: dir.path().join("nope"),

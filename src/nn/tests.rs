@@ -9,11 +9,7 @@ use crate::kernel::InputFrame;
 
 /// The F195 fisheye of `data/cameras/` (shared with the U-Net tests).
 pub(super) fn f195() -> Camera {
-    crate::camera::load(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/data/cameras/f195.toml"
-    ))
-    .unwrap()
+    crate::camera::shipped("f195")
 }
 
 /// Calibrated kernels for `camera` in the default frame.

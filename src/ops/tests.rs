@@ -24,6 +24,41 @@ fn plan3x3(off: &Tensor, hw: [i64; 2], kind: Kind) -> SamplingPlan {
     .unwrap()
 }
 
+/// Standard-normal tensors of these shapes that require gradients (input, weight, bias).
+fn random_leaves(shapes: [&[i64]; 3], opts: (Kind, Device)) -> [Tensor; 3] {
+    shapes.map(|shape| Tensor::randn(shape, opts).set_requires_grad(true))
+}
+
+/// Central finite differences (step 1e-6, every `stride`-th element of each variable) against
+/// autograd's gradient of `loss` at `vars` (input, weight, bias), to [`FD_TOL`].
+fn assert_finite_differences(
+    vars: [&Tensor; 3],
+    loss: impl Fn(&Tensor, &Tensor, &Tensor) -> Tensor,
+    stride: usize,
+) {
+    let grads = Tensor::run_backward(&[loss(vars[0], vars[1], vars[2])], &vars, false, false);
+    let eps = 1e-6;
+    for (which, g) in grads.iter().enumerate() {
+        for e in (0..g.numel() as i64).step_by(stride) {
+            let fd = tch::no_grad(|| {
+                let v = vars.map(|t| t.detach().copy());
+                let flat = v[which].view(-1);
+                let v0 = flat.double_value(&[e]);
+                let _ = flat.get(e).fill_(v0 + eps);
+                let up = loss(&v[0], &v[1], &v[2]).double_value(&[]);
+                let _ = flat.get(e).fill_(v0 - eps);
+                let down = loss(&v[0], &v[1], &v[2]).double_value(&[]);
+                (up - down) / (2.0 * eps)
+            });
+            let an = g.reshape(-1).double_value(&[e]);
+            assert!(
+                (fd - an).abs() < FD_TOL * (1.0 + an.abs()),
+                "param {which} elem {e}: fd {fd} vs autograd {an}"
+            );
+        }
+    }
+}
+
 #[test]
 fn zero_offsets_equal_conv2d() {
     tch::manual_seed(0);
@@ -107,38 +142,14 @@ fn per_item_offsets_match_shared_offsets() {
 fn gradients_match_finite_differences() {
     tch::manual_seed(1);
     let opts = (Kind::Double, Device::Cpu);
-    let x = Tensor::randn([2, 4, 5, 6], opts).set_requires_grad(true);
-    let w = Tensor::randn([4, 2, 3, 3], opts).set_requires_grad(true);
-    let b = Tensor::randn([4], opts).set_requires_grad(true);
+    let [x, w, b] = random_leaves([&[2, 4, 5, 6], &[4, 2, 3, 3], &[4]], opts);
     // Fractional offsets, some pointing outside the map.
     let off = Tensor::randn([18, 3, 2], opts) * 2.0;
     let probe = Tensor::randn([2, 4, 3, 2], opts);
     let loss = |x: &Tensor, w: &Tensor, b: &Tensor| -> Tensor {
         (deform_conv2d(x, &off, w, Some(b), [2, 2], [1, 1], [1, 2], 2) * &probe).sum(Kind::Double)
     };
-    let l = loss(&x, &w, &b);
-    let grads = Tensor::run_backward(&[l], &[&x, &w, &b], false, false);
-    let eps = 1e-6;
-    for (which, g) in grads.iter().enumerate() {
-        let n = g.numel();
-        for e in (0..n).step_by(7) {
-            let fd = tch::no_grad(|| {
-                let vars = [x.detach().copy(), w.detach().copy(), b.detach().copy()];
-                let flat = vars[which].view(-1);
-                let v0 = flat.double_value(&[e as i64]);
-                let _ = flat.get(e as i64).fill_(v0 + eps);
-                let up = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
-                let _ = vars[which].view(-1).get(e as i64).fill_(v0 - eps);
-                let down = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
-                (up - down) / (2.0 * eps)
-            });
-            let an = g.reshape(-1).double_value(&[e as i64]);
-            assert!(
-                (fd - an).abs() < FD_TOL * (1.0 + an.abs()),
-                "param {which} elem {e}: fd {fd} vs autograd {an}"
-            );
-        }
-    }
+    assert_finite_differences([&x, &w, &b], loss, 7);
 }
 
 #[test]
@@ -381,9 +392,7 @@ fn input_gradient_is_exact_with_far_reaching_offsets() {
 fn native_gradients_match_finite_differences_per_item_channels_last() {
     tch::manual_seed(5);
     let opts = (Kind::Double, Device::Cpu);
-    let x = Tensor::randn([2, 4, 5, 6], opts).set_requires_grad(true);
-    let w = Tensor::randn([6, 2, 3, 3], opts).set_requires_grad(true);
-    let b = Tensor::randn([6], opts).set_requires_grad(true);
+    let [x, w, b] = random_leaves([&[2, 4, 5, 6], &[6, 2, 3, 3], &[6]], opts);
     let off = Tensor::randn([2, 18, 5, 6], opts) * 2.0;
     let plan = plan3x3(&off, [5, 6], Kind::Double);
     let probe = Tensor::randn([2, 6, 5, 6], opts);
@@ -392,27 +401,7 @@ fn native_gradients_match_finite_differences_per_item_channels_last() {
         let y = deform_conv2d_planned(&channels_last(x), &plan, w, Some(b), 2).unwrap();
         (y * &probe).sum(Kind::Double)
     };
-    let grads = Tensor::run_backward(&[loss(&x, &w, &b)], &[&x, &w, &b], false, false);
-    let eps = 1e-6;
-    for (which, g) in grads.iter().enumerate() {
-        for e in (0..g.numel() as i64).step_by(5) {
-            let fd = tch::no_grad(|| {
-                let vars = [x.detach().copy(), w.detach().copy(), b.detach().copy()];
-                let flat = vars[which].view(-1);
-                let v0 = flat.double_value(&[e]);
-                let _ = flat.get(e).fill_(v0 + eps);
-                let up = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
-                let _ = flat.get(e).fill_(v0 - eps);
-                let down = loss(&vars[0], &vars[1], &vars[2]).double_value(&[]);
-                (up - down) / (2.0 * eps)
-            });
-            let an = g.reshape(-1).double_value(&[e]);
-            assert!(
-                (fd - an).abs() < FD_TOL * (1.0 + an.abs()),
-                "param {which} elem {e}: fd {fd} vs autograd {an}"
-            );
-        }
-    }
+    assert_finite_differences([&x, &w, &b], loss, 5);
 }
 
 #[test]
@@ -500,11 +489,7 @@ fn native_matches_aten_with_wrap_around() {
 #[test]
 fn plan_from_offsets_matches_plan_from_their_tensor() {
     use crate::kernel::{compute_offsets, InputFrame, LayerGeometry, OffsetsTensor};
-    let camera = crate::camera::load(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/data/cameras/f195.toml"
-    ))
-    .unwrap();
+    let camera = crate::camera::shipped("f195");
     let geometry = LayerGeometry {
         kernel: [3, 3],
         stride: [2, 1],

@@ -99,11 +99,7 @@ mod tests {
 
     #[test]
     fn back_projection_puts_points_at_their_distance_along_the_ray() {
-        let camera = crate::camera::load(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/cameras/f195.toml"
-        ))
-        .unwrap();
+        let camera = crate::camera::shipped("f195");
         let s = 16.0 / 1080.0;
         let camera = camera.rescaled([s, s], crate::camera::PixelConvention::HalfPixel);
         let [w, h] = camera.size();
