@@ -27,6 +27,16 @@ pub(super) struct BatchStats<S> {
     pub shown: Tensor,
 }
 
+/// A batch and the network's prediction for it, with `group` (`[B, H, W]`, int64) the
+/// (image, bin) index of each pixel in `0..n_groups`.
+#[derive(Clone, Copy)]
+pub(super) struct Predicted<'a> {
+    pub out: &'a Tensor,
+    pub batch: &'a Batch,
+    pub group: &'a Tensor,
+    pub n_groups: usize,
+}
+
 /// One task's side of the evaluation.
 pub(super) trait Task {
     /// Additive statistics of a set of pixels.
@@ -43,16 +53,8 @@ pub(super) trait Task {
     fn metrics(&self, s: &Self::Sums) -> Vec<f64>;
     /// The metrics of one image and its record.
     fn image(&self, id: &str, whole: &Self::Sums) -> (Vec<f64>, SampleRecord);
-    /// Loss and statistics of a batch, `out` being the prediction and `group` `[B, H, W]` the
-    /// (image, bin) index of each pixel.
-    fn batch(
-        &self,
-        out: &Tensor,
-        batch: &Batch,
-        opts: &EvalOptions,
-        group: &Tensor,
-        n_groups: usize,
-    ) -> Result<BatchStats<Self::Sums>>;
+    /// Loss and statistics of a predicted batch.
+    fn batch(&self, p: Predicted, opts: &EvalOptions) -> Result<BatchStats<Self::Sums>>;
     /// The picture of image `i` of `batch` (`shown` from [`Task::batch`]).
     fn panel(&self, batch: &Batch, shown: &Tensor, i: i64) -> Result<RgbImage>;
     /// Per-class scores of the whole set, for tasks that have classes.
@@ -89,14 +91,8 @@ impl Task for DepthTask {
         };
         (whole.metrics().to_vec(), record)
     }
-    fn batch(
-        &self,
-        out: &Tensor,
-        batch: &Batch,
-        opts: &EvalOptions,
-        group: &Tensor,
-        n_groups: usize,
-    ) -> Result<BatchStats<DepthSums>> {
+    fn batch(&self, p: Predicted, opts: &EvalOptions) -> Result<BatchStats<DepthSums>> {
+        let (out, batch, group, n_groups) = (p.out, p.batch, p.group, p.n_groups);
         let mask = batch.mask.to_device(opts.device);
         let gt = batch.depth.to_device(opts.device);
         let valid = mask.logical_and(&gt.gt(0.0));
@@ -153,14 +149,8 @@ impl Task for SegTask {
         };
         (own.to_vec(), record)
     }
-    fn batch(
-        &self,
-        out: &Tensor,
-        batch: &Batch,
-        opts: &EvalOptions,
-        group: &Tensor,
-        n_groups: usize,
-    ) -> Result<BatchStats<Vec<u64>>> {
+    fn batch(&self, p: Predicted, opts: &EvalOptions) -> Result<BatchStats<Vec<u64>>> {
+        let (out, batch, group, n_groups) = (p.out, p.batch, p.group, p.n_groups);
         let labels = batch.labels.to_device(opts.device);
         let c = self.classes;
         let valid = labels.ge(0).logical_and(&labels.lt(c as i64));

@@ -28,7 +28,7 @@ use crate::kernel::InputFrame;
 use crate::loss::DepthLoss;
 use crate::nn::{Head, UNet};
 use crate::util::{fmt_f64, progress_bar};
-use accumulate::{DepthTask, Pool, SegTask, Task};
+use accumulate::{DepthTask, Pool, Predicted, SegTask, Task};
 use metrics::{Metric, RadialBins, SegScores};
 use record::{SampleRecord, METRICS_FILE, PER_IMAGE_FILE};
 
@@ -262,7 +262,13 @@ fn evaluate_task<T: Task>(
         let group = (Tensor::arange(b, (Kind::Int64, opts.device)).view([-1, 1, 1])
             * groups as i64)
             + bin_map.unsqueeze(0);
-        let stats = task.batch(&out, &batch, opts, &group, b as usize * groups)?;
+        let predicted = Predicted {
+            out: &out,
+            batch: &batch,
+            group: &group,
+            n_groups: b as usize * groups,
+        };
+        let stats = task.batch(predicted, opts)?;
         if stats.valid > 0.0 {
             loss_sum += stats.loss * stats.valid;
             loss_weight += stats.valid;
