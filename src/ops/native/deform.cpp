@@ -81,6 +81,17 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
   return std::max<int64_t>(t, 1);
 }
 
+// Whether a pass runs as one tile of all `total` rows on the calling thread, its GEMM then
+// parallel inside the BLAS / oneDNN (with the intra-op threads), instead of one tile per thread
+// with single-threaded GEMMs: when the weight has at least as many elements as the whole column
+// matrix (the deep layers of a wide network on small maps, few pixels and a weight of megabytes),
+// every per-thread GEMM would pack the whole weight for a handful of rows. The gather and scatter
+// then run on one thread: their cost is proportional to the column matrix, the GEMM's to the
+// column matrix times C_out. One thread: always false (nothing to share).
+bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
+  return at::get_num_threads() > 1 && weight_elems >= total * row_elems;
+}
+
 // ---------------------------------------------------------------------------------------------
 // Instruction sets: the inner loops (gather, scatter) are compiled for several and picked at
 // load time (GCC function multiversioning, see CALIBCONV_TILE_KERNELS below).
@@ -550,7 +561,8 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // Tiles of flattened rows q = b * P + p; per-item plans keep their tiles within one item only
   // in the sense that the gather takes each piece's own samples (for_items).
   const int64_t total = g.B * g.P;
-  const int64_t tile = tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const bool whole = whole_rows(total, kc, g.Cout * kcg);
+  const int64_t tile = whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (total + tile - 1) / tile;
   const TileKernels<T> kern = tile_kernels<T>(g);
   const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
@@ -562,7 +574,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
   T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
-  parallel_tasks(tiles, init, [&](int64_t task, Scratch<T>& s) {
+  const auto body = [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
     T* tp = kp ? kp + q0 * kc : s.tile.data();
     for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
@@ -588,7 +600,13 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       gemm<T>(cols, w.t(), c, bp != nullptr);
     }
     write_rows(yp, op, cl, g.Cout, g.P, q0, n);
-  });
+  };
+  if (whole && total > 0) {
+    Scratch<T> s = init();
+    body(0, s);
+  } else {
+    parallel_tasks(tiles, init, body);
+  }
   return out;
 }
 
@@ -603,11 +621,13 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const at::Tensor x = kp ? input : channels_last<T>(input);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
-  const int64_t tile = tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const bool whole = whole_rows(total, kc, g.Cout * kcg);
+  const int64_t tile = whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tasks = (total + tile - 1) / tile;
   // One accumulator per chunk of tasks; chunks are fixed (not handed out dynamically) so that the
   // summation order, hence the result, is the same on every run with the same thread count.
-  const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tasks));
+  const int64_t chunks =
+      whole ? 1 : std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tasks));
   // Chunk 0 accumulates into the tensor that becomes the result, the others into a buffer freed
   // on return: the peak is `chunks` weights, not `chunks + 1`.
   at::Tensor gw = at::zeros({g.G, g.Coutg, g.K, g.Cg}, gy.options());
@@ -623,7 +643,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const TileKernels<T> kern = tile_kernels<T>(g);
   const bool dnn =
       std::is_same_v<T, float> && g.G == 1 && g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+  const auto body = [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(kp ? 0 : tile * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
@@ -653,7 +673,12 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
         }
       }
     }
-  });
+  };
+  if (whole) {
+    body(0, 1);  // on this thread: the GEMM gets the intra-op threads
+  } else {
+    at::parallel_for(0, chunks, 1, body);
+  }
   // Sum the chunks into chunk 0 and swap (tap, channel) -> (channel, tap) in place, one output
   // channel (a row of K * C/G) at a time: [C_out, C/G, K].
   at::parallel_for(0, g.Cout, 1, [&](int64_t o0, int64_t o1) {
@@ -752,19 +777,57 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   auto init = [&] {
     return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
   };
+  // Rows [first, second) of the flattened (item, pixel) rows of task `task` of phase `phase`.
+  const auto task_rows = [&](int64_t phase, int64_t task) {
+    const int64_t phase_bands = (bands - phase + 1) / 2;
+    const int64_t items = task / phase_bands, band = phase + 2 * (task % phase_bands);
+    if (bands > 1) {
+      return std::pair<int64_t, int64_t>{items * g.P + band * band_pixels,
+                                         items * g.P + std::min(g.P, (band + 1) * band_pixels)};
+    }
+    return std::pair<int64_t, int64_t>{items * per_task * g.P,
+                                       std::min(g.B, (items + 1) * per_task) * g.P};
+  };
+  const int64_t total = g.B * g.P;
+  if (whole_rows(total, kc, g.Cout * kcg) && total > 0) {
+    // One GEMM for the column gradient of every row (parallel inside the BLAS / oneDNN), then
+    // the scatter on this thread, task by task in the banded order below (the same summation
+    // order as the parallel path).
+    std::vector<T> ybuf(cl_y ? 0 : total * g.Cout);
+    const T* yt = rows_of(gp, cl_y, g.Cout, g.P, 0, total, ybuf.data());  // [total, C_out]
+    at::Tensor gcols;
+    if constexpr (std::is_same_v<T, float>) {
+      if (dnn) {
+        gcols = dnn_linear(Mat<const float>{yt, total, g.Cout, g.Cout, 1}, wt, at::Tensor())
+                    .contiguous();
+      }
+    }
+    if (!gcols.defined()) {
+      gcols = at::empty({total, kc}, gy.options());
+      for (int64_t gi = 0; gi < g.G; ++gi) {
+        const Mat<const T> y{yt + gi * g.Coutg, total, g.Coutg, g.Cout, 1};
+        const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
+        const Mat<T> c{gcols.mutable_data_ptr<T>() + gi * kcg, total, kcg, kc, 1};
+        gemm<T>(y, w, c, false);
+      }
+    }
+    const T* src = gcols.const_data_ptr<T>();
+    for (int64_t phase = 0; phase < 2; ++phase) {
+      for (int64_t task = 0; task < groups_of_items * ((bands - phase + 1) / 2); ++task) {
+        const auto [q_begin, q_end] = task_rows(phase, task);
+        for_items(g.P, q_begin, q_end - q_begin,
+                  [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+                    kern.scatter(g, xp, ip, fp, b, p0, len, src + (q_begin + off) * kc);
+                  });
+      }
+    }
+    if (memory_format(input) == at::MemoryFormat::ChannelsLast) return gx;
+    return nchw<T>(gx);
+  }
   for (int64_t phase = 0; phase < 2; ++phase) {
     const int64_t phase_bands = (bands - phase + 1) / 2;
     parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, Scratch<T>& s) {
-      const int64_t items = task / phase_bands, band = phase + 2 * (task % phase_bands);
-      // Rows [q_begin, q_end) of the flattened (item, pixel) rows.
-      int64_t q_begin, q_end;
-      if (bands > 1) {
-        q_begin = items * g.P + band * band_pixels;
-        q_end = items * g.P + std::min(g.P, (band + 1) * band_pixels);
-      } else {
-        q_begin = items * per_task * g.P;
-        q_end = std::min(g.B, (items + 1) * per_task) * g.P;
-      }
+      const auto [q_begin, q_end] = task_rows(phase, task);
       for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
         const int64_t n = std::min(tile, q_end - q0);
         const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
