@@ -562,7 +562,8 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // in the sense that the gather takes each piece's own samples (for_items).
   const int64_t total = g.B * g.P;
   const bool whole = whole_rows(total, kc, g.Cout * kcg);
-  const int64_t tile = whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const int64_t tile =
+      whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (total + tile - 1) / tile;
   const TileKernels<T> kern = tile_kernels<T>(g);
   const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
@@ -622,7 +623,8 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
   const bool whole = whole_rows(total, kc, g.Cout * kcg);
-  const int64_t tile = whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
+  const int64_t tile =
+      whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tasks = (total + tile - 1) / tile;
   // One accumulator per chunk of tasks; chunks are fixed (not handed out dynamically) so that the
   // summation order, hence the result, is the same on every run with the same thread count.
@@ -788,37 +790,44 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     return std::pair<int64_t, int64_t>{items * per_task * g.P,
                                        std::min(g.B, (items + 1) * per_task) * g.P};
   };
+  // The column gradient gy @ W of the rows whose output gradient is yt [n, C_out]: [n, K*C], in
+  // buf or (oneDNN's contiguous result) in hold.
+  const auto column_gradient = [&](const T* yt, int64_t n, T* buf, at::Tensor& hold) -> const T* {
+    if constexpr (std::is_same_v<T, float>) {
+      if (dnn) {
+        hold = dnn_linear(Mat<const float>{yt, n, g.Cout, g.Cout, 1}, wt, at::Tensor());
+        if (hold.is_contiguous()) return hold.const_data_ptr<float>();
+        view_of(Mat<float>{buf, n, kc, kc, 1}).copy_(hold);
+        return buf;
+      }
+    }
+    for (int64_t gi = 0; gi < g.G; ++gi) {
+      const Mat<const T> y{yt + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
+      const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
+      const Mat<T> c{buf + gi * kcg, n, kcg, kc, 1};
+      gemm<T>(y, w, c, false);
+    }
+    return buf;
+  };
+  // Adds the column gradient src [n, K*C] of rows [q0, q0 + n) to the corners they sampled.
+  const auto scatter_rows = [&](const T* src, int64_t q0, int64_t n) {
+    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+      kern.scatter(g, xp, ip, fp, b, p0, len, src + off * kc);
+    });
+  };
   const int64_t total = g.B * g.P;
   if (whole_rows(total, kc, g.Cout * kcg) && total > 0) {
     // One GEMM for the column gradient of every row (parallel inside the BLAS / oneDNN), then
     // the scatter on this thread, task by task in the banded order below (the same summation
     // order as the parallel path).
-    std::vector<T> ybuf(cl_y ? 0 : total * g.Cout);
+    std::vector<T> ybuf(cl_y ? 0 : total * g.Cout), cols(total * kc);
     const T* yt = rows_of(gp, cl_y, g.Cout, g.P, 0, total, ybuf.data());  // [total, C_out]
-    at::Tensor gcols;
-    if constexpr (std::is_same_v<T, float>) {
-      if (dnn) {
-        gcols = dnn_linear(Mat<const float>{yt, total, g.Cout, g.Cout, 1}, wt, at::Tensor())
-                    .contiguous();
-      }
-    }
-    if (!gcols.defined()) {
-      gcols = at::empty({total, kc}, gy.options());
-      for (int64_t gi = 0; gi < g.G; ++gi) {
-        const Mat<const T> y{yt + gi * g.Coutg, total, g.Coutg, g.Cout, 1};
-        const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
-        const Mat<T> c{gcols.mutable_data_ptr<T>() + gi * kcg, total, kcg, kc, 1};
-        gemm<T>(y, w, c, false);
-      }
-    }
-    const T* src = gcols.const_data_ptr<T>();
+    at::Tensor hold;
+    const T* src = column_gradient(yt, total, cols.data(), hold);
     for (int64_t phase = 0; phase < 2; ++phase) {
       for (int64_t task = 0; task < groups_of_items * ((bands - phase + 1) / 2); ++task) {
         const auto [q_begin, q_end] = task_rows(phase, task);
-        for_items(g.P, q_begin, q_end - q_begin,
-                  [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-                    kern.scatter(g, xp, ip, fp, b, p0, len, src + (q_begin + off) * kc);
-                  });
+        scatter_rows(src + q_begin * kc, q_begin, q_end - q_begin);
       }
     }
     if (memory_format(input) == at::MemoryFormat::ChannelsLast) return gx;
@@ -831,31 +840,8 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
       for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
         const int64_t n = std::min(tile, q_end - q0);
         const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
-        const T* src = s.tile.data();  // grad_cols [n, K*C]
-        if constexpr (std::is_same_v<T, float>) {
-          if (dnn) {  // grad_cols = gy @ W, scattered from oneDNN's result (or the tile)
-            const at::Tensor gc = dnn_linear(Mat<const float>{yt, n, g.Cout, g.Cout, 1}, wt,
-                                             at::Tensor());
-            if (gc.is_contiguous()) {
-              src = gc.const_data_ptr<float>();
-            } else {
-              view_of(Mat<float>{s.tile.data(), n, kc, kc, 1}).copy_(gc);
-            }
-            for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-              kern.scatter(g, xp, ip, fp, b, p0, len, src + off * kc);
-            });
-            continue;
-          }
-        }
-        for (int64_t gi = 0; gi < g.G; ++gi) {
-          const Mat<const T> y{yt + gi * g.Coutg, n, g.Coutg, g.Cout, 1};
-          const Mat<const T> w{wpp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
-          const Mat<T> c{s.tile.data() + gi * kcg, n, kcg, kc, 1};
-          gemm<T>(y, w, c, false);
-        }
-        for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-          kern.scatter(g, xp, ip, fp, b, p0, len, src + off * kc);
-        });
+        at::Tensor hold;
+        scatter_rows(column_gradient(yt, n, s.tile.data(), hold), q0, n);
       }
     });
   }
