@@ -80,46 +80,50 @@ fn named_modules(code: &str) -> BTreeSet<String> {
 }
 
 fn graph(src: &Path) -> Graph {
-    let mut files = Vec::new();
-    rust_files(src, &mut files);
-    files.sort();
-    let modules: BTreeSet<String> = files
+    let mut paths = Vec::new();
+    rust_files(src, &mut paths);
+    paths.sort();
+    // (path within src, its top-level module), the binary's files left out.
+    let files: Vec<(PathBuf, String)> = paths
         .iter()
-        .map(|f| top_module(src, f))
-        .filter(|m| {
-            !OUTSIDE.contains(&format!("{m}.rs").as_str()) && !OUTSIDE.contains(&m.as_str())
+        .map(|f| f.strip_prefix(src).unwrap().to_path_buf())
+        .filter(|rel| {
+            let first = rel.components().next().unwrap().as_os_str();
+            !OUTSIDE.contains(&first.to_string_lossy().as_ref())
+        })
+        .map(|rel| {
+            let module = top_module(&rel);
+            (rel, module)
         })
         .collect();
+    let modules: BTreeSet<&String> = files.iter().map(|(_, m)| m).collect();
     let mut g = Graph::new();
-    for f in &files {
-        let rel = f.strip_prefix(src).unwrap();
-        let first = rel
-            .components()
-            .next()
-            .unwrap()
-            .as_os_str()
-            .to_string_lossy();
-        if OUTSIDE.contains(&first.as_ref()) || f.file_name().is_some_and(|n| n == "tests.rs") {
+    for (rel, from) in &files {
+        if rel.file_name().is_some_and(|n| n == "tests.rs") {
             continue;
         }
-        let from = top_module(src, f);
-        for to in named_modules(&code(&std::fs::read_to_string(f).unwrap())) {
-            if to != from && modules.contains(&to) {
+        let text = std::fs::read_to_string(src.join(rel)).unwrap();
+        for to in named_modules(&code(&text)) {
+            if &to != from && modules.contains(&to) {
                 g.entry(from.clone())
                     .or_default()
                     .entry(to)
-                    .or_insert_with(|| rel.to_path_buf());
+                    .or_insert_with(|| rel.clone());
             }
         }
     }
     g
 }
 
-/// `src/ops/plan.rs` -> `ops`, `src/io.rs` -> `io`.
-fn top_module(src: &Path, f: &Path) -> String {
-    let first = f.strip_prefix(src).unwrap().components().next().unwrap();
-    let name = first.as_os_str().to_string_lossy();
-    name.strip_suffix(".rs").unwrap_or(&name).to_string()
+/// `ops/plan.rs` -> `ops`, `io.rs` -> `io` (a path within src).
+fn top_module(rel: &Path) -> String {
+    let first = rel
+        .components()
+        .next()
+        .unwrap()
+        .as_os_str()
+        .to_string_lossy();
+    first.strip_suffix(".rs").unwrap_or(&first).to_string()
 }
 
 /// A cycle of the graph (as the list of its modules, the first repeated at the end), if any.
