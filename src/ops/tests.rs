@@ -267,6 +267,10 @@ fn native_matches_aten_on_random_plans() {
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
+        // The few-output-channel kernels (float32, 8 or 16 outputs): blocks that do not
+        // divide the rows, and 4 channels (K*C = 36: the column gradient through oneDNN).
+        (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
+        (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`).
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
@@ -596,8 +600,9 @@ fn native_kernels_are_built() {
 fn first_layer_without_input_gradient_matches_aten() {
     tch::manual_seed(5);
     for (kind, tol) in [(Kind::Double, F64_IMPL_TOL), (Kind::Float, F32_IMPL_TOL)] {
-        // 8 output channels, and 40 (the weight gradient through oneDNN from 32 on).
-        for (per_item, cout) in [(false, 8), (true, 8), (false, 40)] {
+        // 8 and 16 output channels (the few-output-channel kernels), and 40 (the weight
+        // gradient through oneDNN from 32 on).
+        for (per_item, cout) in [(false, 8), (true, 8), (false, 16), (false, 40)] {
             let opts = (kind, Device::Cpu);
             let (b, c, h, w) = (3, 3, 30, 26);
             let off = if per_item {
@@ -619,7 +624,7 @@ fn first_layer_without_input_gradient_matches_aten() {
                 (out.detach(), g[0].shallow_clone(), g[1].shallow_clone())
             };
             let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
-            // The output's layout follows the input's (the padded 4-channel copy is internal).
+            // The output's layout follows the input's.
             assert!(a.0.is_contiguous(), "NCHW in, NCHW out");
             let cl = deform_conv2d_planned(&channels_last(&x), &plan, &b_.1, None, 1).unwrap();
             assert!(is_channels_last(&cl), "channels-last in, channels-last out");

@@ -20,6 +20,9 @@
 //   two bands of the same phase touch are disjoint: no atomics, no races, and the summation order
 //   does not depend on the number of threads.
 // - bias: a sum of the output gradient.
+// - few output channels (float32, one group, C_out 8 or 16): the three products run through
+//   register-blocked kernels on L1-sized blocks of pixels (gathered, multiplied, scattered block
+//   by block) instead of a oneDNN / BLAS call per tile; see "Few output channels" below.
 //
 // Tiles run in parallel with at::parallel_for. The entry point catches every C++ exception and
 // returns its message: no exception crosses into Rust.
@@ -450,6 +453,176 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
+// ---------------------------------------------------------------------------------------------
+// Few output channels (float32, one group, C_out 8 or 16): the three products of a pass
+// through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
+// oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
+// than in arithmetic, and its column tile (megabytes, so that the call is worth it) makes a
+// round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
+// multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
+// registers over the whole reduction.
+
+constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
+
+// Rows of a block of `kc` columns each: a multiple of 8 that fits SMALL_BLOCK_BYTES (at least 8).
+int64_t small_block_rows(int64_t kc) {
+  const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
+  return std::max<int64_t>(8, rows - rows % 8);
+}
+
+// y[t, :] = bias + cols[t, :] @ wt for t in [0, n): cols [n, kc] (row stride kc), wt [kc, CO]
+// (the packed weight, transposed), y [n, CO] (row stride CO); bias may be null. R rows at a
+// time, each with CO / 16 (AVX-512) or CO / 8 (AVX2) accumulators.
+template <int CO>
+CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
+                                                       const float* wt, const float* bias,
+                                                       float* y) {
+  using V = typename VecOf<float, CO>::type;
+  constexpr int R = 8;
+  V b0 = {};
+  if (bias) b0 = load<V>(bias);
+  int64_t t = 0;
+  for (; t + R <= n; t += R) {
+    V acc[R];
+#pragma GCC unroll 8
+    for (int r = 0; r < R; ++r) acc[r] = b0;
+    const float* c = cols + t * kc;
+    for (int64_t j = 0; j < kc; ++j) {
+      const V w = load<V>(wt + j * CO);
+#pragma GCC unroll 8
+      for (int r = 0; r < R; ++r) acc[r] += c[r * kc + j] * w;
+    }
+#pragma GCC unroll 8
+    for (int r = 0; r < R; ++r) store(y + (t + r) * CO, acc[r]);
+  }
+  for (; t < n; ++t) {
+    V acc = b0;
+    const float* c = cols + t * kc;
+    for (int64_t j = 0; j < kc; ++j) acc += c[j] * load<V>(wt + j * CO);
+    store(y + t * CO, acc);
+  }
+}
+
+// g[t, :] = gy[t, :] @ w for t in [0, n): gy [n, CO] (row stride CO), w [CO, kc] (the packed
+// weight), g [n, kc]; kc a multiple of 24 (9 taps of a multiple of 8 channels). Blocks of R rows
+// x J vectors of 8 columns in registers.
+template <int CO>
+CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, int64_t n,
+                                                               int64_t kc, const float* w,
+                                                               float* g) {
+  using V = typename VecOf<float, 8>::type;
+  constexpr int R = 4, J = 3;
+  int64_t t = 0;
+  for (; t < n; t += R) {
+    const int rows = static_cast<int>(std::min<int64_t>(R, n - t));
+    const float* yt = gy + t * CO;
+    for (int64_t j0 = 0; j0 < kc; j0 += 8 * J) {
+      V acc[R][J] = {};
+      if (rows == R) {
+        for (int o = 0; o < CO; ++o) {
+          V wv[J];
+#pragma GCC unroll 4
+          for (int jj = 0; jj < J; ++jj) wv[jj] = load<V>(w + o * kc + j0 + 8 * jj);
+#pragma GCC unroll 4
+          for (int r = 0; r < R; ++r) {
+            const float s = yt[r * CO + o];
+#pragma GCC unroll 4
+            for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * wv[jj];
+          }
+        }
+      } else {
+        for (int r = 0; r < rows; ++r) {
+          for (int o = 0; o < CO; ++o) {
+            const float s = yt[r * CO + o];
+            for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * load<V>(w + o * kc + j0 + 8 * jj);
+          }
+        }
+      }
+      for (int r = 0; r < rows; ++r) {
+        for (int jj = 0; jj < J; ++jj) store(g + (t + r) * kc + j0 + 8 * jj, acc[r][jj]);
+      }
+    }
+  }
+}
+
+// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :]: cols [n, kc] (row stride kc), gy
+// [n, CO] (row stride CO), acc [kc, CO] (the weight gradient, transposed). JB columns at a time,
+// their accumulators in registers over all n rows.
+template <int CO>
+CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
+                                                               int64_t kc, const float* gy,
+                                                               float* acc) {
+  using V = typename VecOf<float, CO>::type;
+  constexpr int JB = 8;
+  int64_t j0 = 0;
+  for (; j0 + JB <= kc; j0 += JB) {
+    V a[JB];
+#pragma GCC unroll 8
+    for (int jj = 0; jj < JB; ++jj) a[jj] = load<V>(acc + (j0 + jj) * CO);
+    for (int64_t t = 0; t < n; ++t) {
+      const V yv = load<V>(gy + t * CO);
+      const float* c = cols + t * kc + j0;
+#pragma GCC unroll 8
+      for (int jj = 0; jj < JB; ++jj) a[jj] += c[jj] * yv;
+    }
+#pragma GCC unroll 8
+    for (int jj = 0; jj < JB; ++jj) store(acc + (j0 + jj) * CO, a[jj]);
+  }
+  for (; j0 < kc; ++j0) {
+    V a = load<V>(acc + j0 * CO);
+    for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CO);
+    store(acc + j0 * CO, a);
+  }
+}
+
+#define CALIBCONV_SMALL_KERNELS(CO)                                                            \
+  CALIBCONV_CLONES void small_forward_##CO(const float* cols, int64_t n, int64_t kc,           \
+                                           const float* wt, const float* bias, float* y) {     \
+    small_forward_body<CO>(cols, n, kc, wt, bias, y);                                          \
+  }                                                                                            \
+  CALIBCONV_CLONES void small_column_gradient_##CO(const float* gy, int64_t n, int64_t kc,     \
+                                                   const float* w, float* g) {                 \
+    small_column_gradient_body<CO>(gy, n, kc, w, g);                                           \
+  }                                                                                            \
+  CALIBCONV_CLONES void small_weight_gradient_##CO(const float* cols, int64_t n, int64_t kc,   \
+                                                   const float* gy, float* acc) {              \
+    small_weight_gradient_body<CO>(cols, n, kc, gy, acc);                                      \
+  }
+// (Not 32: the same kernels with 32 outputs were 1.4-2.5x slower than oneDNN, forward and
+// backward, at 16-64 input channels: `calibconv bench --presets`, one thread, 2026-12-02.)
+CALIBCONV_SMALL_KERNELS(8)
+CALIBCONV_SMALL_KERNELS(16)
+
+// The few-output-channel kernels of a pass, or all null where they do not apply (another element
+// type, groups, another channel count). column_gradient also needs kc % 24 == 0.
+struct SmallKernels {
+  void (*forward)(const float*, int64_t, int64_t, const float*, const float*, float*) = nullptr;
+  void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
+  void (*weight_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
+  explicit operator bool() const { return forward != nullptr; }
+};
+
+template <typename T>
+SmallKernels small_kernels(const Geo& g) {
+  SmallKernels s;
+  if (!std::is_same_v<T, float> || g.G != 1) return s;
+  switch (g.Cout) {
+#define CALIBCONV_SMALL_PICK(CO)                          \
+  case CO:                                                \
+    s.forward = small_forward_##CO;                       \
+    s.column_gradient = small_column_gradient_##CO;       \
+    s.weight_gradient = small_weight_gradient_##CO;       \
+    break;
+    CALIBCONV_SMALL_PICK(8)
+    CALIBCONV_SMALL_PICK(16)
+#undef CALIBCONV_SMALL_PICK
+    default:
+      return s;
+  }
+  if ((g.K * g.C) % 24 != 0) s.column_gradient = nullptr;
+  return s;
+}
+
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
@@ -566,21 +739,45 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (total + tile - 1) / tile;
   const TileKernels<T> kern = tile_kernels<T>(g);
-  const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const SmallKernels small = small_kernels<T>(g);
+  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && dnn_available();
   const at::Tensor w2 = wp.view({g.Cout, kcg});  // used with G = 1 only
+  const at::Tensor wt = small ? w2.t().contiguous() : at::Tensor();  // [K*C, C_out]
+  // Rows gathered at a time: a block (few output channels), else the whole tile.
+  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
   auto init = [&] {
-    return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(dnn ? 0 : tile * g.Cout),
+    // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
+    // which write the output's rows directly)
+    const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
+    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(y_rows * g.Cout),
                       std::vector<T>(g.C, T(0))};
   };
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
   T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
+  const auto gather = [&](int64_t q0, int64_t n, T* cols, const T* zero) {
+    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+      kern.gather(g, xp, ip, fp, zero, b, p0, len, cols + off * kc);
+    });
+  };
   const auto body = [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
+    if constexpr (std::is_same_v<T, float>) {
+      if (small) {  // block by block, into the output's rows (channels-last) or a tile of them
+        const float* wtp = wt.const_data_ptr<float>();
+        float* yp = cl ? op + q0 * g.Cout : s.y.data();
+        for (int64_t t0 = 0; t0 < n; t0 += block) {
+          const int64_t m = std::min(block, n - t0);
+          float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
+          gather(q0 + t0, m, cb, s.zero.data());
+          small.forward(cb, m, kc, wtp, bp, yp + t0 * g.Cout);
+        }
+        if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
+        return;
+      }
+    }
     T* tp = kp ? kp + q0 * kc : s.tile.data();
-    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.gather(g, xp, ip, fp, s.zero.data(), b, p0, len, tp + off * kc);
-    });
+    gather(q0, n, tp, s.zero.data());
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
         const Mat<const float> cols{tp, n, kc, kc, 1};
@@ -643,21 +840,40 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const int32_t* ip = index.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   const TileKernels<T> kern = tile_kernels<T>(g);
-  const bool dnn =
-      std::is_same_v<T, float> && g.G == 1 && g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
+  const auto small = small_kernels<T>(g).weight_gradient;
+  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 &&
+                   g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
+  // Rows gathered at a time: a block (few output channels), else the whole tile.
+  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
+  const auto gather = [&](int64_t q0, int64_t n, T* cols, const T* zero) {
+    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+      kern.gather(g, xp, ip, fp, zero, b, p0, len, cols + off * kc);
+    });
+  };
   const auto body = [&](int64_t c0, int64_t c1) {
-    std::vector<T> cols(kp ? 0 : tile * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
+    std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
+    // Few output channels: the chunk's sum transposed, [K*C, C_out], added to its accumulator
+    // at the end of the chunk.
+    std::vector<T> acc_t(small ? kc * g.Cout : 0);
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
+      std::fill(acc_t.begin(), acc_t.end(), T(0));
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t q0 = task * tile, n = std::min(tile, total - q0);
-        const T* cp = kp ? kp + q0 * kc : cols.data();
-        if (!kp) {
-          for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-            kern.gather(g, xp, ip, fp, zero.data(), b, p0, len, cols.data() + off * kc);
-          });
-        }
         const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
+        if constexpr (std::is_same_v<T, float>) {
+          if (small) {
+            for (int64_t t0 = 0; t0 < n; t0 += block) {
+              const int64_t m = std::min(block, n - t0);
+              const float* cb = kp ? kp + (q0 + t0) * kc : cols.data();
+              if (!kp) gather(q0 + t0, m, cols.data(), zero.data());
+              small(cb, m, kc, yt + t0 * g.Cout, acc_t.data());
+            }
+            continue;
+          }
+        }
+        const T* cp = kp ? kp + q0 * kc : cols.data();
+        if (!kp) gather(q0, n, cols.data(), zero.data());
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
             const Mat<const float> cols_t{cp, kc, n, 1, kc};
@@ -673,6 +889,9 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           const Mat<T> a{accp + gi * g.Coutg * kcg, g.Coutg, kcg, kcg, 1};
           gemm<T>(y.t(), c, a, true);
         }
+      }
+      for (int64_t j = 0; small && j < kc; ++j) {
+        for (int64_t o = 0; o < g.Cout; ++o) accp[o * kc + j] += acc_t[j * g.Cout + o];
       }
     }
   };
@@ -714,7 +933,8 @@ constexpr int64_t MIN_BAND_TASKS = 16;
 // count, so neither does the summation order. Returns R (H_out: one band).
 int64_t band_rows(const Geo& g, const int32_t* rows) {
   const int64_t items = g.per_item ? g.B : 1;
-  const int64_t bands_wanted = std::max<int64_t>(1, (MIN_BAND_TASKS + g.B - 1) / std::max<int64_t>(1, g.B));
+  const int64_t bands_wanted =
+      std::max<int64_t>(1, (MIN_BAND_TASKS + g.B - 1) / std::max<int64_t>(1, g.B));
   const int64_t preferred =
       std::max((BAND_PIXELS + g.Wo - 1) / g.Wo, (g.Ho + bands_wanted - 1) / bands_wanted);
   for (int64_t r = std::max<int64_t>(1, preferred); r < g.Ho; r *= 2) {
@@ -774,10 +994,13 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const int64_t tile =
       std::min(tile_rows(g.B * g.P, kc, g.Cout * kcg, sizeof(T)), per_task * band_pixels);
   const TileKernels<T> kern = tile_kernels<T>(g);
-  const bool dnn = std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const auto small = small_kernels<T>(g).column_gradient;
+  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && dnn_available();
   const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
+  // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
+  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
   auto init = [&] {
-    return Scratch<T>{std::vector<T>(tile * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
+    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
   };
   // Rows [first, second) of the flattened (item, pixel) rows of task `task` of phase `phase`.
   const auto task_rows = [&](int64_t phase, int64_t task) {
@@ -794,6 +1017,10 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   // buf or (oneDNN's contiguous result) in hold.
   const auto column_gradient = [&](const T* yt, int64_t n, T* buf, at::Tensor& hold) -> const T* {
     if constexpr (std::is_same_v<T, float>) {
+      if (small) {
+        small(yt, n, kc, wpp, buf);
+        return buf;
+      }
       if (dnn) {
         hold = dnn_linear(Mat<const float>{yt, n, g.Cout, g.Cout, 1}, wt, at::Tensor());
         if (hold.is_contiguous()) return hold.const_data_ptr<float>();
@@ -840,8 +1067,11 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
       for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
         const int64_t n = std::min(tile, q_end - q0);
         const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
-        at::Tensor hold;
-        scatter_rows(column_gradient(yt, n, s.tile.data(), hold), q0, n);
+        for (int64_t t0 = 0; t0 < n; t0 += block) {
+          const int64_t m = std::min(block, n - t0);
+          at::Tensor hold;
+          scatter_rows(column_gradient(yt + t0 * g.Cout, m, s.tile.data(), hold), q0 + t0, m);
+        }
       }
     });
   }
