@@ -45,6 +45,10 @@
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
+//!   - *Few output channels* (float32, one group, 8 or 16 outputs): the three products above
+//!     run through register-blocked kernels instead of a oneDNN / BLAS call per tile, on blocks
+//!     of pixels whose columns fit 16 KiB (gathered, multiplied and scattered block by block):
+//!     at these shapes a GEMM call costs more in overhead than in arithmetic.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
 //! - **ATen composition** (any device; the CUDA path): one `embedding_bag` (weighted sum of the
