@@ -464,10 +464,11 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
 
 constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
 
-// Rows of a block of `kc` columns each: a multiple of 8 that fits SMALL_BLOCK_BYTES (at least 8).
-int64_t small_block_rows(int64_t kc) {
+// Rows of a block of `kc` columns each, within a tile of `tile` rows: a multiple of 8 that fits
+// SMALL_BLOCK_BYTES (at least 8), at most the tile.
+int64_t small_block_rows(int64_t kc, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
-  return std::max<int64_t>(8, rows - rows % 8);
+  return std::min(tile, std::max<int64_t>(8, rows - rows % 8));
 }
 
 // y[t, :] = bias + cols[t, :] @ wt for t in [0, n): cols [n, kc] (row stride kc), wt [kc, CO]
@@ -623,6 +624,17 @@ SmallKernels small_kernels(const Geo& g) {
   return s;
 }
 
+// Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
+// piece by piece within batch items (for_items), from the channels-last input x.
+template <typename T>
+void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* x, const int32_t* index,
+                 const T* frac, const T* zero, int64_t q0, int64_t n, T* cols) {
+  const int64_t kc = g.K * g.C;
+  for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+    kern.gather(g, x, index, frac, zero, b, p0, len, cols + off * kc);
+  });
+}
+
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
@@ -744,7 +756,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const at::Tensor w2 = wp.view({g.Cout, kcg});  // used with G = 1 only
   const at::Tensor wt = small ? w2.t().contiguous() : at::Tensor();  // [K*C, C_out]
   // Rows gathered at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
+  const int64_t block = small ? small_block_rows(kc, tile) : tile;
   auto init = [&] {
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
@@ -755,11 +767,6 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
   T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
-  const auto gather = [&](int64_t q0, int64_t n, T* cols, const T* zero) {
-    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.gather(g, xp, ip, fp, zero, b, p0, len, cols + off * kc);
-    });
-  };
   const auto body = [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
     if constexpr (std::is_same_v<T, float>) {
@@ -769,7 +776,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
         for (int64_t t0 = 0; t0 < n; t0 += block) {
           const int64_t m = std::min(block, n - t0);
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
-          gather(q0 + t0, m, cb, s.zero.data());
+          gather_rows(g, kern, xp, ip, fp, s.zero.data(), q0 + t0, m, cb);
           small.forward(cb, m, kc, wtp, bp, yp + t0 * g.Cout);
         }
         if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
@@ -777,7 +784,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       }
     }
     T* tp = kp ? kp + q0 * kc : s.tile.data();
-    gather(q0, n, tp, s.zero.data());
+    gather_rows(g, kern, xp, ip, fp, s.zero.data(), q0, n, tp);
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
         const Mat<const float> cols{tp, n, kc, kc, 1};
@@ -844,12 +851,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 &&
                    g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
-  const auto gather = [&](int64_t q0, int64_t n, T* cols, const T* zero) {
-    for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.gather(g, xp, ip, fp, zero, b, p0, len, cols + off * kc);
-    });
-  };
+  const int64_t block = small ? small_block_rows(kc, tile) : tile;
   const auto body = [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
     // Few output channels: the chunk's sum transposed, [K*C, C_out], added to its accumulator
@@ -866,14 +868,14 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
             for (int64_t t0 = 0; t0 < n; t0 += block) {
               const int64_t m = std::min(block, n - t0);
               const float* cb = kp ? kp + (q0 + t0) * kc : cols.data();
-              if (!kp) gather(q0 + t0, m, cols.data(), zero.data());
+              if (!kp) gather_rows(g, kern, xp, ip, fp, zero.data(), q0 + t0, m, cols.data());
               small(cb, m, kc, yt + t0 * g.Cout, acc_t.data());
             }
             continue;
           }
         }
         const T* cp = kp ? kp + q0 * kc : cols.data();
-        if (!kp) gather(q0, n, cols.data(), zero.data());
+        if (!kp) gather_rows(g, kern, xp, ip, fp, zero.data(), q0, n, cols.data());
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
             const Mat<const float> cols_t{cp, kc, n, 1, kc};
@@ -890,8 +892,10 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           gemm<T>(y.t(), c, a, true);
         }
       }
-      for (int64_t j = 0; small && j < kc; ++j) {
-        for (int64_t o = 0; o < g.Cout; ++o) accp[o * kc + j] += acc_t[j * g.Cout + o];
+      if (small) {  // the chunk's transposed sum into its accumulator
+        for (int64_t j = 0; j < kc; ++j) {
+          for (int64_t o = 0; o < g.Cout; ++o) accp[o * kc + j] += acc_t[j * g.Cout + o];
+        }
       }
     }
   };
@@ -998,7 +1002,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && dnn_available();
   const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
   // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? std::min(tile, small_block_rows(kc)) : tile;
+  const int64_t block = small ? small_block_rows(kc, tile) : tile;
   auto init = [&] {
     return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
   };
