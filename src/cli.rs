@@ -303,6 +303,20 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Cap the native few-output-channel kernels (8, 16, 32 outputs) at this instruction-set
+    /// level (`none`: such layers use oneDNN like the others); default: the CPU's level. For
+    /// A/B timings of the kernels on one machine.
+    #[arg(long, value_enum)]
+    pub small_kernels: Option<SmallKernelLevel>,
+}
+
+/// An instruction-set level of the few-output-channel kernels (`calibconv bench
+/// --small-kernels`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SmallKernelLevel {
+    None,
+    Avx2,
+    Avx512,
 }
 
 /// A part of `calibconv bench`.

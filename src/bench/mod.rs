@@ -264,6 +264,8 @@ struct UnetResult {
 #[derive(Debug, Serialize)]
 pub struct Report {
     threads: i32,
+    /// The instruction-set level of the few-output-channel kernels (`ops::small_kernel_isa`).
+    small_kernels: String,
     /// `/proc/loadavg` (1, 5, 15 minutes) before and after the timings.
     load_before: Option<[f64; 3]>,
     load_after: Option<[f64; 3]>,
@@ -314,9 +316,11 @@ pub fn run(
     let run_part = |p: Part| args.only.is_empty() || args.only.contains(&p);
     let threads = tch::get_num_threads();
     let load_before = load_average();
+    let small_kernels = format!("{:?}", crate::ops::small_kernel_isa());
     println!(
-        "calibconv bench: {threads} libtorch threads, camera {}, load {}; ratios are calibrated \
-         / conv2d (medians of paired, interleaved runs)",
+        "calibconv bench: {threads} libtorch threads, camera {}, load {}, few-output-channel \
+         kernels {small_kernels}; ratios are calibrated / conv2d (medians of paired, interleaved \
+         runs)",
         args.camera.display(),
         fmt_load(load_before)
     );
@@ -362,6 +366,7 @@ peak memory not measured: {e}"
     }
     Ok(Report {
         threads,
+        small_kernels,
         load_before,
         load_after,
         note: "ratios = medians of per-repetition (calibrated / conv2d) times, interleaved, in a \

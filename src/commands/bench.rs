@@ -6,9 +6,10 @@ use anyhow::{bail, Context, Result};
 
 use calibconv::bench::{self, MemoryReport, Options, Part};
 use calibconv::io::write_bytes_atomic;
+use calibconv::ops::SmallKernelIsa;
 
 use super::load_camera;
-use crate::cli::{BenchArgs, BenchPart};
+use crate::cli::{BenchArgs, BenchPart, SmallKernelLevel};
 
 pub fn run(args: BenchArgs) -> Result<()> {
     if [args.quick, args.full, args.presets]
@@ -24,6 +25,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
             bail!("--threads must be >= 1");
         }
         tch::set_num_threads(n);
+    }
+    if let Some(level) = args.small_kernels {
+        calibconv::ops::cap_small_kernel_isa(match level {
+            SmallKernelLevel::None => SmallKernelIsa::None,
+            SmallKernelLevel::Avx2 => SmallKernelIsa::Avx2,
+            SmallKernelLevel::Avx512 => SmallKernelIsa::Avx512,
+        });
     }
     let camera = load_camera(&args.camera)?;
     let options = Options {

@@ -45,10 +45,14 @@
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
-//!   - *Few output channels* (float32, one group, 8 or 16 outputs): the three products above
-//!     run through register-blocked kernels instead of a oneDNN / BLAS call per tile, on blocks
-//!     of pixels whose columns fit 16 KiB (gathered, multiplied and scattered block by block):
-//!     at these shapes a GEMM call costs more in overhead than in arithmetic.
+//!   - *Few output channels* (float32, one group, 8, 16 or 32 outputs): the three products
+//!     above run through register-blocked kernels instead of a oneDNN / BLAS call per tile, on
+//!     blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered, multiplied and
+//!     scattered block by block): at these shapes a GEMM call costs more in overhead than in
+//!     arithmetic. Their register blocking is compiled separately for AVX-512 and AVX2 and
+//!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
+//!     without AVX2 use oneDNN. The forward and the column gradient walk the reduction in
+//!     chunks whose slice of the weight stays in L1 over the whole block.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
 //! - **ATen composition** (any device; the CUDA path): one `embedding_bag` (weighted sum of the
@@ -166,6 +170,41 @@ pub enum Backend {
 /// Whether the native CPU kernels were compiled into this build.
 pub fn native_available() -> bool {
     cfg!(calibconv_native)
+}
+
+/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8, 16
+/// or 32 output channels): their register blocking is compiled per level and picked at run
+/// time from the CPU.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum SmallKernelIsa {
+    /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers
+    /// go through oneDNN / the BLAS like any other.
+    None,
+    /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats.
+    Avx2,
+    /// x86-64-v4 (AVX-512): 32 registers of 16 floats.
+    Avx512,
+}
+
+/// The level of the few-output-channel kernels this process uses.
+pub fn small_kernel_isa() -> SmallKernelIsa {
+    #[cfg(calibconv_native)]
+    return native::small_kernel_isa(None);
+    #[cfg(not(calibconv_native))]
+    SmallKernelIsa::None
+}
+
+/// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
+/// thread; both levels compute identical values, `None` sends those layers through oneDNN);
+/// returns the level now in use. For tests and A/B timings.
+pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
+    #[cfg(calibconv_native)]
+    return native::small_kernel_isa(Some(cap));
+    #[cfg(not(calibconv_native))]
+    {
+        let _ = cap;
+        SmallKernelIsa::None
+    }
 }
 
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).

@@ -267,10 +267,15 @@ fn native_matches_aten_on_random_plans() {
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
-        // The few-output-channel kernels (float32, 8 or 16 outputs): blocks that do not
+        // The few-output-channel kernels (float32, 8, 16 or 32 outputs): blocks that do not
         // divide the rows, and 4 channels (K*C = 36: the column gradient through oneDNN).
         (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
+        (2, 32, 32, 13, 11, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
+        // A 1x3 kernel: K*C = 24, below a chunk of the column gradient (its tail paths).
+        (2, 8, 16, 9, 10, [1, 3], [1, 1], [0, 1], [1, 1], 1, false, 2.0),
+        // 40 outputs: the oneDNN forward and input gradient (the few-output kernels stop at 32).
+        (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`).
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
@@ -613,10 +618,15 @@ fn first_layer_without_input_gradient_matches_aten() {
             let plan = plan3x3(&off, [h, w], kind);
             let x = Tensor::randn([b, c, h, w], opts);
             let probe = Tensor::randn([b, cout, h, w], opts);
+            // Drawn once: re-seeding the global generator before each run would race with the
+            // other tests' draws (they run in parallel threads of one process).
+            let (wt0, bias0) = (
+                Tensor::randn([cout, c, 3, 3], opts),
+                Tensor::randn([cout], opts),
+            );
             let run = |backend| {
-                tch::manual_seed(6);
-                let wt = Tensor::randn([cout, c, 3, 3], opts).set_requires_grad(true);
-                let bias = Tensor::randn([cout], opts).set_requires_grad(true);
+                let wt = wt0.detach().set_requires_grad(true);
+                let bias = bias0.detach().set_requires_grad(true);
                 let out =
                     deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
                 let loss = (&out * &probe).sum(kind);
@@ -637,6 +647,60 @@ fn first_layer_without_input_gradient_matches_aten() {
                 assert!(
                     rel < tol,
                     "{kind:?} per-item {per_item}, {cout} out: {name} differs by {rel:e}"
+                );
+            }
+        }
+    }
+}
+
+/// The few-output-channel kernels are compiled per instruction-set level with different register
+/// blocking (AVX-512, AVX2): both give bit-identical results (the same fused multiply-adds in
+/// the same order per element), and both match the ATen composition, for 8, 16 and 32 outputs
+/// and row counts that leave partial blocks. On a CPU without AVX-512 the AVX2 kernels are
+/// still held to ATen.
+#[test]
+fn few_output_channel_kernels_agree_across_isa_levels() {
+    if !native_available() {
+        return; // native_kernels_are_built fails instead
+    }
+    let top = small_kernel_isa();
+    tch::manual_seed(8);
+    let opts = (Kind::Float, Device::Cpu);
+    for (b, ci, co, h, w) in [(2, 8, 8, 11, 13), (3, 16, 16, 9, 7), (2, 16, 32, 10, 9)] {
+        let off = Tensor::randn([18, h, w], opts) * 2.0;
+        let plan = plan3x3(&off, [h, w], Kind::Float);
+        let x = Tensor::randn([b, ci, h, w], opts);
+        let wt = Tensor::randn([co, ci, 3, 3], opts);
+        let bias = Tensor::randn([co], opts);
+        let probe = Tensor::randn([b, co, h, w], opts);
+        let at_top = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let level = cap_small_kernel_isa(SmallKernelIsa::Avx2);
+        let avx2 = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        cap_small_kernel_isa(SmallKernelIsa::Avx512);
+        let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+        let what = format!("{ci}->{co}, {b}x{h}x{w}");
+        assert_same(
+            &avx2,
+            &aten,
+            F32_IMPL_TOL,
+            &format!("{what}, {level:?} vs ATen"),
+        );
+        assert_same(
+            &at_top,
+            &aten,
+            F32_IMPL_TOL,
+            &format!("{what}, {top:?} vs ATen"),
+        );
+        if top == SmallKernelIsa::Avx512 {
+            assert_eq!(level, SmallKernelIsa::Avx2, "the cap must take effect");
+            for (name, a, c) in [
+                ("output", &at_top.out, &avx2.out),
+                ("grad input", &at_top.input, &avx2.input),
+                ("grad weight", &at_top.weight, &avx2.weight),
+            ] {
+                assert!(
+                    a.equal(c),
+                    "{what}: {name}: AVX-512 and AVX2 kernels differ"
                 );
             }
         }

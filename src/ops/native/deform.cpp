@@ -20,9 +20,10 @@
 //   two bands of the same phase touch are disjoint: no atomics, no races, and the summation order
 //   does not depend on the number of threads.
 // - bias: a sum of the output gradient.
-// - few output channels (float32, one group, C_out 8 or 16): the three products run through
-//   register-blocked kernels on L1-sized blocks of pixels (gathered, multiplied, scattered block
-//   by block) instead of a oneDNN / BLAS call per tile; see "Few output channels" below.
+// - few output channels (float32, one group, C_out 8, 16 or 32): the three products run
+//   through register-blocked kernels on L1-sized blocks of pixels (gathered, multiplied,
+//   scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
+//   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
 //
 // Tiles run in parallel with at::parallel_for. The entry point catches every C++ exception and
 // returns its message: no exception crosses into Rust.
@@ -454,148 +455,247 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Few output channels (float32, one group, C_out 8 or 16): the three products of a pass
+// Few output channels (float32, one group, C_out 8, 16 or 32): the three products of a pass
 // through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
 // oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
 // than in arithmetic, and its column tile (megabytes, so that the call is worth it) makes a
 // round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
 // multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
 // registers over the whole reduction.
+//
+// Register blocking depends on the instruction set, so these kernels are compiled once per
+// level with their own block sizes and picked at run time (small_isa), not by GCC's
+// target_clones (one body for all levels): a row of 32 outputs is 2 AVX-512 registers but 4
+// AVX2 ones, and with AVX-512's block sizes the AVX2 body spills its accumulators to the stack
+// (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory,
+// which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
+// floats; a block of R rows (forward) or JB columns (weight gradient) holds R * CO / L
+// accumulators of L floats, sized to leave registers for the weights and the broadcast:
+//   AVX-512 (32 registers of 16 floats): forward R = 8 (C_out 8, 16) / 6 (32), JB = 8, column
+//                                        gradient 4 rows x 4 vectors;
+//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2, column gradient
+//                                        4 rows x 3 vectors.
+// The arithmetic of every output element (one fused multiply-add per reduction step, in the
+// same order) is the same at both levels, so the two give identical results. CPUs without AVX2
+// and FMA (and other architectures) use the oneDNN / BLAS path.
 
 constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
 
+// Rows of a block at least: with many input channels a block of SMALL_BLOCK_BYTES would be a few
+// rows, and every block reads the whole weight (from L2 once it outgrows L1); 24 rows keep the
+// reads of the weight below those of the columns (one row of 64 channels is 2.3 KiB of columns).
+constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
+
 // Rows of a block of `kc` columns each, within a tile of `tile` rows: a multiple of 8 that fits
-// SMALL_BLOCK_BYTES (at least 8), at most the tile.
+// SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS, at most the tile.
 int64_t small_block_rows(int64_t kc, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
-  return std::min(tile, std::max<int64_t>(8, rows - rows % 8));
+  return std::min(tile, std::max<int64_t>(SMALL_BLOCK_MIN_ROWS, rows - rows % 8));
 }
 
 // y[t, :] = bias + cols[t, :] @ wt for t in [0, n): cols [n, kc] (row stride kc), wt [kc, CO]
 // (the packed weight, transposed), y [n, CO] (row stride CO); bias may be null. R rows at a
-// time, each with CO / 16 (AVX-512) or CO / 8 (AVX2) accumulators.
-template <int CO>
+// time, each with CO / L accumulators of L floats, over chunks of KCB reduction steps (a chunk
+// of the weight, 16 KiB, stays in L1 for all rows of the block; y holds the partial sums
+// between chunks).
+template <int CO, int L, int R>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
                                                        const float* wt, const float* bias,
                                                        float* y) {
-  using V = typename VecOf<float, CO>::type;
-  constexpr int R = 8;
-  V b0 = {};
-  if (bias) b0 = load<V>(bias);
+  using V = typename VecOf<float, L>::type;
+  constexpr int NV = CO / L;
+  constexpr int64_t KCB = 4096 / CO;
+  V b0[NV] = {};
+  if (bias) {
+    for (int v = 0; v < NV; ++v) b0[v] = load<V>(bias + v * L);
+  }
+  for (int64_t j0 = 0; j0 < kc; j0 += KCB) {
+    const int64_t j1 = std::min(kc, j0 + KCB);
+    int64_t t = 0;
+    for (; t + R <= n; t += R) {
+      V acc[R][NV];
+#pragma GCC unroll 8
+      for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) acc[r][v] = j0 == 0 ? b0[v] : load<V>(y + (t + r) * CO + v * L);
+      }
+      const float* c = cols + t * kc;
+      for (int64_t j = j0; j < j1; ++j) {
+        V w[NV];
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) w[v] = load<V>(wt + j * CO + v * L);
+#pragma GCC unroll 8
+        for (int r = 0; r < R; ++r) {
+          const float s = c[r * kc + j];
+#pragma GCC unroll 4
+          for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
+        }
+      }
+#pragma GCC unroll 8
+      for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) store(y + (t + r) * CO + v * L, acc[r][v]);
+      }
+    }
+    for (; t < n; ++t) {
+      V acc[NV];
+      for (int v = 0; v < NV; ++v) acc[v] = j0 == 0 ? b0[v] : load<V>(y + t * CO + v * L);
+      const float* c = cols + t * kc;
+      for (int64_t j = j0; j < j1; ++j) {
+        for (int v = 0; v < NV; ++v) acc[v] += c[j] * load<V>(wt + j * CO + v * L);
+      }
+      for (int v = 0; v < NV; ++v) store(y + t * CO + v * L, acc[v]);
+    }
+  }
+}
+
+// One chunk of J vectors of L columns from j0, rows [0, n): R rows at a time.
+template <int CO, int L, int R, int J>
+CALIBCONV_ALWAYS_INLINE inline void small_column_chunk(const float* gy, int64_t n, int64_t kc,
+                                                       const float* w, float* g, int64_t j0) {
+  using V = typename VecOf<float, L>::type;
   int64_t t = 0;
   for (; t + R <= n; t += R) {
-    V acc[R];
+    const float* yt = gy + t * CO;
+    V acc[R][J] = {};
+    for (int o = 0; o < CO; ++o) {
+      V wv[J];
+#pragma GCC unroll 4
+      for (int jj = 0; jj < J; ++jj) wv[jj] = load<V>(w + o * kc + j0 + L * jj);
 #pragma GCC unroll 8
-    for (int r = 0; r < R; ++r) acc[r] = b0;
-    const float* c = cols + t * kc;
-    for (int64_t j = 0; j < kc; ++j) {
-      const V w = load<V>(wt + j * CO);
-#pragma GCC unroll 8
-      for (int r = 0; r < R; ++r) acc[r] += c[r * kc + j] * w;
+      for (int r = 0; r < R; ++r) {
+        const float s = yt[r * CO + o];
+#pragma GCC unroll 4
+        for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * wv[jj];
+      }
     }
 #pragma GCC unroll 8
-    for (int r = 0; r < R; ++r) store(y + (t + r) * CO, acc[r]);
+    for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+      for (int jj = 0; jj < J; ++jj) store(g + (t + r) * kc + j0 + L * jj, acc[r][jj]);
+    }
   }
   for (; t < n; ++t) {
-    V acc = b0;
-    const float* c = cols + t * kc;
-    for (int64_t j = 0; j < kc; ++j) acc += c[j] * load<V>(wt + j * CO);
-    store(y + t * CO, acc);
+    const float* yt = gy + t * CO;
+    V acc[J] = {};
+    for (int o = 0; o < CO; ++o) {
+      for (int jj = 0; jj < J; ++jj) acc[jj] += yt[o] * load<V>(w + o * kc + j0 + L * jj);
+    }
+    for (int jj = 0; jj < J; ++jj) store(g + t * kc + j0 + L * jj, acc[jj]);
   }
 }
 
 // g[t, :] = gy[t, :] @ w for t in [0, n): gy [n, CO] (row stride CO), w [CO, kc] (the packed
-// weight), g [n, kc]; kc a multiple of 24 (9 taps of a multiple of 8 channels). Blocks of R rows
-// x J vectors of 8 columns in registers.
-template <int CO>
+// weight), g [n, kc]; kc a multiple of 8. Chunks of J vectors of L columns (the chunk's CO rows
+// of the weight stay in L1 over all rows of the block), R rows at a time, R x J accumulators;
+// then single vectors of L, then of 8 columns.
+template <int CO, int L, int R, int J>
 CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, int64_t n,
                                                                int64_t kc, const float* w,
                                                                float* g) {
-  using V = typename VecOf<float, 8>::type;
-  constexpr int R = 4, J = 3;
-  int64_t t = 0;
-  for (; t < n; t += R) {
-    const int rows = static_cast<int>(std::min<int64_t>(R, n - t));
-    const float* yt = gy + t * CO;
-    for (int64_t j0 = 0; j0 < kc; j0 += 8 * J) {
-      V acc[R][J] = {};
-      if (rows == R) {
-        for (int o = 0; o < CO; ++o) {
-          V wv[J];
-#pragma GCC unroll 4
-          for (int jj = 0; jj < J; ++jj) wv[jj] = load<V>(w + o * kc + j0 + 8 * jj);
-#pragma GCC unroll 4
-          for (int r = 0; r < R; ++r) {
-            const float s = yt[r * CO + o];
-#pragma GCC unroll 4
-            for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * wv[jj];
-          }
-        }
-      } else {
-        for (int r = 0; r < rows; ++r) {
-          for (int o = 0; o < CO; ++o) {
-            const float s = yt[r * CO + o];
-            for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * load<V>(w + o * kc + j0 + 8 * jj);
-          }
-        }
-      }
-      for (int r = 0; r < rows; ++r) {
-        for (int jj = 0; jj < J; ++jj) store(g + (t + r) * kc + j0 + 8 * jj, acc[r][jj]);
-      }
-    }
+  int64_t j0 = 0;
+  for (; j0 + J * L <= kc; j0 += J * L) small_column_chunk<CO, L, R, J>(gy, n, kc, w, g, j0);
+  for (; j0 + L <= kc; j0 += L) small_column_chunk<CO, L, R, 1>(gy, n, kc, w, g, j0);
+  if constexpr (L > 8) {
+    for (; j0 + 8 <= kc; j0 += 8) small_column_chunk<CO, 8, R, 1>(gy, n, kc, w, g, j0);
   }
 }
 
 // acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :]: cols [n, kc] (row stride kc), gy
 // [n, CO] (row stride CO), acc [kc, CO] (the weight gradient, transposed). JB columns at a time,
-// their accumulators in registers over all n rows.
-template <int CO>
+// their CO / L accumulators each in registers over all n rows.
+template <int CO, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
                                                                int64_t kc, const float* gy,
                                                                float* acc) {
-  using V = typename VecOf<float, CO>::type;
-  constexpr int JB = 8;
+  using V = typename VecOf<float, L>::type;
+  constexpr int NV = CO / L;
   int64_t j0 = 0;
   for (; j0 + JB <= kc; j0 += JB) {
-    V a[JB];
+    V a[JB][NV];
 #pragma GCC unroll 8
-    for (int jj = 0; jj < JB; ++jj) a[jj] = load<V>(acc + (j0 + jj) * CO);
+    for (int jj = 0; jj < JB; ++jj) {
+#pragma GCC unroll 4
+      for (int v = 0; v < NV; ++v) a[jj][v] = load<V>(acc + (j0 + jj) * CO + v * L);
+    }
     for (int64_t t = 0; t < n; ++t) {
-      const V yv = load<V>(gy + t * CO);
+      V yv[NV];
+#pragma GCC unroll 4
+      for (int v = 0; v < NV; ++v) yv[v] = load<V>(gy + t * CO + v * L);
       const float* c = cols + t * kc + j0;
 #pragma GCC unroll 8
-      for (int jj = 0; jj < JB; ++jj) a[jj] += c[jj] * yv;
+      for (int jj = 0; jj < JB; ++jj) {
+#pragma GCC unroll 4
+        for (int v = 0; v < NV; ++v) a[jj][v] += c[jj] * yv[v];
+      }
     }
 #pragma GCC unroll 8
-    for (int jj = 0; jj < JB; ++jj) store(acc + (j0 + jj) * CO, a[jj]);
+    for (int jj = 0; jj < JB; ++jj) {
+#pragma GCC unroll 4
+      for (int v = 0; v < NV; ++v) store(acc + (j0 + jj) * CO + v * L, a[jj][v]);
+    }
   }
   for (; j0 < kc; ++j0) {
-    V a = load<V>(acc + j0 * CO);
-    for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CO);
-    store(acc + j0 * CO, a);
+    for (int v = 0; v < NV; ++v) {
+      V a = load<V>(acc + j0 * CO + v * L);
+      for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CO + v * L);
+      store(acc + j0 * CO + v * L, a);
+    }
   }
 }
 
-#define CALIBCONV_SMALL_KERNELS(CO)                                                            \
-  CALIBCONV_CLONES void small_forward_##CO(const float* cols, int64_t n, int64_t kc,           \
-                                           const float* wt, const float* bias, float* y) {     \
-    small_forward_body<CO>(cols, n, kc, wt, bias, y);                                          \
+// The levels the kernels are compiled for.
+enum class SmallIsa { None, Avx2, Avx512 };
+
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define CALIBCONV_HAVE_SMALL_KERNELS 1
+#define CALIBCONV_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
+#define CALIBCONV_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
+
+// One level's kernels for CO outputs: forward rows R, weight-gradient columns JB.
+#define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, CL, CR, CJ)                                  \
+  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,          \
+                                            const float* wt, const float* bias, float* y) {    \
+    small_forward_body<CO, L, R>(cols, n, kc, wt, bias, y);                                    \
   }                                                                                            \
-  CALIBCONV_CLONES void small_column_gradient_##CO(const float* gy, int64_t n, int64_t kc,     \
-                                                   const float* w, float* g) {                 \
-    small_column_gradient_body<CO>(gy, n, kc, w, g);                                           \
+  TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
+                                                    const float* w, float* g) {                \
+    small_column_gradient_body<CO, CL, CR, CJ>(gy, n, kc, w, g);                               \
   }                                                                                            \
-  CALIBCONV_CLONES void small_weight_gradient_##CO(const float* cols, int64_t n, int64_t kc,   \
-                                                   const float* gy, float* acc) {              \
-    small_weight_gradient_body<CO>(cols, n, kc, gy, acc);                                      \
+  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,  \
+                                                    const float* gy, float* acc) {             \
+    small_weight_gradient_body<CO, L, JB>(cols, n, kc, gy, acc);                               \
   }
-// (Not 32: the same kernels with 32 outputs were 1.4-2.5x slower than oneDNN, forward and
-// backward, at 16-64 input channels: `calibconv bench --presets`, one thread, 2026-12-02.)
-CALIBCONV_SMALL_KERNELS(8)
-CALIBCONV_SMALL_KERNELS(16)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 8, 4, 3)
+#undef CALIBCONV_SMALL_KERNELS
+#endif
+
+// The highest level this CPU runs, capped by the last calibconv_native_cap_isa call (tests run
+// the AVX2 kernels on an AVX-512 machine with it).
+std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
+
+SmallIsa small_isa() {
+#ifdef CALIBCONV_HAVE_SMALL_KERNELS
+  static const SmallIsa cpu = [] {
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("x86-64-v4")) return SmallIsa::Avx512;
+    if (__builtin_cpu_supports("x86-64-v3")) return SmallIsa::Avx2;
+    return SmallIsa::None;
+  }();
+  return static_cast<SmallIsa>(std::min(static_cast<int>(cpu), small_isa_cap.load()));
+#else
+  return SmallIsa::None;
+#endif
+}
 
 // The few-output-channel kernels of a pass, or all null where they do not apply (another element
-// type, groups, another channel count). column_gradient also needs kc % 24 == 0.
+// type, groups, another channel count, a CPU without AVX2). column_gradient also needs
+// kc % 8 == 0.
 struct SmallKernels {
   void (*forward)(const float*, int64_t, int64_t, const float*, const float*, float*) = nullptr;
   void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
@@ -607,20 +707,34 @@ template <typename T>
 SmallKernels small_kernels(const Geo& g) {
   SmallKernels s;
   if (!std::is_same_v<T, float> || g.G != 1) return s;
-  switch (g.Cout) {
-#define CALIBCONV_SMALL_PICK(CO)                          \
+#ifdef CALIBCONV_HAVE_SMALL_KERNELS
+  const SmallIsa isa = small_isa();
+#define CALIBCONV_SMALL_PICK(CO, SUFFIX)                  \
   case CO:                                                \
-    s.forward = small_forward_##CO;                       \
-    s.column_gradient = small_column_gradient_##CO;       \
-    s.weight_gradient = small_weight_gradient_##CO;       \
+    s.forward = small_forward_##CO##_##SUFFIX;            \
+    s.column_gradient = small_column_gradient_##CO##_##SUFFIX; \
+    s.weight_gradient = small_weight_gradient_##CO##_##SUFFIX; \
     break;
-    CALIBCONV_SMALL_PICK(8)
-    CALIBCONV_SMALL_PICK(16)
-#undef CALIBCONV_SMALL_PICK
-    default:
-      return s;
+  if (isa == SmallIsa::Avx512) {
+    switch (g.Cout) {
+      CALIBCONV_SMALL_PICK(8, v4)
+      CALIBCONV_SMALL_PICK(16, v4)
+      CALIBCONV_SMALL_PICK(32, v4)
+      default:
+        return s;
+    }
+  } else if (isa == SmallIsa::Avx2) {
+    switch (g.Cout) {
+      CALIBCONV_SMALL_PICK(8, v3)
+      CALIBCONV_SMALL_PICK(16, v3)
+      CALIBCONV_SMALL_PICK(32, v3)
+      default:
+        return s;
+    }
   }
-  if ((g.K * g.C) % 24 != 0) s.column_gradient = nullptr;
+#undef CALIBCONV_SMALL_PICK
+#endif
+  if ((g.K * g.C) % 8 != 0) s.column_gradient = nullptr;
   return s;
 }
 
@@ -1189,5 +1303,12 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
 }
 
 void calibconv_free_error(char* message) { std::free(message); }
+
+// The instruction-set level of the few-output-channel kernels: caps it at `cap` (0 none, 1 AVX2,
+// 2 AVX-512) when cap >= 0, then returns the level in use (the CPU's, at most the cap).
+int32_t calibconv_native_small_isa(int32_t cap) {
+  if (cap >= 0) small_isa_cap.store(std::min<int32_t>(cap, static_cast<int32_t>(SmallIsa::Avx512)));
+  return static_cast<int32_t>(small_isa());
+}
 
 }  // extern "C"

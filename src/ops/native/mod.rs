@@ -28,6 +28,25 @@ extern "C" {
         out: *mut *mut C_tensor,
     ) -> *mut c_char;
     fn calibconv_free_error(message: *mut c_char);
+    /// See `deform.cpp`: caps the level when `cap >= 0`, returns the level in use.
+    fn calibconv_native_small_isa(cap: i32) -> i32;
+}
+
+/// The instruction-set level of the few-output-channel kernels in use (see
+/// [`super::SmallKernelIsa`]); with `cap`, first limits it to at most that level.
+pub(super) fn small_kernel_isa(cap: Option<super::SmallKernelIsa>) -> super::SmallKernelIsa {
+    use super::SmallKernelIsa as Isa;
+    let cap = cap.map_or(-1, |c| match c {
+        Isa::None => 0,
+        Isa::Avx2 => 1,
+        Isa::Avx512 => 2,
+    });
+    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
+    match unsafe { calibconv_native_small_isa(cap) } {
+        2 => Isa::Avx512,
+        1 => Isa::Avx2,
+        _ => Isa::None,
+    }
 }
 
 /// The deformable convolution of CPU tensors through the native kernels. The caller has checked
