@@ -303,7 +303,7 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Cap the native few-output-channel kernels (8, 16, 32 outputs) at this instruction-set
+    /// Cap the native few-output-channel kernels (8 to 128 outputs) at this instruction-set
     /// level (`none`: such layers use oneDNN like the others); default: the CPU's level. For
     /// A/B timings of the kernels on one machine.
     #[arg(long, value_enum)]

@@ -45,7 +45,7 @@
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
-//!   - *Few output channels* (float32, one group, 8, 16 or 32 outputs): the three products
+//!   - *Few output channels* (float32, one group, 8, 16, 32, 64 or 128 outputs): the three products
 //!     above run through register-blocked kernels instead of a oneDNN / BLAS call per tile, on
 //!     blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered, multiplied and
 //!     scattered block by block): at these shapes a GEMM call costs more in overhead than in
@@ -172,8 +172,8 @@ pub fn native_available() -> bool {
     cfg!(calibconv_native)
 }
 
-/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8, 16
-/// or 32 output channels): their register blocking is compiled per level and picked at run
+/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8, 16,
+/// 32, 64 or 128 output channels): their register blocking is compiled per level and picked at run
 /// time from the CPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum SmallKernelIsa {

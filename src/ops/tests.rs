@@ -267,7 +267,7 @@ fn native_matches_aten_on_random_plans() {
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
-        // The few-output-channel kernels (float32, 8, 16 or 32 outputs): blocks that do not
+        // The few-output-channel kernels (float32, 8 to 128 outputs): blocks that do not
         // divide the rows, and 4 channels (K*C = 36: the column gradient through oneDNN).
         (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
@@ -655,7 +655,7 @@ fn first_layer_without_input_gradient_matches_aten() {
 
 /// The few-output-channel kernels are compiled per instruction-set level with different register
 /// blocking (AVX-512, AVX2): both give bit-identical results (the same fused multiply-adds in
-/// the same order per element), and both match the ATen composition, for 8, 16 and 32 outputs
+/// the same order per element), and both match the ATen composition, for 8, 16, 32, 64 and 128 outputs
 /// and row counts that leave partial blocks. On a CPU without AVX-512 the AVX2 kernels are
 /// still held to ATen.
 #[test]
@@ -666,7 +666,13 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
     let top = small_kernel_isa();
     tch::manual_seed(8);
     let opts = (Kind::Float, Device::Cpu);
-    for (b, ci, co, h, w) in [(2, 8, 8, 11, 13), (3, 16, 16, 9, 7), (2, 16, 32, 10, 9)] {
+    for (b, ci, co, h, w) in [
+        (2, 8, 8, 11, 13),
+        (3, 16, 16, 9, 7),
+        (2, 16, 32, 10, 9),
+        (2, 32, 64, 7, 9),
+        (1, 16, 128, 5, 6),
+    ] {
         let off = Tensor::randn([18, h, w], opts) * 2.0;
         let plan = plan3x3(&off, [h, w], Kind::Float);
         let x = Tensor::randn([b, ci, h, w], opts);

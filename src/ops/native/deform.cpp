@@ -20,7 +20,7 @@
 //   two bands of the same phase touch are disjoint: no atomics, no races, and the summation order
 //   does not depend on the number of threads.
 // - bias: a sum of the output gradient.
-// - few output channels (float32, one group, C_out 8, 16 or 32): the three products run
+// - few output channels (float32, one group, C_out 8 to 128): the three products run
 //   through register-blocked kernels on L1-sized blocks of pixels (gathered, multiplied,
 //   scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
 //   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
@@ -455,10 +455,11 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Few output channels (float32, one group, C_out 8, 16 or 32): the three products of a pass
-// through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
+// Few output channels (float32, one group, C_out 8, 16, 32, 64 or 128): the three products of
+// a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
 // oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
-// than in arithmetic, and its column tile (megabytes, so that the call is worth it) makes a
+// than in arithmetic (with 64 and 128 outputs these kernels are faster than oneDNN even on
+// large maps), and its column tile (megabytes, so that the call is worth it) makes a
 // round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
 // multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
 // registers over the whole reduction.
@@ -469,12 +470,13 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
 // AVX2 ones, and with AVX-512's block sizes the AVX2 body spills its accumulators to the stack
 // (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory,
 // which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
-// floats; a block of R rows (forward) or JB columns (weight gradient) holds R * CO / L
-// accumulators of L floats, sized to leave registers for the weights and the broadcast:
-//   AVX-512 (32 registers of 16 floats): forward R = 8 (C_out 8, 16) / 6 (32), JB = 8, column
-//                                        gradient 4 rows x 4 vectors;
-//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2, column gradient
-//                                        4 rows x 3 vectors.
+// floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
+// accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
+// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 as passes of 64):
+//   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
+//                                        outputs at once; column gradient 4 rows x 4 vectors;
+//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2 / 2, JB = 8 / 4 / 2 / 2, 64 and
+//                                        128 outputs as passes of 32; column gradient 4 x 3.
 // The arithmetic of every output element (one fused multiply-add per reduction step, in the
 // same order) is the same at both levels, so the two give identical results. CPUs without AVX2
 // and FMA (and other architectures) use the oneDNN / BLAS path.
@@ -493,13 +495,13 @@ int64_t small_block_rows(int64_t kc, int64_t tile) {
   return std::min(tile, std::max<int64_t>(SMALL_BLOCK_MIN_ROWS, rows - rows % 8));
 }
 
-// y[t, :] = bias + cols[t, :] @ wt for t in [0, n): cols [n, kc] (row stride kc), wt [kc, CO]
-// (the packed weight, transposed), y [n, CO] (row stride CO); bias may be null. R rows at a
-// time, each with CO / L accumulators of L floats, over chunks of KCB reduction steps (a chunk
-// of the weight, 16 KiB, stays in L1 for all rows of the block; y holds the partial sums
-// between chunks).
-template <int CO, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
+// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
+// stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
+// CS); bias may be null. R rows at a time, each with CO / L accumulators of L floats, over
+// chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of the
+// block; y holds the partial sums between chunks).
+template <int CS, int CO, int L, int R>
+CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
                                                        const float* wt, const float* bias,
                                                        float* y) {
   using V = typename VecOf<float, L>::type;
@@ -517,13 +519,13 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_
 #pragma GCC unroll 8
       for (int r = 0; r < R; ++r) {
 #pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) acc[r][v] = j0 == 0 ? b0[v] : load<V>(y + (t + r) * CO + v * L);
+        for (int v = 0; v < NV; ++v) acc[r][v] = j0 == 0 ? b0[v] : load<V>(y + (t + r) * CS + v * L);
       }
       const float* c = cols + t * kc;
       for (int64_t j = j0; j < j1; ++j) {
         V w[NV];
 #pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) w[v] = load<V>(wt + j * CO + v * L);
+        for (int v = 0; v < NV; ++v) w[v] = load<V>(wt + j * CS + v * L);
 #pragma GCC unroll 8
         for (int r = 0; r < R; ++r) {
           const float s = c[r * kc + j];
@@ -534,18 +536,28 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_
 #pragma GCC unroll 8
       for (int r = 0; r < R; ++r) {
 #pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) store(y + (t + r) * CO + v * L, acc[r][v]);
+        for (int v = 0; v < NV; ++v) store(y + (t + r) * CS + v * L, acc[r][v]);
       }
     }
     for (; t < n; ++t) {
       V acc[NV];
-      for (int v = 0; v < NV; ++v) acc[v] = j0 == 0 ? b0[v] : load<V>(y + t * CO + v * L);
+      for (int v = 0; v < NV; ++v) acc[v] = j0 == 0 ? b0[v] : load<V>(y + t * CS + v * L);
       const float* c = cols + t * kc;
       for (int64_t j = j0; j < j1; ++j) {
-        for (int v = 0; v < NV; ++v) acc[v] += c[j] * load<V>(wt + j * CO + v * L);
+        for (int v = 0; v < NV; ++v) acc[v] += c[j] * load<V>(wt + j * CS + v * L);
       }
-      for (int v = 0; v < NV; ++v) store(y + t * CO + v * L, acc[v]);
+      for (int v = 0; v < NV; ++v) store(y + t * CS + v * L, acc[v]);
     }
+  }
+}
+
+// The forward of all CO outputs, OC at a time (fewer accumulators than a row of CO needs).
+template <int CO, int L, int R, int OC>
+CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
+                                                       const float* wt, const float* bias,
+                                                       float* y) {
+  for (int o0 = 0; o0 < CO; o0 += OC) {
+    small_forward_chunk<CO, OC, L, R>(cols, n, kc, wt + o0, bias ? bias + o0 : nullptr, y + o0);
   }
 }
 
@@ -601,11 +613,12 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, 
   }
 }
 
-// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :]: cols [n, kc] (row stride kc), gy
-// [n, CO] (row stride CO), acc [kc, CO] (the weight gradient, transposed). JB columns at a time,
-// their CO / L accumulators each in registers over all n rows.
-template <int CO, int L, int JB>
-CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
+// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
+// (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (the weight gradient, transposed,
+// row stride CS). JB columns at a time, their CO / L accumulators each in registers over all n
+// rows.
+template <int CS, int CO, int L, int JB>
+CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* cols, int64_t n,
                                                                int64_t kc, const float* gy,
                                                                float* acc) {
   using V = typename VecOf<float, L>::type;
@@ -616,12 +629,12 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols
 #pragma GCC unroll 8
     for (int jj = 0; jj < JB; ++jj) {
 #pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) a[jj][v] = load<V>(acc + (j0 + jj) * CO + v * L);
+      for (int v = 0; v < NV; ++v) a[jj][v] = load<V>(acc + (j0 + jj) * CS + v * L);
     }
     for (int64_t t = 0; t < n; ++t) {
       V yv[NV];
 #pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) yv[v] = load<V>(gy + t * CO + v * L);
+      for (int v = 0; v < NV; ++v) yv[v] = load<V>(gy + t * CS + v * L);
       const float* c = cols + t * kc + j0;
 #pragma GCC unroll 8
       for (int jj = 0; jj < JB; ++jj) {
@@ -632,15 +645,25 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols
 #pragma GCC unroll 8
     for (int jj = 0; jj < JB; ++jj) {
 #pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) store(acc + (j0 + jj) * CO + v * L, a[jj][v]);
+      for (int v = 0; v < NV; ++v) store(acc + (j0 + jj) * CS + v * L, a[jj][v]);
     }
   }
   for (; j0 < kc; ++j0) {
     for (int v = 0; v < NV; ++v) {
-      V a = load<V>(acc + j0 * CO + v * L);
-      for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CO + v * L);
-      store(acc + j0 * CO + v * L, a);
+      V a = load<V>(acc + j0 * CS + v * L);
+      for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CS + v * L);
+      store(acc + j0 * CS + v * L, a);
     }
+  }
+}
+
+// The weight gradient of all CO outputs, OC at a time.
+template <int CO, int L, int JB, int OC>
+CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
+                                                               int64_t kc, const float* gy,
+                                                               float* acc) {
+  for (int o0 = 0; o0 < CO; o0 += OC) {
+    small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, kc, gy + o0, acc + o0);
   }
 }
 
@@ -652,11 +675,12 @@ enum class SmallIsa { None, Avx2, Avx512 };
 #define CALIBCONV_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
 #define CALIBCONV_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
 
-// One level's kernels for CO outputs: forward rows R, weight-gradient columns JB.
-#define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, CL, CR, CJ)                                  \
+// One level's kernels for CO outputs in vectors of L floats: forward rows R and weight-gradient
+// columns JB, both OC outputs at a time; column gradient CR rows x CJ vectors of CL floats.
+#define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
   TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,          \
                                             const float* wt, const float* bias, float* y) {    \
-    small_forward_body<CO, L, R>(cols, n, kc, wt, bias, y);                                    \
+    small_forward_body<CO, L, R, OC>(cols, n, kc, wt, bias, y);                                \
   }                                                                                            \
   TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
                                                     const float* w, float* g) {                \
@@ -664,14 +688,21 @@ enum class SmallIsa { None, Avx2, Avx512 };
   }                                                                                            \
   TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,  \
                                                     const float* gy, float* acc) {             \
-    small_weight_gradient_body<CO, L, JB>(cols, n, kc, gy, acc);                               \
+    small_weight_gradient_body<CO, L, JB, OC>(cols, n, kc, gy, acc);                            \
   }
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 8, 4, 3)
+// (Not 256: with 256 outputs and inputs, 64x64 B2, the forward was 1.6x conv2d against oneDNN's
+// 1.4x; up to 128 these kernels beat oneDNN at every shape measured: `calibconv bench
+// --small-kernels none` against the default, one thread, 2026-12-02.)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 8, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 32, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 64, 8, 2, 2, 32, 8, 4, 3)
+CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 128, 8, 2, 2, 32, 8, 4, 3)
 #undef CALIBCONV_SMALL_KERNELS
 #endif
 
@@ -720,6 +751,8 @@ SmallKernels small_kernels(const Geo& g) {
       CALIBCONV_SMALL_PICK(8, v4)
       CALIBCONV_SMALL_PICK(16, v4)
       CALIBCONV_SMALL_PICK(32, v4)
+      CALIBCONV_SMALL_PICK(64, v4)
+      CALIBCONV_SMALL_PICK(128, v4)
       default:
         return s;
     }
@@ -728,6 +761,8 @@ SmallKernels small_kernels(const Geo& g) {
       CALIBCONV_SMALL_PICK(8, v3)
       CALIBCONV_SMALL_PICK(16, v3)
       CALIBCONV_SMALL_PICK(32, v3)
+      CALIBCONV_SMALL_PICK(64, v3)
+      CALIBCONV_SMALL_PICK(128, v3)
       default:
         return s;
     }
