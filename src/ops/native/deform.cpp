@@ -495,59 +495,91 @@ int64_t small_block_rows(int64_t kc, int64_t tile) {
   return std::min(tile, std::max<int64_t>(SMALL_BLOCK_MIN_ROWS, rows - rows % 8));
 }
 
+// The register tile of every product below: acc[r][v] += sum over k in [k0, k1) of
+// a[r * ars + k * aks] * b[k * brs + v * L], R rows of a (one scalar each, broadcast) against
+// NV vectors of L floats of a row of b, all R x NV accumulators in registers. Each element adds
+// its products in the order of k (one fused multiply-add each), whatever R, NV and L: the
+// results do not depend on the register blocking.
+template <int R, int NV, int L>
+CALIBCONV_ALWAYS_INLINE inline void tile_product(typename VecOf<float, L>::type (&acc)[R][NV],
+                                                 const float* a, int64_t ars, int64_t aks,
+                                                 const float* b, int64_t brs, int64_t k0,
+                                                 int64_t k1) {
+  using V = typename VecOf<float, L>::type;
+  for (int64_t k = k0; k < k1; ++k) {
+    V w[NV];
+#pragma GCC unroll 4
+    for (int v = 0; v < NV; ++v) w[v] = load<V>(b + k * brs + v * L);
+#pragma GCC unroll 8
+    for (int r = 0; r < R; ++r) {
+      const float s = a[r * ars + k * aks];
+#pragma GCC unroll 4
+      for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
+    }
+  }
+}
+
+// acc[r][v] = p[r * rs + v * L] (load), or the reverse (store).
+template <int R, int NV, int L>
+CALIBCONV_ALWAYS_INLINE inline void tile_load(typename VecOf<float, L>::type (&acc)[R][NV],
+                                              const float* p, int64_t rs) {
+#pragma GCC unroll 8
+  for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+    for (int v = 0; v < NV; ++v) {
+      acc[r][v] = load<typename VecOf<float, L>::type>(p + r * rs + v * L);
+    }
+  }
+}
+template <int R, int NV, int L>
+CALIBCONV_ALWAYS_INLINE inline void tile_store(const typename VecOf<float, L>::type (&acc)[R][NV],
+                                               float* p, int64_t rs) {
+#pragma GCC unroll 8
+  for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+    for (int v = 0; v < NV; ++v) store(p + r * rs + v * L, acc[r][v]);
+  }
+}
+
 // y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
 // stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
-// CS); bias may be null. R rows at a time, each with CO / L accumulators of L floats, over
-// chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of the
-// block; y holds the partial sums between chunks).
+// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
+// over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
+// the block; y holds the partial sums between chunks).
+// Rows [t, t + R) of the forward over the reduction chunk [j0, j1), from the bias (j0 = 0) or
+// the partial sums in y. (Helpers are always-inlined functions, not lambdas: a lambda would not
+// take the instruction set of the function it is written in.)
+template <int CS, int NV, int L, int R>
+CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_t kc,
+                                                       const float* wt, const float* bias,
+                                                       float* y, int64_t t, int64_t j0,
+                                                       int64_t j1) {
+  using V = typename VecOf<float, L>::type;
+  V acc[R][NV];
+  if (j0 > 0) {
+    tile_load<R, NV, L>(acc, y + t * CS, CS);
+  } else {
+#pragma GCC unroll 8
+    for (int r = 0; r < R; ++r) {
+#pragma GCC unroll 4
+      for (int v = 0; v < NV; ++v) acc[r][v] = bias ? load<V>(bias + v * L) : V{};
+    }
+  }
+  tile_product<R, NV, L>(acc, cols + t * kc, kc, 1, wt, CS, j0, j1);
+  tile_store<R, NV, L>(acc, y + t * CS, CS);
+}
+
 template <int CS, int CO, int L, int R>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
-                                                       const float* wt, const float* bias,
-                                                       float* y) {
-  using V = typename VecOf<float, L>::type;
+                                                        const float* wt, const float* bias,
+                                                        float* y) {
   constexpr int NV = CO / L;
   constexpr int64_t KCB = 4096 / CO;
-  V b0[NV] = {};
-  if (bias) {
-    for (int v = 0; v < NV; ++v) b0[v] = load<V>(bias + v * L);
-  }
   for (int64_t j0 = 0; j0 < kc; j0 += KCB) {
     const int64_t j1 = std::min(kc, j0 + KCB);
     int64_t t = 0;
-    for (; t + R <= n; t += R) {
-      V acc[R][NV];
-#pragma GCC unroll 8
-      for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) acc[r][v] = j0 == 0 ? b0[v] : load<V>(y + (t + r) * CS + v * L);
-      }
-      const float* c = cols + t * kc;
-      for (int64_t j = j0; j < j1; ++j) {
-        V w[NV];
-#pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) w[v] = load<V>(wt + j * CS + v * L);
-#pragma GCC unroll 8
-        for (int r = 0; r < R; ++r) {
-          const float s = c[r * kc + j];
-#pragma GCC unroll 4
-          for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
-        }
-      }
-#pragma GCC unroll 8
-      for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) store(y + (t + r) * CS + v * L, acc[r][v]);
-      }
-    }
-    for (; t < n; ++t) {
-      V acc[NV];
-      for (int v = 0; v < NV; ++v) acc[v] = j0 == 0 ? b0[v] : load<V>(y + t * CS + v * L);
-      const float* c = cols + t * kc;
-      for (int64_t j = j0; j < j1; ++j) {
-        for (int v = 0; v < NV; ++v) acc[v] += c[j] * load<V>(wt + j * CS + v * L);
-      }
-      for (int v = 0; v < NV; ++v) store(y + t * CS + v * L, acc[v]);
-    }
+    for (; t + R <= n; t += R) small_forward_rows<CS, NV, L, R>(cols, kc, wt, bias, y, t, j0, j1);
+    for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, kc, wt, bias, y, t, j0, j1);
   }
 }
 
@@ -561,46 +593,28 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_
   }
 }
 
-// One chunk of J vectors of L columns from j0, rows [0, n): R rows at a time.
+// g[t, j0 + i] = gy[t, :] @ w[:, j0 + i] for i < J * L and t in [0, n): R rows at a time (then
+// one), R x J accumulators.
+template <int CO, int L, int R, int J>
+CALIBCONV_ALWAYS_INLINE inline void small_column_rows(const float* gy, int64_t kc, const float* w,
+                                                      float* g, int64_t j0, int64_t t) {
+  typename VecOf<float, L>::type acc[R][J] = {};
+  tile_product<R, J, L>(acc, gy + t * CO, CO, 1, w + j0, kc, 0, CO);
+  tile_store<R, J, L>(acc, g + t * kc + j0, kc);
+}
+
 template <int CO, int L, int R, int J>
 CALIBCONV_ALWAYS_INLINE inline void small_column_chunk(const float* gy, int64_t n, int64_t kc,
                                                        const float* w, float* g, int64_t j0) {
-  using V = typename VecOf<float, L>::type;
   int64_t t = 0;
-  for (; t + R <= n; t += R) {
-    const float* yt = gy + t * CO;
-    V acc[R][J] = {};
-    for (int o = 0; o < CO; ++o) {
-      V wv[J];
-#pragma GCC unroll 4
-      for (int jj = 0; jj < J; ++jj) wv[jj] = load<V>(w + o * kc + j0 + L * jj);
-#pragma GCC unroll 8
-      for (int r = 0; r < R; ++r) {
-        const float s = yt[r * CO + o];
-#pragma GCC unroll 4
-        for (int jj = 0; jj < J; ++jj) acc[r][jj] += s * wv[jj];
-      }
-    }
-#pragma GCC unroll 8
-    for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-      for (int jj = 0; jj < J; ++jj) store(g + (t + r) * kc + j0 + L * jj, acc[r][jj]);
-    }
-  }
-  for (; t < n; ++t) {
-    const float* yt = gy + t * CO;
-    V acc[J] = {};
-    for (int o = 0; o < CO; ++o) {
-      for (int jj = 0; jj < J; ++jj) acc[jj] += yt[o] * load<V>(w + o * kc + j0 + L * jj);
-    }
-    for (int jj = 0; jj < J; ++jj) store(g + t * kc + j0 + L * jj, acc[jj]);
-  }
+  for (; t + R <= n; t += R) small_column_rows<CO, L, R, J>(gy, kc, w, g, j0, t);
+  for (; t < n; ++t) small_column_rows<CO, L, 1, J>(gy, kc, w, g, j0, t);
 }
 
 // g[t, :] = gy[t, :] @ w for t in [0, n): gy [n, CO] (row stride CO), w [CO, kc] (the packed
 // weight), g [n, kc]; kc a multiple of 8. Chunks of J vectors of L columns (the chunk's CO rows
-// of the weight stay in L1 over all rows of the block), R rows at a time, R x J accumulators;
-// then single vectors of L, then of 8 columns.
+// of the weight stay in L1 over all rows of the block), then single vectors of L, then of 8
+// columns.
 template <int CO, int L, int R, int J>
 CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, int64_t n,
                                                                int64_t kc, const float* w,
@@ -615,46 +629,25 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, 
 
 // acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
 // (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (the weight gradient, transposed,
-// row stride CS). JB columns at a time, their CO / L accumulators each in registers over all n
-// rows.
+// row stride CS). JB columns at a time (then one), their CO / L accumulators each in registers
+// over all n rows.
+template <int CS, int NV, int L, int JB>
+CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n, int64_t kc,
+                                                         const float* gy, float* acc, int64_t j0) {
+  typename VecOf<float, L>::type a[JB][NV];
+  tile_load<JB, NV, L>(a, acc + j0 * CS, CS);
+  tile_product<JB, NV, L>(a, cols + j0, 1, kc, gy, CS, 0, n);
+  tile_store<JB, NV, L>(a, acc + j0 * CS, CS);
+}
+
 template <int CS, int CO, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* cols, int64_t n,
-                                                               int64_t kc, const float* gy,
-                                                               float* acc) {
-  using V = typename VecOf<float, L>::type;
+                                                                int64_t kc, const float* gy,
+                                                                float* acc) {
   constexpr int NV = CO / L;
   int64_t j0 = 0;
-  for (; j0 + JB <= kc; j0 += JB) {
-    V a[JB][NV];
-#pragma GCC unroll 8
-    for (int jj = 0; jj < JB; ++jj) {
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) a[jj][v] = load<V>(acc + (j0 + jj) * CS + v * L);
-    }
-    for (int64_t t = 0; t < n; ++t) {
-      V yv[NV];
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) yv[v] = load<V>(gy + t * CS + v * L);
-      const float* c = cols + t * kc + j0;
-#pragma GCC unroll 8
-      for (int jj = 0; jj < JB; ++jj) {
-#pragma GCC unroll 4
-        for (int v = 0; v < NV; ++v) a[jj][v] += c[jj] * yv[v];
-      }
-    }
-#pragma GCC unroll 8
-    for (int jj = 0; jj < JB; ++jj) {
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) store(acc + (j0 + jj) * CS + v * L, a[jj][v]);
-    }
-  }
-  for (; j0 < kc; ++j0) {
-    for (int v = 0; v < NV; ++v) {
-      V a = load<V>(acc + j0 * CS + v * L);
-      for (int64_t t = 0; t < n; ++t) a += cols[t * kc + j0] * load<V>(gy + t * CS + v * L);
-      store(acc + j0 * CS + v * L, a);
-    }
-  }
+  for (; j0 + JB <= kc; j0 += JB) small_weight_columns<CS, NV, L, JB>(cols, n, kc, gy, acc, j0);
+  for (; j0 < kc; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, kc, gy, acc, j0);
 }
 
 // The weight gradient of all CO outputs, OC at a time.
