@@ -12,6 +12,8 @@ const TORCH_VERSION: &str = "2.13.0";
 
 /// The native kernels' source.
 const NATIVE_SRC: &str = "src/ops/native/deform.cpp";
+/// The headers it includes (a change to one rebuilds the kernels).
+const NATIVE_HEADERS: [&str; 2] = ["src/ops/native/simd.h", "src/ops/native/small_kernels.h"];
 
 fn main() {
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
@@ -45,6 +47,9 @@ fn main() {
 /// `cfg(calibconv_native)`; on failure warns and leaves the ATen composition as the CPU path.
 fn compile_native(lib: &std::path::Path) {
     println!("cargo:rerun-if-changed={NATIVE_SRC}");
+    for header in NATIVE_HEADERS {
+        println!("cargo:rerun-if-changed={header}");
+    }
     println!("cargo:rerun-if-env-changed=LIBTORCH_CXX11_ABI");
     let include = lib.join("..").join("include");
     let abi = std::env::var("LIBTORCH_CXX11_ABI").unwrap_or_else(|_| "1".to_string());

@@ -13,8 +13,9 @@
 //! parallel over output rows, written in place.
 //!
 //! # Two implementations, one semantics ([`Backend`])
-//! - **Native CPU kernels** (`native/deform.cpp`, compiled by `build.rs` against libtorch; the
-//!   default for CPU tensors): a `torch::autograd::Function` with hand-written kernels.
+//! - **Native CPU kernels** (`native/deform.cpp` with `small_kernels.h` and `simd.h`, compiled
+//!   by `build.rs` against libtorch; the default for CPU tensors): a
+//!   `torch::autograd::Function` with hand-written kernels.
 //!   - *Forward*: the input is read channels-last (converted once per call, blocked; a
 //!     channels-last input is used in place). Per tile of output pixels (tiles run over the
 //!     flattened `(item, pixel)` rows, so the small maps of a U-Net batch into GEMMs of >= 1024

@@ -25,6 +25,7 @@
 //   scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
 //   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
 //
+// The instruction-set helpers are in simd.h, the few-output-channel kernels in small_kernels.h.
 // Tiles run in parallel with at::parallel_for. The entry point catches every C++ exception and
 // returns its message: no exception crosses into Rust.
 
@@ -42,6 +43,9 @@
 #include <string>
 #include <type_traits>
 #include <vector>
+
+#include "simd.h"
+#include "small_kernels.h"
 
 namespace {
 
@@ -95,25 +99,6 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
 bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
   return at::get_num_threads() > 1 && weight_elems >= total * row_elems;
 }
-
-// ---------------------------------------------------------------------------------------------
-// Instruction sets: the inner loops (gather, scatter) are compiled for several and picked at
-// load time (GCC function multiversioning, see CALIBCONV_TILE_KERNELS below).
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define CALIBCONV_CLONES \
-  __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#else
-#define CALIBCONV_CLONES
-#endif
-
-#if defined(__GNUC__)
-#define CALIBCONV_ALWAYS_INLINE __attribute__((always_inline))
-#define CALIBCONV_IVDEP _Pragma("GCC ivdep")
-#else
-#define CALIBCONV_ALWAYS_INLINE
-#define CALIBCONV_IVDEP
-#endif
 
 // ---------------------------------------------------------------------------------------------
 // GEMM on raw strided matrices through ATen (which calls the BLAS libtorch was built with; it
@@ -250,37 +235,6 @@ template <typename T>
 Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p0, int64_t n) {
   return cl ? Mat<T>{out + (b * g.P + p0) * g.Cout + gi * g.Coutg, n, g.Coutg, g.Cout, 1}
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
-}
-
-// Vectors of N elements of T (GCC/Clang vector extensions, lowered to the widest registers the
-// clone's instruction set has): for channel counts whose byte size is a power of two, the gather
-// and scatter of one corner are written as whole-vector operations, because GCC's
-// auto-vectoriser leaves these short fixed loops scalar (it cannot prove the tile and the
-// buffer apart after unrolling them).
-template <typename T, int N, typename = void>
-struct VecOf {
-  static constexpr bool ok = false;
-};
-#if defined(__GNUC__)
-template <typename T, int N>
-struct VecOf<T, N, std::enable_if_t<(N >= 4 && (N & (N - 1)) == 0)>> {
-  static constexpr bool ok = true;
-  typedef T type __attribute__((vector_size(N * sizeof(T))));
-};
-#endif
-// (Always inlined, internal: -Wpsabi's note about passing wide vectors by value does not apply.)
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wpsabi"
-#endif
-template <typename V, typename T>
-CALIBCONV_ALWAYS_INLINE inline V load(const T* p) {
-  V v;
-  std::memcpy(&v, p, sizeof(V));
-  return v;
-}
-template <typename V, typename T>
-CALIBCONV_ALWAYS_INLINE inline void store(T* p, const V& v) {
-  std::memcpy(p, &v, sizeof(V));
 }
 
 // Gathers the column tile of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
@@ -454,316 +408,11 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
-// ---------------------------------------------------------------------------------------------
-// Few output channels (float32, one group, C_out 8, 16, 32, 64 or 128): the three products of
-// a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
-// oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
-// than in arithmetic (with 64 and 128 outputs these kernels are faster than oneDNN even on
-// large maps), and its column tile (megabytes, so that the call is worth it) makes a
-// round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
-// multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
-// registers over the whole reduction.
-//
-// Register blocking depends on the instruction set, so these kernels are compiled once per
-// level with their own block sizes and picked at run time (small_isa), not by GCC's
-// target_clones (one body for all levels): a row of 32 outputs is 2 AVX-512 registers but 4
-// AVX2 ones, and with AVX-512's block sizes the AVX2 body spills its accumulators to the stack
-// (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory,
-// which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
-// floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
-// accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
-// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 as passes of 64):
-//   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
-//                                        outputs at once; column gradient 4 rows x 4 vectors;
-//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2 / 2, JB = 8 / 4 / 2 / 2, 64 and
-//                                        128 outputs as passes of 32; column gradient 4 x 3.
-// The arithmetic of every output element (one fused multiply-add per reduction step, in the
-// same order) is the same at both levels, so the two give identical results. CPUs without AVX2
-// and FMA (and other architectures) use the oneDNN / BLAS path.
-
-constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
-
-// Rows of a block at least: with many input channels a block of SMALL_BLOCK_BYTES would be a few
-// rows, and every block reads the whole weight (from L2 once it outgrows L1); 24 rows keep the
-// reads of the weight below those of the columns (one row of 64 channels is 2.3 KiB of columns).
-constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
-
-// Rows of a block of `kc` columns each, within a tile of `tile` rows: a multiple of 8 that fits
-// SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS, at most the tile.
-int64_t small_block_rows(int64_t kc, int64_t tile) {
-  const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
-  return std::min(tile, std::max<int64_t>(SMALL_BLOCK_MIN_ROWS, rows - rows % 8));
-}
-
-// The register tile of every product below: acc[r][v] += sum over k in [k0, k1) of
-// a[r * ars + k * aks] * b[k * brs + v * L], R rows of a (one scalar each, broadcast) against
-// NV vectors of L floats of a row of b, all R x NV accumulators in registers. Each element adds
-// its products in the order of k (one fused multiply-add each), whatever R, NV and L: the
-// results do not depend on the register blocking.
-template <int R, int NV, int L>
-CALIBCONV_ALWAYS_INLINE inline void tile_product(typename VecOf<float, L>::type (&acc)[R][NV],
-                                                 const float* a, int64_t ars, int64_t aks,
-                                                 const float* b, int64_t brs, int64_t k0,
-                                                 int64_t k1) {
-  using V = typename VecOf<float, L>::type;
-  for (int64_t k = k0; k < k1; ++k) {
-    V w[NV];
-#pragma GCC unroll 4
-    for (int v = 0; v < NV; ++v) w[v] = load<V>(b + k * brs + v * L);
-#pragma GCC unroll 8
-    for (int r = 0; r < R; ++r) {
-      const float s = a[r * ars + k * aks];
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
-    }
-  }
-}
-
-// acc[r][v] = p[r * rs + v * L] (load), or the reverse (store).
-template <int R, int NV, int L>
-CALIBCONV_ALWAYS_INLINE inline void tile_load(typename VecOf<float, L>::type (&acc)[R][NV],
-                                              const float* p, int64_t rs) {
-#pragma GCC unroll 8
-  for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-    for (int v = 0; v < NV; ++v) {
-      acc[r][v] = load<typename VecOf<float, L>::type>(p + r * rs + v * L);
-    }
-  }
-}
-template <int R, int NV, int L>
-CALIBCONV_ALWAYS_INLINE inline void tile_store(const typename VecOf<float, L>::type (&acc)[R][NV],
-                                               float* p, int64_t rs) {
-#pragma GCC unroll 8
-  for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-    for (int v = 0; v < NV; ++v) store(p + r * rs + v * L, acc[r][v]);
-  }
-}
-
-// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
-// stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
-// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
-// over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
-// the block; y holds the partial sums between chunks).
-// Rows [t, t + R) of the forward over the reduction chunk [j0, j1), from the bias (j0 = 0) or
-// the partial sums in y. (Helpers are always-inlined functions, not lambdas: a lambda would not
-// take the instruction set of the function it is written in.)
-template <int CS, int NV, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_t kc,
-                                                       const float* wt, const float* bias,
-                                                       float* y, int64_t t, int64_t j0,
-                                                       int64_t j1) {
-  using V = typename VecOf<float, L>::type;
-  V acc[R][NV];
-  if (j0 > 0) {
-    tile_load<R, NV, L>(acc, y + t * CS, CS);
-  } else {
-#pragma GCC unroll 8
-    for (int r = 0; r < R; ++r) {
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) acc[r][v] = bias ? load<V>(bias + v * L) : V{};
-    }
-  }
-  tile_product<R, NV, L>(acc, cols + t * kc, kc, 1, wt, CS, j0, j1);
-  tile_store<R, NV, L>(acc, y + t * CS, CS);
-}
-
-template <int CS, int CO, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
-                                                        const float* wt, const float* bias,
-                                                        float* y) {
-  constexpr int NV = CO / L;
-  constexpr int64_t KCB = 4096 / CO;
-  for (int64_t j0 = 0; j0 < kc; j0 += KCB) {
-    const int64_t j1 = std::min(kc, j0 + KCB);
-    int64_t t = 0;
-    for (; t + R <= n; t += R) small_forward_rows<CS, NV, L, R>(cols, kc, wt, bias, y, t, j0, j1);
-    for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, kc, wt, bias, y, t, j0, j1);
-  }
-}
-
-// The forward of all CO outputs, OC at a time (fewer accumulators than a row of CO needs).
-template <int CO, int L, int R, int OC>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
-                                                       const float* wt, const float* bias,
-                                                       float* y) {
-  for (int o0 = 0; o0 < CO; o0 += OC) {
-    small_forward_chunk<CO, OC, L, R>(cols, n, kc, wt + o0, bias ? bias + o0 : nullptr, y + o0);
-  }
-}
-
-// g[t, j0 + i] = gy[t, :] @ w[:, j0 + i] for i < J * L and t in [0, n): R rows at a time (then
-// one), R x J accumulators.
-template <int CO, int L, int R, int J>
-CALIBCONV_ALWAYS_INLINE inline void small_column_rows(const float* gy, int64_t kc, const float* w,
-                                                      float* g, int64_t j0, int64_t t) {
-  typename VecOf<float, L>::type acc[R][J] = {};
-  tile_product<R, J, L>(acc, gy + t * CO, CO, 1, w + j0, kc, 0, CO);
-  tile_store<R, J, L>(acc, g + t * kc + j0, kc);
-}
-
-template <int CO, int L, int R, int J>
-CALIBCONV_ALWAYS_INLINE inline void small_column_chunk(const float* gy, int64_t n, int64_t kc,
-                                                       const float* w, float* g, int64_t j0) {
-  int64_t t = 0;
-  for (; t + R <= n; t += R) small_column_rows<CO, L, R, J>(gy, kc, w, g, j0, t);
-  for (; t < n; ++t) small_column_rows<CO, L, 1, J>(gy, kc, w, g, j0, t);
-}
-
-// g[t, :] = gy[t, :] @ w for t in [0, n): gy [n, CO] (row stride CO), w [CO, kc] (the packed
-// weight), g [n, kc]; kc a multiple of 8. Chunks of J vectors of L columns (the chunk's CO rows
-// of the weight stay in L1 over all rows of the block), then single vectors of L, then of 8
-// columns.
-template <int CO, int L, int R, int J>
-CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, int64_t n,
-                                                               int64_t kc, const float* w,
-                                                               float* g) {
-  int64_t j0 = 0;
-  for (; j0 + J * L <= kc; j0 += J * L) small_column_chunk<CO, L, R, J>(gy, n, kc, w, g, j0);
-  for (; j0 + L <= kc; j0 += L) small_column_chunk<CO, L, R, 1>(gy, n, kc, w, g, j0);
-  if constexpr (L > 8) {
-    for (; j0 + 8 <= kc; j0 += 8) small_column_chunk<CO, 8, R, 1>(gy, n, kc, w, g, j0);
-  }
-}
-
-// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
-// (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (the weight gradient, transposed,
-// row stride CS). JB columns at a time (then one), their CO / L accumulators each in registers
-// over all n rows.
-template <int CS, int NV, int L, int JB>
-CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n, int64_t kc,
-                                                         const float* gy, float* acc, int64_t j0) {
-  typename VecOf<float, L>::type a[JB][NV];
-  tile_load<JB, NV, L>(a, acc + j0 * CS, CS);
-  tile_product<JB, NV, L>(a, cols + j0, 1, kc, gy, CS, 0, n);
-  tile_store<JB, NV, L>(a, acc + j0 * CS, CS);
-}
-
-template <int CS, int CO, int L, int JB>
-CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* cols, int64_t n,
-                                                                int64_t kc, const float* gy,
-                                                                float* acc) {
-  constexpr int NV = CO / L;
-  int64_t j0 = 0;
-  for (; j0 + JB <= kc; j0 += JB) small_weight_columns<CS, NV, L, JB>(cols, n, kc, gy, acc, j0);
-  for (; j0 < kc; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, kc, gy, acc, j0);
-}
-
-// The weight gradient of all CO outputs, OC at a time.
-template <int CO, int L, int JB, int OC>
-CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
-                                                               int64_t kc, const float* gy,
-                                                               float* acc) {
-  for (int o0 = 0; o0 < CO; o0 += OC) {
-    small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, kc, gy + o0, acc + o0);
-  }
-}
-
-// The levels the kernels are compiled for.
-enum class SmallIsa { None, Avx2, Avx512 };
-
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define CALIBCONV_HAVE_SMALL_KERNELS 1
-#define CALIBCONV_TARGET_V4 __attribute__((target("arch=x86-64-v4")))
-#define CALIBCONV_TARGET_V3 __attribute__((target("arch=x86-64-v3")))
-
-// One level's kernels for CO outputs in vectors of L floats: forward rows R and weight-gradient
-// columns JB, both OC outputs at a time; column gradient CR rows x CJ vectors of CL floats.
-#define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
-  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,          \
-                                            const float* wt, const float* bias, float* y) {    \
-    small_forward_body<CO, L, R, OC>(cols, n, kc, wt, bias, y);                                \
-  }                                                                                            \
-  TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
-                                                    const float* w, float* g) {                \
-    small_column_gradient_body<CO, CL, CR, CJ>(gy, n, kc, w, g);                               \
-  }                                                                                            \
-  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,  \
-                                                    const float* gy, float* acc) {             \
-    small_weight_gradient_body<CO, L, JB, OC>(cols, n, kc, gy, acc);                            \
-  }
-// (Not 256: with 256 outputs and inputs, 64x64 B2, the forward was 1.6x conv2d against oneDNN's
-// 1.4x; up to 128 these kernels beat oneDNN at every shape measured: `calibconv bench
-// --small-kernels none` against the default, one thread, 2026-12-02.)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 8, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 32, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 64, 8, 2, 2, 32, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 128, 8, 2, 2, 32, 8, 4, 3)
-#undef CALIBCONV_SMALL_KERNELS
-#endif
-
-// The highest level this CPU runs, capped by the last calibconv_native_cap_isa call (tests run
-// the AVX2 kernels on an AVX-512 machine with it).
-std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
-
-SmallIsa small_isa() {
-#ifdef CALIBCONV_HAVE_SMALL_KERNELS
-  static const SmallIsa cpu = [] {
-    __builtin_cpu_init();
-    if (__builtin_cpu_supports("x86-64-v4")) return SmallIsa::Avx512;
-    if (__builtin_cpu_supports("x86-64-v3")) return SmallIsa::Avx2;
-    return SmallIsa::None;
-  }();
-  return static_cast<SmallIsa>(std::min(static_cast<int>(cpu), small_isa_cap.load()));
-#else
-  return SmallIsa::None;
-#endif
-}
-
-// The few-output-channel kernels of a pass, or all null where they do not apply (another element
-// type, groups, another channel count, a CPU without AVX2). column_gradient also needs
-// kc % 8 == 0.
-struct SmallKernels {
-  void (*forward)(const float*, int64_t, int64_t, const float*, const float*, float*) = nullptr;
-  void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
-  void (*weight_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
-  explicit operator bool() const { return forward != nullptr; }
-};
-
+// The few-output-channel kernels (small_kernels.h) of a pass, or all null.
 template <typename T>
 SmallKernels small_kernels(const Geo& g) {
-  SmallKernels s;
-  if (!std::is_same_v<T, float> || g.G != 1) return s;
-#ifdef CALIBCONV_HAVE_SMALL_KERNELS
-  const SmallIsa isa = small_isa();
-#define CALIBCONV_SMALL_PICK(CO, SUFFIX)                  \
-  case CO:                                                \
-    s.forward = small_forward_##CO##_##SUFFIX;            \
-    s.column_gradient = small_column_gradient_##CO##_##SUFFIX; \
-    s.weight_gradient = small_weight_gradient_##CO##_##SUFFIX; \
-    break;
-  if (isa == SmallIsa::Avx512) {
-    switch (g.Cout) {
-      CALIBCONV_SMALL_PICK(8, v4)
-      CALIBCONV_SMALL_PICK(16, v4)
-      CALIBCONV_SMALL_PICK(32, v4)
-      CALIBCONV_SMALL_PICK(64, v4)
-      CALIBCONV_SMALL_PICK(128, v4)
-      default:
-        return s;
-    }
-  } else if (isa == SmallIsa::Avx2) {
-    switch (g.Cout) {
-      CALIBCONV_SMALL_PICK(8, v3)
-      CALIBCONV_SMALL_PICK(16, v3)
-      CALIBCONV_SMALL_PICK(32, v3)
-      CALIBCONV_SMALL_PICK(64, v3)
-      CALIBCONV_SMALL_PICK(128, v3)
-      default:
-        return s;
-    }
-  }
-#undef CALIBCONV_SMALL_PICK
-#endif
-  if ((g.K * g.C) % 8 != 0) s.column_gradient = nullptr;
-  return s;
+  if (!std::is_same_v<T, float> || g.G != 1) return {};
+  return small_kernels_for(g.Cout, g.K * g.C);
 }
 
 // Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
