@@ -46,11 +46,11 @@
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
-//!   - *Few output channels* (float32, one group, 8, 16, 32, 64 or 128 outputs): the three products
-//!     above run through register-blocked kernels instead of a oneDNN / BLAS call per tile, on
-//!     blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered, multiplied and
-//!     scattered block by block): at these shapes a GEMM call costs more in overhead than in
-//!     arithmetic. Their register blocking is compiled separately for AVX-512 and AVX2 and
+//!   - *Few output channels* (float32, one group, 8, 16, 32, 64 or 128 outputs): the three
+//!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per
+//!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered,
+//!     multiplied and scattered block by block): at these shapes a GEMM call costs more in
+//!     overhead than in arithmetic (at 64 and 128 outputs these kernels beat oneDNN). Their register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
 //!     without AVX2 use oneDNN. The forward and the column gradient walk the reduction in
 //!     chunks whose slice of the weight stays in L1 over the whole block.
@@ -173,9 +173,9 @@ pub fn native_available() -> bool {
     cfg!(calibconv_native)
 }
 
-/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8, 16,
-/// 32, 64 or 128 output channels): their register blocking is compiled per level and picked at run
-/// time from the CPU.
+/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8,
+/// 16, 32, 64 or 128 output channels): their register blocking is compiled per level and picked
+/// at run time from the CPU.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum SmallKernelIsa {
     /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers

@@ -655,8 +655,8 @@ fn first_layer_without_input_gradient_matches_aten() {
 
 /// The few-output-channel kernels are compiled per instruction-set level with different register
 /// blocking (AVX-512, AVX2): both give bit-identical results (the same fused multiply-adds in
-/// the same order per element), and both match the ATen composition, for 8, 16, 32, 64 and 128 outputs
-/// and row counts that leave partial blocks. On a CPU without AVX-512 the AVX2 kernels are
+/// the same order per element), and both match the ATen composition, for 8, 16, 32, 64 and 128
+/// outputs and row counts that leave partial blocks. On a CPU without AVX-512 the AVX2 kernels are
 /// still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
