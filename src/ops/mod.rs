@@ -176,15 +176,17 @@ pub fn native_available() -> bool {
 /// The instruction-set level of the native few-output-channel kernels (float32, one group, 8,
 /// 16, 32, 64 or 128 output channels): their register blocking is compiled per level and picked
 /// at run time from the CPU.
+/// (The discriminants are the native code's `SmallIsa`.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+#[repr(i32)]
 pub enum SmallKernelIsa {
     /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers
     /// go through oneDNN / the BLAS like any other.
-    None,
+    None = 0,
     /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats.
-    Avx2,
+    Avx2 = 1,
     /// x86-64-v4 (AVX-512): 32 registers of 16 floats.
-    Avx512,
+    Avx512 = 2,
 }
 
 /// The level of the few-output-channel kernels this process uses.

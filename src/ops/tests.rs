@@ -261,9 +261,9 @@ fn native_matches_aten_on_random_plans() {
         (2, 1, 3, 7, 5, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
         // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
-        // items (B * P above a tile), the oneDNN GEMMs (float32, one group; the weight gradient
-        // from 32 output channels), scatter bands within an item (a tall map, small batch) and
-        // tasks of several whole items (small maps).
+        // items (B * P above a tile), scatter bands within an item (a tall map, small batch) and
+        // tasks of several whole items (small maps). (Their float32 products with 8-128 outputs
+        // run through the few-output-channel kernels; oneDNN's: the 40- and 72-output cases.)
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
@@ -274,10 +274,13 @@ fn native_matches_aten_on_random_plans() {
         (2, 32, 32, 13, 11, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A 1x3 kernel: K*C = 24, below a chunk of the column gradient (its tail paths).
         (2, 8, 16, 9, 10, [1, 3], [1, 1], [0, 1], [1, 1], 1, false, 2.0),
-        // 40 outputs: the oneDNN forward and input gradient (the few-output kernels stop at 32).
+        // 40 outputs: the oneDNN forward and input gradient (not one of the few-output counts,
+        // 8 to 128), and the oneDNN weight gradient (from 32 outputs on).
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
-        // maps): with more than one thread, one GEMM over all rows (see `whole_rows`).
+        // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
+        // outputs through oneDNN, 64 through the few-output-channel kernels).
+        (2, 64, 72, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 32, 48, 4, 3, [3, 3], [1, 1], [1, 1], [1, 1], 2, true, 2.0),
     ];

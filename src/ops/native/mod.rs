@@ -36,11 +36,7 @@ extern "C" {
 /// [`super::SmallKernelIsa`]); with `cap`, first limits it to at most that level.
 pub(super) fn small_kernel_isa(cap: Option<super::SmallKernelIsa>) -> super::SmallKernelIsa {
     use super::SmallKernelIsa as Isa;
-    let cap = cap.map_or(-1, |c| match c {
-        Isa::None => 0,
-        Isa::Avx2 => 1,
-        Isa::Avx512 => 2,
-    });
+    let cap = cap.map_or(-1, |c| c as i32);
     // SAFETY: a plain function of an integer; it only reads and writes an atomic.
     match unsafe { calibconv_native_small_isa(cap) } {
         2 => Isa::Avx512,

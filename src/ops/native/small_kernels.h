@@ -98,11 +98,6 @@ CALIBCONV_ALWAYS_INLINE inline void tile_store(const typename VecOf<float, L>::t
   }
 }
 
-// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
-// stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
-// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
-// over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
-// the block; y holds the partial sums between chunks).
 // Rows [t, t + R) of the forward over the reduction chunk [j0, j1), from the bias (j0 = 0) or
 // the partial sums in y. (Helpers are always-inlined functions, not lambdas: a lambda would not
 // take the instruction set of the function it is written in.)
@@ -126,6 +121,11 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
   tile_store<R, NV, L>(acc, y + t * CS, CS);
 }
 
+// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
+// stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
+// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
+// over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
+// the block; y holds the partial sums between chunks).
 template <int CS, int CO, int L, int R>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
                                                         const float* wt, const float* bias,
@@ -217,8 +217,8 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols
   }
 }
 
-// The levels the kernels are compiled for.
-enum class SmallIsa { None, Avx2, Avx512 };
+// The levels the kernels are compiled for (the numbers of calibconv::ops::SmallKernelIsa).
+enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define CALIBCONV_HAVE_SMALL_KERNELS 1
@@ -288,33 +288,29 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   SmallKernels s;
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
   const SmallIsa isa = small_isa();
-#define CALIBCONV_SMALL_PICK(CO, SUFFIX)                  \
-  case CO:                                                \
-    s.forward = small_forward_##CO##_##SUFFIX;            \
+#define CALIBCONV_SMALL_PICK(CO, SUFFIX)                       \
+  case CO:                                                     \
+    s.forward = small_forward_##CO##_##SUFFIX;                 \
     s.column_gradient = small_column_gradient_##CO##_##SUFFIX; \
     s.weight_gradient = small_weight_gradient_##CO##_##SUFFIX; \
     break;
-  if (isa == SmallIsa::Avx512) {
-    switch (cout) {
-      CALIBCONV_SMALL_PICK(8, v4)
-      CALIBCONV_SMALL_PICK(16, v4)
-      CALIBCONV_SMALL_PICK(32, v4)
-      CALIBCONV_SMALL_PICK(64, v4)
-      CALIBCONV_SMALL_PICK(128, v4)
-      default:
-        return s;
-    }
-  } else if (isa == SmallIsa::Avx2) {
-    switch (cout) {
-      CALIBCONV_SMALL_PICK(8, v3)
-      CALIBCONV_SMALL_PICK(16, v3)
-      CALIBCONV_SMALL_PICK(32, v3)
-      CALIBCONV_SMALL_PICK(64, v3)
-      CALIBCONV_SMALL_PICK(128, v3)
-      default:
-        return s;
-    }
+// The output counts compiled above, for one level.
+#define CALIBCONV_SMALL_PICK_ALL(SUFFIX) \
+  switch (cout) {                        \
+    CALIBCONV_SMALL_PICK(8, SUFFIX)      \
+    CALIBCONV_SMALL_PICK(16, SUFFIX)     \
+    CALIBCONV_SMALL_PICK(32, SUFFIX)     \
+    CALIBCONV_SMALL_PICK(64, SUFFIX)     \
+    CALIBCONV_SMALL_PICK(128, SUFFIX)    \
+    default:                             \
+      return s;                          \
   }
+  if (isa == SmallIsa::Avx512) {
+    CALIBCONV_SMALL_PICK_ALL(v4)
+  } else if (isa == SmallIsa::Avx2) {
+    CALIBCONV_SMALL_PICK_ALL(v3)
+  }
+#undef CALIBCONV_SMALL_PICK_ALL
 #undef CALIBCONV_SMALL_PICK
 #endif
   if (kc % 8 != 0) s.column_gradient = nullptr;
