@@ -185,6 +185,10 @@ impl Layout {
     /// Fills the corners and fractions of the `wo * K` samples of output row `row` (item-major:
     /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
     /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none).
+    ///
+    /// The same corners and fractions as [`bilinear`] (a unit test compares them), with the
+    /// row's tap positions and offset rows looked up once, and the corners chosen without
+    /// branches.
     fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
         &self,
         off: &[O],
@@ -200,40 +204,64 @@ impl Layout {
             dilation,
         } = self.geom;
         let taps = (kh * kw) as usize;
-        let plane = (ho * wo) as usize;
+        let (plane, wo_u) = ((ho * wo) as usize, wo as usize);
         let (item, oy) = (row as i64 / ho, row as i64 % ho);
         // Per-item tables stack the items' pixels, each followed by its zero row.
         let base = if self.per_item { item * (h * w + 1) } else { 0 };
+        let zero = (base + h * w) as i32;
+        let wrap = self.border == Border::WrapX;
+        let (hf, wf) = (h as f64, w as f64);
+        // Per tap: its regular position (row; column at ox = 0) and its offset rows.
         let item_off = &off[item as usize * 2 * taps * plane..];
-        let mut s = 0;
+        let start = oy as usize * wo_u;
+        let tap = |k: usize| {
+            let (i, j) = (k as i64 / kw, k as i64 % kw);
+            let dy = &item_off[2 * k * plane + start..][..wo_u];
+            let dx = &item_off[(2 * k + 1) * plane + start..][..wo_u];
+            let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64;
+            (y, j * dilation[1] - padding[1], dy, dx)
+        };
+        let taps_of_row: Vec<_> = (0..taps).map(tap).collect();
         let mut reach = [i32::MAX, i32::MIN];
-        for ox in 0..wo {
-            let p = (oy * wo + ox) as usize;
-            for i in 0..kh {
-                for j in 0..kw {
-                    let k = (i * kw + j) as usize;
-                    let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64
-                        + item_off[2 * k * plane + p].into();
-                    let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64
-                        + item_off[(2 * k + 1) * plane + p].into();
-                    let mut inside = false;
-                    for (c, (flat, _)) in bilinear(y, x, h, w, self.border).into_iter().enumerate()
-                    {
-                        inside |= flat.is_some();
-                        idx[4 * s + c] = (base + flat.unwrap_or(h * w)) as i32;
-                    }
-                    if inside {
-                        // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
-                        let y0 = floor(y);
-                        reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
-                        frac[2 * s] = W::from_f64(y - y0);
-                        frac[2 * s + 1] = W::from_f64(x - floor(x));
-                    } else {
-                        frac[2 * s] = W::from_f64(0.0);
-                        frac[2 * s + 1] = W::from_f64(0.0);
-                    }
-                    s += 1;
+        let (idx, frac) = (&mut idx[..4 * taps * wo_u], &mut frac[..2 * taps * wo_u]);
+        for (ox, (corners, fracs)) in idx
+            .chunks_exact_mut(4 * taps)
+            .zip(frac.chunks_exact_mut(2 * taps))
+            .enumerate()
+        {
+            let ox_in = ox as i64 * stride[1];
+            for (k, &(ty, tx, dy, dx)) in taps_of_row.iter().enumerate() {
+                let y = ty + dy[ox].into();
+                let x = (ox_in + tx) as f64 + dx[ox].into();
+                // `!(a < b)` rather than `a >= b`: NaN lands outside as well.
+                let outside =
+                    !(y > -1.0 && y < hf && x.is_finite() && (wrap || (x > -1.0 && x < wf)));
+                let c = &mut corners[4 * k..4 * k + 4];
+                let f = &mut fracs[2 * k..2 * k + 2];
+                if outside {
+                    c.fill(zero);
+                    f.fill(W::from_f64(0.0));
+                    continue;
                 }
+                let (fy, fx) = (floor(y), floor(x));
+                let (y0, mut x0) = (fy as i64, fx as i64);
+                let mut x1 = x0 + 1;
+                if wrap {
+                    x0 = x0.rem_euclid(w);
+                    x1 = x1.rem_euclid(w);
+                }
+                let (top, bottom) = (y0 >= 0, y0 + 1 < h);
+                let (left, right) = (x0 >= 0 && x0 < w, x1 >= 0 && x1 < w);
+                let row0 = base + y0 * w;
+                let pick = |ok: bool, at: i64| if ok { at as i32 } else { zero };
+                c[0] = pick(top && left, row0 + x0);
+                c[1] = pick(top && right, row0 + x1);
+                c[2] = pick(bottom && left, row0 + w + x0);
+                c[3] = pick(bottom && right, row0 + w + x1);
+                // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
+                reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
+                f[0] = W::from_f64(y - fy);
+                f[1] = W::from_f64(x - fx);
             }
         }
         reach
@@ -587,34 +615,156 @@ fn floor(v: f64) -> f64 {
     }
 }
 
-/// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
-/// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
-/// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
-#[inline(always)]
-fn bilinear(y: f64, x: f64, h: i64, w: i64, border: Border) -> [(Option<i64>, f64); 4] {
-    let wrap = border == Border::WrapX;
-    let x_outside = !wrap && (x <= -1.0 || x >= w as f64);
-    if y <= -1.0 || y >= h as f64 || x_outside || !y.is_finite() || !x.is_finite() {
-        return [(None, 0.0); 4];
-    }
-    let (y0, x0) = (floor(y) as i64, floor(x) as i64);
-    let (ly, lx) = (y - y0 as f64, x - x0 as f64);
-    let (hy, hx) = (1.0 - ly, 1.0 - lx);
-    let at = |yy: i64, xx: i64| {
-        let xx = if wrap { xx.rem_euclid(w) } else { xx };
-        (yy >= 0 && yy < h && xx >= 0 && xx < w).then_some(yy * w + xx)
-    };
-    [
-        (at(y0, x0), hy * hx),
-        (at(y0, x0 + 1), hy * lx),
-        (at(y0 + 1, x0), ly * hx),
-        (at(y0 + 1, x0 + 1), ly * lx),
-    ]
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{bilinear as bilinear_border, Border};
+    use super::{floor, Border, ConvGeometry, Layout};
+
+    /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
+    /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
+    /// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
+    fn bilinear_border(y: f64, x: f64, h: i64, w: i64, border: Border) -> [(Option<i64>, f64); 4] {
+        let wrap = border == Border::WrapX;
+        let x_outside = !wrap && (x <= -1.0 || x >= w as f64);
+        if y <= -1.0 || y >= h as f64 || x_outside || !y.is_finite() || !x.is_finite() {
+            return [(None, 0.0); 4];
+        }
+        let (y0, x0) = (floor(y) as i64, floor(x) as i64);
+        let (ly, lx) = (y - y0 as f64, x - x0 as f64);
+        let (hy, hx) = (1.0 - ly, 1.0 - lx);
+        let at = |yy: i64, xx: i64| {
+            let xx = if wrap { xx.rem_euclid(w) } else { xx };
+            (yy >= 0 && yy < h && xx >= 0 && xx < w).then_some(yy * w + xx)
+        };
+        [
+            (at(y0, x0), hy * hx),
+            (at(y0, x0 + 1), hy * lx),
+            (at(y0 + 1, x0), ly * hx),
+            (at(y0 + 1, x0 + 1), ly * lx),
+        ]
+    }
+
+    /// The corners and fractions of one sample as the plan stores them, from [`bilinear_border`].
+    fn reference_sample(
+        y: f64,
+        x: f64,
+        h: i64,
+        w: i64,
+        border: Border,
+        base: i64,
+    ) -> ([i32; 4], [f64; 2]) {
+        let corners = bilinear_border(y, x, h, w, border);
+        let idx = corners.map(|(flat, _)| (base + flat.unwrap_or(h * w)) as i32);
+        if corners.iter().any(|(flat, _)| flat.is_some()) {
+            (idx, [y - floor(y), x - floor(x)])
+        } else {
+            (idx, [0.0, 0.0])
+        }
+    }
+
+    #[test]
+    fn fill_row_matches_bilinear_sample_by_sample() {
+        // Offsets around and past the border, non-finite ones, strides, dilations, padding,
+        // per-item offsets and both border rules.
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let specials = [
+            f64::NAN,
+            f64::INFINITY,
+            -f64::INFINITY,
+            -1.0,
+            0.0,
+            1e12,
+            -1e12,
+        ];
+        for (case, &(h, w, kernel, stride, padding, dilation, items, border)) in [
+            (7, 9, [3, 3], [1, 1], [1, 1], [1, 1], None, Border::Zeros),
+            (
+                6,
+                11,
+                [3, 5],
+                [2, 1],
+                [0, 2],
+                [1, 2],
+                Some(2),
+                Border::Zeros,
+            ),
+            (5, 8, [3, 3], [1, 2], [1, 1], [2, 1], None, Border::WrapX),
+            (4, 6, [1, 3], [1, 1], [0, 1], [1, 1], Some(3), Border::WrapX),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let geom = ConvGeometry::new(kernel, stride, padding, dilation);
+            let [ho, wo] = geom.output_size([h, w]).unwrap();
+            let taps = (kernel[0] * kernel[1]) as usize;
+            let n_items = items.unwrap_or(1);
+            let plane = (ho * wo) as usize;
+            let off: Vec<f64> = (0..n_items as usize * 2 * taps * plane)
+                .map(|i| {
+                    if i % 23 == 5 {
+                        specials[i / 23 % specials.len()]
+                    } else {
+                        // Mostly within a few pixels, sometimes far outside.
+                        let spread = if i % 7 == 0 {
+                            3.0 * (h + w) as f64
+                        } else {
+                            3.0
+                        };
+                        (next() - 0.5) * 2.0 * spread
+                    }
+                })
+                .collect();
+            let layout = Layout {
+                h,
+                w,
+                ho,
+                wo,
+                geom,
+                per_item: items.is_some(),
+                border,
+            };
+            let row = wo as usize * taps;
+            for r in 0..(n_items * ho) as usize {
+                let mut idx = vec![-7i32; 4 * row];
+                let mut frac = vec![-7.0f64; 2 * row];
+                let reach = layout.fill_row(&off, r, &mut idx, &mut frac);
+                let (item, oy) = (r as i64 / ho, r as i64 % ho);
+                let base = if items.is_some() {
+                    item * (h * w + 1)
+                } else {
+                    0
+                };
+                let mut want_reach = [i32::MAX, i32::MIN];
+                for ox in 0..wo {
+                    for k in 0..taps as i64 {
+                        let (i, j) = (k / kernel[1], k % kernel[1]);
+                        let p = (oy * wo + ox) as usize;
+                        let at = |c: i64| off[((item * 2 * taps as i64 + c) as usize) * plane + p];
+                        let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64 + at(2 * k);
+                        let x =
+                            (ox * stride[1] - padding[1] + j * dilation[1]) as f64 + at(2 * k + 1);
+                        let (want_idx, want_frac) = reference_sample(y, x, h, w, border, base);
+                        let s = (ox * taps as i64 + k) as usize;
+                        let what = format!("case {case}, row {r}, ox {ox}, tap {k}: y {y}, x {x}");
+                        assert_eq!(idx[4 * s..4 * s + 4], want_idx, "{what}");
+                        assert_eq!(frac[2 * s..2 * s + 2], want_frac, "{what}");
+                        if want_frac != [0.0, 0.0]
+                            || want_idx.iter().any(|&c| c != (base + h * w) as i32)
+                        {
+                            let y0 = floor(y) as i32;
+                            want_reach = [want_reach[0].min(y0), want_reach[1].max(y0 + 1)];
+                        }
+                    }
+                }
+                assert_eq!(reach, want_reach, "case {case}, row {r}");
+            }
+        }
+    }
 
     fn bilinear(y: f64, x: f64, h: i64, w: i64) -> [(Option<i64>, f64); 4] {
         bilinear_border(y, x, h, w, Border::Zeros)

@@ -229,11 +229,25 @@ fn offsets_buffer(
                 MAX_OFFSET_VALUES as f64 * 4.0 / 1e9
             ))
         })?;
-    let mut data = Vec::new();
-    data.try_reserve_exact(values)
-        .map_err(|_| too_large("cannot be allocated"))?;
-    data.resize(values, 0.0f32);
-    Ok(data)
+    zeroed(values).ok_or_else(|| too_large("cannot be allocated"))
+}
+
+/// `n` zeros, or `None` if they cannot be allocated. Zeroed memory from the allocator (fresh
+/// pages for large sizes) rather than a fill: the pages are first touched by the parallel row
+/// tasks that write them, not by one thread up front.
+fn zeroed(n: usize) -> Option<Vec<f32>> {
+    if n == 0 {
+        return Some(Vec::new());
+    }
+    let layout = std::alloc::Layout::array::<f32>(n).ok()?;
+    // SAFETY: `layout` has a non-zero size (n > 0).
+    let ptr = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<f32>();
+    if ptr.is_null() {
+        return None;
+    }
+    // SAFETY: `ptr` comes from the global allocator with the layout of `n` f32 (what a Vec of
+    // capacity `n` uses), and all-zero bytes are `n` valid values (0.0).
+    Some(unsafe { Vec::from_raw_parts(ptr, n, n) })
 }
 
 /// Computes the calibrated offsets of one layer.
