@@ -484,9 +484,76 @@ void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* x, const int
 // One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n), in tiles of CB
 // channels x PB pixels. CB = 8 strided rows at a time: rows H*W apart alias in the L1 cache when
 // H*W is a power of two, and 8 fit its associativity.
+// Transposes the 8x8 block of floats at src (row i at src + i * ss) into dst (row j at
+// dst + j * ds): three rounds of shuffles (pairs, quads, halves) on eight 8-float vectors, the
+// register transpose of the AVX instruction set, written with GCC's generic shuffles so that
+// every clone gets its own instructions.
+CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, int64_t ss,
+                                                 float* __restrict dst, int64_t ds) {
+#if defined(__GNUC__) && !defined(__clang__)
+  using V = VecOf<float, 8>::type;
+  typedef int32_t M __attribute__((vector_size(32)));
+  V r[8], t[8], u[8];
+  for (int i = 0; i < 8; ++i) r[i] = load<V>(src + i * ss);
+  for (int i = 0; i < 8; i += 2) {
+    t[i] = __builtin_shuffle(r[i], r[i + 1], M{0, 8, 1, 9, 4, 12, 5, 13});
+    t[i + 1] = __builtin_shuffle(r[i], r[i + 1], M{2, 10, 3, 11, 6, 14, 7, 15});
+  }
+  for (int i = 0; i < 8; i += 4) {
+    for (int h = 0; h < 2; ++h) {
+      u[i + 2 * h] = __builtin_shuffle(t[i + h], t[i + h + 2], M{0, 1, 8, 9, 4, 5, 12, 13});
+      u[i + 2 * h + 1] =
+          __builtin_shuffle(t[i + h], t[i + h + 2], M{2, 3, 10, 11, 6, 7, 14, 15});
+    }
+  }
+  for (int j = 0; j < 4; ++j) {
+    store(dst + j * ds, __builtin_shuffle(u[j], u[j + 4], M{0, 1, 2, 3, 8, 9, 10, 11}));
+    store(dst + (j + 4) * ds, __builtin_shuffle(u[j], u[j + 4], M{4, 5, 6, 7, 12, 13, 14, 15}));
+  }
+#else
+  for (int i = 0; i < 8; ++i)
+    for (int j = 0; j < 8; ++j) dst[j * ds + i] = src[i * ss + j];
+#endif
+}
+
+// convert_pixels for float: whole 8x8 blocks through transpose8x8 (element by element, the
+// compiler leaves the copy scalar), the edges element by element.
+CALIBCONV_CLONES void convert_pixels_float(const float* __restrict src, float* __restrict dst,
+                                           int64_t C, int64_t HW, int64_t p0, int64_t n,
+                                           bool to_cl) {
+  constexpr int64_t PB = 64;
+  const int64_t c8 = C / 8 * 8;
+  for (int64_t q0 = p0; q0 < p0 + n; q0 += PB) {
+    const int64_t q1 = std::min(p0 + n, q0 + PB), q8 = q0 + (q1 - q0) / 8 * 8;
+    for (int64_t c0 = 0; c0 < c8; c0 += 8) {
+      for (int64_t q = q0; q < q8; q += 8) {
+        if (to_cl) {
+          transpose8x8(src + c0 * HW + q, HW, dst + q * C + c0, C);
+        } else {
+          transpose8x8(src + q * C + c0, C, dst + c0 * HW + q, HW);
+        }
+      }
+    }
+    // The edges: the channels past the last multiple of 8 at every pixel, and every channel at
+    // the pixels past the last multiple of 8.
+    for (int64_t q = q0; q < q1; ++q) {
+      for (int64_t c = q < q8 ? c8 : 0; c < C; ++c) {
+        if (to_cl) {
+          dst[q * C + c] = src[c * HW + q];
+        } else {
+          dst[c * HW + q] = src[q * C + c];
+        }
+      }
+    }
+  }
+}
+
 template <typename T>
 void convert_pixels(const T* __restrict src, T* __restrict dst, int64_t C, int64_t HW,
                     int64_t p0, int64_t n, bool to_cl) {
+  if constexpr (std::is_same_v<T, float>) {
+    return convert_pixels_float(src, dst, C, HW, p0, n, to_cl);
+  }
   constexpr int64_t CB = 8, PB = 64;
   for (int64_t q0 = p0; q0 < p0 + n; q0 += PB) {
     const int64_t q1 = std::min(p0 + n, q0 + PB);
