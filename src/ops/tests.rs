@@ -378,6 +378,60 @@ fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
     assert!(max_rel(&g[0], &ga[0]) < F64_IMPL_TOL);
 }
 
+/// NCHW and channels-last inputs differ only in the layout conversions (for float32, 8x8
+/// register transposes, element by element at the edges): the outputs and the input and weight
+/// gradients must be the same bits, at channel and pixel counts that are and are not multiples
+/// of 8. (The bias gradient sums the output gradient in its own layout: rounding only.)
+#[test]
+fn float32_layout_conversions_are_exact() {
+    tch::manual_seed(11);
+    let opts = (Kind::Float, Device::Cpu);
+    for (b, ci, co, h, w) in [
+        (2, 8, 16, 8, 8),
+        (2, 16, 8, 9, 7),
+        (1, 32, 32, 13, 11),
+        (3, 12, 20, 6, 10),
+        (2, 3, 8, 11, 9),
+    ] {
+        let off = Tensor::randn([18, h, w], opts) * 1.5;
+        let plan = plan3x3(&off, [h, w], Kind::Float);
+        let x = Tensor::randn([b, ci, h, w], opts);
+        let (wt, bias) = (
+            Tensor::randn([co, ci, 3, 3], opts),
+            Tensor::randn([co], opts),
+        );
+        let probe = Tensor::randn([b, co, h, w], opts);
+        let nchw = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let cl = run_backend(
+            &channels_last(&x),
+            &plan,
+            &wt,
+            &bias,
+            1,
+            &channels_last(&probe),
+            Backend::Auto,
+        );
+        let what = format!("B{b} {ci}->{co} {h}x{w}");
+        assert!(
+            nchw.out.is_contiguous() && is_channels_last(&cl.out),
+            "{what}"
+        );
+        assert!(nchw.out.equal(&cl.out), "{what}: outputs differ");
+        assert!(
+            nchw.input.equal(&cl.input),
+            "{what}: input gradients differ"
+        );
+        assert!(
+            nchw.weight.equal(&cl.weight),
+            "{what}: weight gradients differ"
+        );
+        assert!(
+            max_rel(&nchw.bias, &cl.bias) < 1e-5,
+            "{what}: bias gradients"
+        );
+    }
+}
+
 /// Offsets that jump by many rows (up, down, alternating) force tall scatter bands and
 /// non-monotone row ranges; the input gradient must still be exact.
 #[test]
