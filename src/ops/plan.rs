@@ -186,9 +186,9 @@ impl Layout {
     /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
     /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none).
     ///
-    /// The same corners and fractions as [`bilinear`] (a unit test compares them), with the
-    /// row's tap positions and offset rows looked up once, and the corners chosen without
-    /// branches.
+    /// torchvision's bilinear rule (a unit test holds every corner and fraction to the
+    /// per-sample reference `tests::bilinear_border`), with the row's tap positions and offset
+    /// rows looked up once, and the corners chosen without branches.
     fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
         &self,
         off: &[O],

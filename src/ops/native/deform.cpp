@@ -481,9 +481,6 @@ void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* x, const int
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
-// One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n), in tiles of CB
-// channels x PB pixels. CB = 8 strided rows at a time: rows H*W apart alias in the L1 cache when
-// H*W is a power of two, and 8 fit its associativity.
 // Transposes the 8x8 block of floats at src (row i at src + i * ss) into dst (row j at
 // dst + j * ds): three rounds of shuffles (pairs, quads, halves) on eight 8-float vectors, the
 // register transpose of the AVX instruction set, written with GCC's generic shuffles so that
@@ -516,8 +513,8 @@ CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, in
 #endif
 }
 
-// convert_pixels for float: whole 8x8 blocks through transpose8x8 (element by element, the
-// compiler leaves the copy scalar), the edges element by element.
+// convert_pixels for float: whole 8x8 blocks through transpose8x8 (copied element by element,
+// the compiler left these loops scalar), the edges element by element.
 CALIBCONV_CLONES void convert_pixels_float(const float* __restrict src, float* __restrict dst,
                                            int64_t C, int64_t HW, int64_t p0, int64_t n,
                                            bool to_cl) {
@@ -548,6 +545,10 @@ CALIBCONV_CLONES void convert_pixels_float(const float* __restrict src, float* _
   }
 }
 
+// One item: [C, HW] -> [HW, C] (to_cl) or back, for pixels [p0, p0 + n), in tiles of CB
+// channels x PB pixels. CB = 8 strided rows at a time: rows H*W apart alias in the L1 cache when
+// H*W is a power of two, and 8 fit its associativity. Float32 goes through
+// convert_pixels_float (the same tiles, as register transposes).
 template <typename T>
 void convert_pixels(const T* __restrict src, T* __restrict dst, int64_t C, int64_t HW,
                     int64_t p0, int64_t n, bool to_cl) {
