@@ -24,6 +24,28 @@ fn plan3x3(off: &Tensor, hw: [i64; 2], kind: Kind) -> SamplingPlan {
     .unwrap()
 }
 
+/// A random float32 3x3 "same" layer `[B, C_in, C_out, H, W]`, NCHW: its plan (offsets of about
+/// `scale` pixels), input, weight, bias and output probe, drawn in that order.
+struct Problem {
+    plan: SamplingPlan,
+    x: Tensor,
+    w: Tensor,
+    bias: Tensor,
+    probe: Tensor,
+}
+
+fn random_problem([b, ci, co, h, w]: [i64; 5], scale: f64) -> Problem {
+    let opts = (Kind::Float, Device::Cpu);
+    let off = Tensor::randn([18, h, w], opts) * scale;
+    Problem {
+        plan: plan3x3(&off, [h, w], Kind::Float),
+        x: Tensor::randn([b, ci, h, w], opts),
+        w: Tensor::randn([co, ci, 3, 3], opts),
+        bias: Tensor::randn([co], opts),
+        probe: Tensor::randn([b, co, h, w], opts),
+    }
+}
+
 /// Standard-normal tensors of these shapes that require gradients (input, weight, bias).
 fn random_leaves(shapes: [&[i64]; 3], opts: (Kind, Device)) -> [Tensor; 3] {
     shapes.map(|shape| Tensor::randn(shape, opts).set_requires_grad(true))
@@ -385,7 +407,6 @@ fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
 #[test]
 fn float32_layout_conversions_are_exact() {
     tch::manual_seed(11);
-    let opts = (Kind::Float, Device::Cpu);
     for (b, ci, co, h, w) in [
         (2, 8, 16, 8, 8),
         (2, 16, 8, 9, 7),
@@ -393,22 +414,15 @@ fn float32_layout_conversions_are_exact() {
         (3, 12, 20, 6, 10),
         (2, 3, 8, 11, 9),
     ] {
-        let off = Tensor::randn([18, h, w], opts) * 1.5;
-        let plan = plan3x3(&off, [h, w], Kind::Float);
-        let x = Tensor::randn([b, ci, h, w], opts);
-        let (wt, bias) = (
-            Tensor::randn([co, ci, 3, 3], opts),
-            Tensor::randn([co], opts),
-        );
-        let probe = Tensor::randn([b, co, h, w], opts);
-        let nchw = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let p = random_problem([b, ci, co, h, w], 1.5);
+        let nchw = run_backend(&p.x, &p.plan, &p.w, &p.bias, 1, &p.probe, Backend::Auto);
         let cl = run_backend(
-            &channels_last(&x),
-            &plan,
-            &wt,
-            &bias,
+            &channels_last(&p.x),
+            &p.plan,
+            &p.w,
+            &p.bias,
             1,
-            &channels_last(&probe),
+            &channels_last(&p.probe),
             Backend::Auto,
         );
         let what = format!("B{b} {ci}->{co} {h}x{w}");
@@ -722,7 +736,6 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
     }
     let top = small_kernel_isa();
     tch::manual_seed(8);
-    let opts = (Kind::Float, Device::Cpu);
     for (b, ci, co, h, w) in [
         (2, 8, 8, 11, 13),
         (3, 16, 16, 9, 7),
@@ -730,12 +743,13 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (2, 32, 64, 7, 9),
         (1, 16, 128, 5, 6),
     ] {
-        let off = Tensor::randn([18, h, w], opts) * 2.0;
-        let plan = plan3x3(&off, [h, w], Kind::Float);
-        let x = Tensor::randn([b, ci, h, w], opts);
-        let wt = Tensor::randn([co, ci, 3, 3], opts);
-        let bias = Tensor::randn([co], opts);
-        let probe = Tensor::randn([b, co, h, w], opts);
+        let Problem {
+            plan,
+            x,
+            w: wt,
+            bias,
+            probe,
+        } = random_problem([b, ci, co, h, w], 2.0);
         let at_top = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
         let level = cap_small_kernel_isa(SmallKernelIsa::Avx2);
         let avx2 = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
