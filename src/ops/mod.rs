@@ -17,14 +17,14 @@
 //!   by `build.rs` against libtorch; the default for CPU tensors): a
 //!   `torch::autograd::Function` with hand-written kernels.
 //!   - *Forward*: the input is read channels-last (converted once per call in 8x8 register
-//!     transposes; a channels-last input is used in place). Per tile of output pixels (tiles run over the
-//!     flattened `(item, pixel)` rows, so the small maps of a U-Net batch into GEMMs of >= 1024
-//!     rows instead of one small GEMM per item) a column tile `[T, K*C]` (group, tap, channel)
-//!     is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over contiguous channel
-//!     vectors; the gather is compiled for 1-4, 8, 16, 32 and 64 channels as whole-vector
-//!     operations and in general, each for AVX-512 / AVX2 / baseline, picked at load time (at
-//!     4-16 channels in two stages per 64 samples: their corner addresses and weights first,
-//!     vectorised across samples, then the vector loads and multiply-adds). Then
+//!     transposes; a channels-last input is used in place). Per tile of output pixels (tiles
+//!     run over the flattened `(item, pixel)` rows, so the small maps of a U-Net batch into
+//!     GEMMs of >= 1024 rows instead of one small GEMM per item) a column tile `[T, K*C]`
+//!     (group, tap, channel) is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over
+//!     contiguous channel vectors; the gather is compiled for 1-4, 8, 16, 32 and 64 channels as
+//!     whole-vector operations and in general, each for AVX-512 / AVX2 / baseline, picked at
+//!     load time (at 4-16 channels in two stages per 64 samples: their corner addresses and
+//!     weights first, vectorised across samples, then the vector loads and multiply-adds). Then
 //!     one GEMM per group against the weight packed as `[G, C_out/G, K, C/G]`: for float32 and
 //!     one group through oneDNN (`at::mkldnn_convolution` with a 1x1 kernel, the library
 //!     `conv2d` itself uses; libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's
