@@ -294,6 +294,10 @@ pub struct BenchArgs {
     /// Layer shapes to run instead of the table, each `B,CIN,COUT,H,W` (repeatable).
     #[arg(long = "shape", value_parser = parse_shape)]
     pub shapes: Vec<[i64; 5]>,
+    /// Time the `--shape` layers as a network's first layer: the input (the image) needs no
+    /// gradient, so forward+backward computes the weight and bias gradients only.
+    #[arg(long, requires = "shapes")]
+    pub first_layer: bool,
     /// Run only these parts (comma-separated; default: all).
     #[arg(long, value_enum, value_delimiter = ',')]
     pub only: Vec<BenchPart>,

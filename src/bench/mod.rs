@@ -79,6 +79,8 @@ pub struct Options {
     pub no_memory: bool,
     /// Explicit layer shapes `[batch, c_in, c_out, height, width]`.
     pub shapes: Vec<[i64; 5]>,
+    /// The explicit shapes are first layers (no input gradient).
+    pub first_layer: bool,
     /// Only these parts (empty: the default parts).
     pub only: Vec<Part>,
     /// The camera file, as named in the output.
@@ -293,7 +295,14 @@ fn selected_layers(args: &Options) -> Result<Vec<Layer>> {
     } else if args.presets {
         preset_layers()?
     } else if !args.shapes.is_empty() {
-        args.shapes.iter().copied().map(Layer::plain).collect()
+        let first = args.first_layer;
+        args.shapes
+            .iter()
+            .map(|&shape| Layer {
+                input_grad: !first,
+                ..Layer::plain(shape)
+            })
+            .collect()
     } else if args.quick {
         QUICK.iter().copied().map(Layer::plain).collect()
     } else if args.full {
@@ -557,4 +566,37 @@ fn paired(
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--shape` layers need the input gradient unless `--first-layer` says they read the image;
+    /// the presets mark their first layers themselves.
+    #[test]
+    fn explicit_shapes_are_first_layers_only_when_asked() {
+        let shape = [8, 3, 16, 128, 128];
+        for first_layer in [false, true] {
+            let opts = Options {
+                shapes: vec![shape, [2, 16, 16, 32, 32]],
+                first_layer,
+                ..Default::default()
+            };
+            let layers = selected_layers(&opts).unwrap();
+            assert_eq!(layers.len(), 2);
+            assert_eq!(layers[0].shape, shape);
+            assert!(layers.iter().all(|l| l.input_grad != first_layer));
+        }
+        let presets = selected_layers(&Options {
+            presets: true,
+            ..Default::default()
+        })
+        .unwrap();
+        assert!(presets.iter().any(|l| !l.input_grad && l.shape[1] == 3));
+        assert!(presets
+            .iter()
+            .filter(|l| l.shape[1] > 3)
+            .all(|l| l.input_grad));
+    }
 }

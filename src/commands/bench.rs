@@ -41,6 +41,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         aten: args.aten,
         no_memory: args.no_memory,
         shapes: args.shapes.clone(),
+        first_layer: args.first_layer,
         only: args.only.iter().map(|&p| part(p)).collect(),
         camera: args.camera.clone(),
     };

@@ -724,6 +724,63 @@ fn first_layer_without_input_gradient_matches_aten() {
     }
 }
 
+/// A plan shared by the batch and per-item plans with the same offsets for every item must give
+/// the same bits (outputs, and the weight gradient of a first layer, computed from the columns
+/// its forward pass kept), in and out of grad mode (without it a first layer keeps no columns).
+/// Three channels are gathered as vectors of four; an offset places a corner on the batch's last
+/// pixel (read from a padded copy) and the odd sizes leave partial stages.
+#[test]
+fn shared_and_per_item_plans_give_the_same_bits() {
+    if !native_available() {
+        return; // native_kernels_are_built fails instead
+    }
+    tch::manual_seed(17);
+    let opts = (Kind::Float, Device::Cpu);
+    for (b, c, cout, h, w) in [
+        (3, 3, 8, 11, 9),
+        (2, 3, 16, 7, 13),
+        (3, 4, 8, 9, 9),
+        (3, 8, 16, 10, 7),
+        (2, 16, 8, 6, 11),
+    ] {
+        let off = Tensor::randn([18, h, w], opts) * 3.0;
+        // The last output pixel's centre tap samples a quarter pixel past the last input pixel.
+        let _ = off
+            .narrow(0, 8, 2)
+            .narrow(1, h - 1, 1)
+            .narrow(2, w - 1, 1)
+            .fill_(0.25);
+        let shared = plan3x3(&off, [h, w], Kind::Float);
+        let per_item = plan3x3(&off.unsqueeze(0).repeat([b, 1, 1, 1]), [h, w], Kind::Float);
+        let x = Tensor::randn([b, c, h, w], opts);
+        let (wt0, bias0) = (
+            Tensor::randn([cout, c, 3, 3], opts),
+            Tensor::randn([cout], opts),
+        );
+        let probe = Tensor::randn([b, cout, h, w], opts);
+        for x in [x.shallow_clone(), channels_last(&x)] {
+            // (a first layer: the input needs no gradient, the forward pass keeps its columns)
+            let run = |plan: &SamplingPlan| {
+                let wt = wt0.detach().set_requires_grad(true);
+                let bias = bias0.detach().set_requires_grad(true);
+                let out = deform_conv2d_planned(&x, plan, &wt, Some(&bias), 1).unwrap();
+                let loss = (&out * &probe).sum(Kind::Float);
+                let g = Tensor::run_backward(&[loss], &[&wt], false, false);
+                let eval = tch::no_grad(|| deform_conv2d_planned(&x, plan, &wt, Some(&bias), 1));
+                (out.detach(), g[0].shallow_clone(), eval.unwrap())
+            };
+            let (a, p) = (run(&shared), run(&per_item));
+            let what = format!(
+                "B{b} {c}->{cout} {h}x{w}, channels-last {}",
+                is_channels_last(&x)
+            );
+            assert!(a.0.equal(&p.0), "{what}: outputs differ");
+            assert!(a.1.equal(&p.1), "{what}: weight gradients differ");
+            assert!(a.2.equal(&p.2), "{what}: outputs without grad mode differ");
+        }
+    }
+}
+
 /// The few-output-channel kernels are compiled per instruction-set level with different register
 /// blocking (AVX-512, AVX2): both give bit-identical results (the same fused multiply-adds in
 /// the same order per element), and both match the ATen composition, for 8, 16, 32, 64 and 128

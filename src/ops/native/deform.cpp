@@ -209,6 +209,13 @@ struct Scratch {
   std::vector<T> tile, y, zero;
 };
 
+// The pixel that out-of-range corners read: C zeros, at least 4 (the gather reads 3 channels as
+// vectors of 4).
+template <typename T>
+std::vector<T> zero_pixel(const Geo& g) {
+  return std::vector<T>(std::max<int64_t>(g.C, 4), T(0));
+}
+
 // Calls f(b, p0, len, offset) for the pieces of the flattened rows [q0, q0 + n) (q = b * P + p)
 // that lie in one batch item each; offset is the piece's first row within the tile.
 template <typename F>
@@ -237,29 +244,53 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
 }
 
-// The gather of one group of NC = 4, 8 or 16 channels (a vector), in two stages per STAGE
+// The gather of one group of NC = 3, 4, 8 or 16 channels (a vector), in two stages per STAGE
 // samples: first the four corner addresses and the four bilinear weights of every sample, in
 // loops across samples that the compiler vectorises, then per sample only its four vector loads
 // and multiply-adds. Sample by sample, the index and weight arithmetic is most of the work at
 // these channel counts and runs scalar. The columns of one group are the samples' rows back to
 // back, and each value is the same expression as in gather_columns_body (the same bits).
+// Three channels (a first layer's RGB) go through vectors of four: each corner load also reads
+// the next pixel's first channel, and each sample's store writes one value past its row, which
+// the next sample's store overwrites; the call's last sample stores its three values alone (the
+// values after it belong to another call, maybe another thread's), and a corner at the last
+// pixel of the batch reads a padded copy of it (nothing is read past the input).
 // Measured in one process against the sample-by-sample gather (float32, B8, one thread, F195
 // plans): forward 8->8 at 64x64 0.73x, 16->16 at 32x32 and 128x128 0.90x; forward+backward
-// 0.87x and 0.92-0.93x. At 32 channels it was 0.98-1.05x, with 3 channels (scalar) 1.04-1.07x:
-// those stay sample by sample. Staging the scatter the same way, or reordering its samples so
-// that neighbours' read-modify-writes of shared corners do not follow each other, gave 0.96-1.18x
-// and 1.00-1.05x: it stays as it is.
+// 0.87x and 0.92-0.93x. At 32 channels it was 0.98-1.05x: 32 stays sample by sample. Three
+// channels staged as scalars were 1.04-1.07x; as vectors of four (AVX2, Zen 3) the first layers'
+// forward is 0.94x (3->16 at 128x128) and 0.96x (3->8 at 64x64), 0.87x and 0.93x without grad
+// mode, forward+backward unchanged (0.99x, 1.01x). Staging the scatter the same way, or
+// reordering its samples so that neighbours' read-modify-writes of shared corners do not follow
+// each other, gave 0.96-1.18x and 1.00-1.05x: it stays as it is. Gathering all items of a
+// shared plan at once (the stage's addresses and weights computed once per batch, not per item)
+// was 0.96-1.13x forward and 0.87-1.11x forward+backward on 3-16 channels, in one process, with
+// no consistent sign: not kept.
 constexpr int64_t STAGE = 64;  // 2 KiB of addresses and 1 KiB of weights on the stack
+
+// Lanes of the vectors of gather_staged for NC channels (NC rounded up to a power of two, 0 if
+// it has no staged gather).
+template <typename T, int NC>
+constexpr int staged_lanes() {
+  constexpr int L = NC == 3 ? 4 : NC;
+  if constexpr (NC >= 3 && NC <= 16 && VecOf<T, L>::ok) return L;
+  return 0;
+}
 
 template <typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
                                                   const int32_t* index, const T* frac,
                                                   const T* zero, int64_t b, int64_t p0,
                                                   int64_t n, T* cols) {
-  using V = typename VecOf<T, NC>::type;
+  constexpr int L = staged_lanes<T, NC>();
+  using V = typename VecOf<T, L>::type;
   const int64_t item = g.item(b);
   const int64_t shift = item * (g.HW + 1), HW = g.HW;
   const T* xb = x + b * HW * NC;
+  // (NC < L) the batch's last pixel, padded to L values, and where it is in x.
+  alignas(64) T last[L] = {};
+  const T* const tail = NC < L && b == g.B - 1 && HW > 0 ? xb + (HW - 1) * NC : nullptr;
+  if (tail) std::copy(tail, tail + NC, last);
   const int64_t s_begin = (item * g.P + p0) * g.K, s_end = s_begin + n * g.K;
   const T* addr[4 * STAGE];
   alignas(64) T w[4][STAGE];
@@ -268,7 +299,9 @@ CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
     const int32_t* __restrict ix = index + 4 * s0;
     for (int64_t j = 0; j < 4 * m; ++j) {
       const int64_t r = ix[j] - shift;
-      addr[j] = r == HW ? zero : xb + r * NC;
+      const T* a = r == HW ? zero : xb + r * NC;
+      if constexpr (NC < L) a = a == tail ? last : a;
+      addr[j] = a;
     }
     const T* __restrict f = frac + 2 * s0;
     for (int64_t i = 0; i < m; ++i) {
@@ -279,11 +312,21 @@ CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
       w[3][i] = ly * lx;
     }
     T* __restrict dst = cols + (s0 - s_begin) * NC;
-    for (int64_t i = 0; i < m; ++i) {
+    // (NC < L) the call's last sample stores its NC values alone, below.
+    const int64_t vec = NC < L && s0 + m == s_end ? m - 1 : m;
+    for (int64_t i = 0; i < vec; ++i) {
       const T *a0 = addr[4 * i], *a1 = addr[4 * i + 1], *a2 = addr[4 * i + 2],
               *a3 = addr[4 * i + 3];
       store(dst + i * NC, w[0][i] * load<V>(a0) + w[1][i] * load<V>(a1) +
                               w[2][i] * load<V>(a2) + w[3][i] * load<V>(a3));
+    }
+    if (vec < m) {
+      const int64_t i = vec;
+      const T *a0 = addr[4 * i], *a1 = addr[4 * i + 1], *a2 = addr[4 * i + 2],
+              *a3 = addr[4 * i + 3];
+      const V v = w[0][i] * load<V>(a0) + w[1][i] * load<V>(a1) + w[2][i] * load<V>(a2) +
+                  w[3][i] * load<V>(a3);
+      for (int c = 0; c < NC; ++c) dst[i * NC + c] = v[c];
     }
   }
 }
@@ -298,7 +341,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
                                                         const int32_t* index, const T* frac,
                                                         const T* zero, int64_t b, int64_t p0,
                                                         int64_t n, T* cols) {
-  if constexpr (NC > 0 && NC <= 16 && VecOf<T, NC>::ok) {
+  if constexpr (NC > 0 && staged_lanes<T, NC>() > 0) {
     return gather_staged<T, NC>(g, x, index, frac, zero, b, p0, n, cols);
   }
   const int64_t item = g.item(b);
@@ -673,7 +716,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
     // which write the output's rows directly)
     const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
     return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(y_rows * g.Cout),
-                      std::vector<T>(g.C, T(0))};
+                      zero_pixel<T>(g)};
   };
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
@@ -764,7 +807,8 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
   const auto body = [&](int64_t c0, int64_t c1) {
-    std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout), zero(g.C, T(0));
+    std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
+    const std::vector<T> zero = zero_pixel<T>(g);
     // Few output channels: the chunk's sum transposed, [K*C, C_out], added to its accumulator
     // at the end of the chunk.
     std::vector<T> acc_t(small ? kc * g.Cout : 0);
@@ -999,7 +1043,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                             const at::Tensor& weight, const at::Tensor& bias,
                             const at::Tensor& index, const at::Tensor& frac,
                             const at::Tensor& rows, int64_t ho, int64_t wo, int64_t groups,
-                            bool per_item, bool has_bias) {
+                            bool per_item, bool has_bias, bool grad_mode) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
                            per_item);
     const at::Tensor wp = pack_weight(weight, g);
@@ -1016,8 +1060,12 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["has_bias"] = has_bias;
     // A first layer (its input, the image, needs no gradient) with few channels: its column
     // matrix is small (K*C values a pixel) and the weight gradient would gather it again, at a
-    // cost close to the whole convolution's at 3 channels, so it is kept.
-    const bool keep_cols = !input.requires_grad() && weight.requires_grad() &&
+    // cost close to the whole convolution's at 3 channels, so it is kept. Not without grad mode
+    // (evaluation), where no backward pass follows; autograd runs this function with grad mode
+    // off, so the caller's is an argument. (Float64 products go through the BLAS, whose last
+    // bits can depend on the alignment of the rows: there a kept and a tiled column matrix may
+    // differ by an ulp; float32's register-blocked products do not.)
+    const bool keep_cols = grad_mode && !input.requires_grad() && weight.requires_grad() &&
                            g.C <= KEEP_COLUMNS_MAX_C && g.G == 1;
     at::Tensor keep =
         keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
@@ -1062,7 +1110,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
       gb = gy.sum({0, 2, 3});
     }
     return {gx,           gw,           gb,           at::Tensor(), at::Tensor(), at::Tensor(),
-            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
+            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
   }
 };
 
@@ -1089,7 +1137,8 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
     // autograd Functions take defined tensors: no bias is an empty tensor and a flag.
     const at::Tensor none = bias ? at::Tensor() : at::empty({0}, input->options());
     at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *index, *frac, *rows, ho,
-                                     wo, groups, per_item != 0, bias != nullptr);
+                                     wo, groups, per_item != 0, bias != nullptr,
+                                     at::GradMode::is_enabled());
     *out = new at::Tensor(std::move(y));
     return nullptr;
   } catch (const std::exception& e) {
