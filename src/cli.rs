@@ -312,6 +312,11 @@ pub struct BenchArgs {
     /// A/B timings of the kernels on one machine.
     #[arg(long, value_enum)]
     pub small_kernels: Option<SmallKernelLevel>,
+    /// The library of the float32 products the few-output-channel kernels do not take (layers
+    /// of more than 128 outputs; `auto`: oneDNN on CPUs with AVX-512, else the BLAS). For A/B
+    /// timings on one machine.
+    #[arg(long, value_enum)]
+    pub gemm: Option<GemmChoice>,
 }
 
 /// An instruction-set level of the few-output-channel kernels (`calibconv bench
@@ -321,6 +326,14 @@ pub enum SmallKernelLevel {
     None,
     Avx2,
     Avx512,
+}
+
+/// The GEMM library of `calibconv bench --gemm`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum GemmChoice {
+    Auto,
+    Onednn,
+    Blas,
 }
 
 /// A part of `calibconv bench`.

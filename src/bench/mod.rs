@@ -268,6 +268,8 @@ pub struct Report {
     threads: i32,
     /// The instruction-set level of the few-output-channel kernels (`ops::small_kernel_isa`).
     small_kernels: String,
+    /// The library of the other float32 products (`ops::gemm_library`).
+    gemm: String,
     /// `/proc/loadavg` (1, 5, 15 minutes) before and after the timings.
     load_before: Option<[f64; 3]>,
     load_after: Option<[f64; 3]>,
@@ -326,10 +328,11 @@ pub fn run(
     let threads = tch::get_num_threads();
     let load_before = load_average();
     let small_kernels = format!("{:?}", crate::ops::small_kernel_isa());
+    let gemm = format!("{:?}", crate::ops::gemm_library());
     println!(
         "calibconv bench: {threads} libtorch threads, camera {}, load {}, few-output-channel \
-         kernels {small_kernels}; ratios are calibrated / conv2d (medians of paired, interleaved \
-         runs)",
+         kernels {small_kernels}, other products {gemm}; ratios are calibrated / conv2d (medians \
+         of paired, interleaved runs)",
         args.camera.display(),
         fmt_load(load_before)
     );
@@ -376,6 +379,7 @@ peak memory not measured: {e}"
     Ok(Report {
         threads,
         small_kernels,
+        gemm,
         load_before,
         load_after,
         note: "ratios = medians of per-repetition (calibrated / conv2d) times, interleaved, in a \

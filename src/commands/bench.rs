@@ -6,10 +6,10 @@ use anyhow::{bail, Context, Result};
 
 use calibconv::bench::{self, MemoryReport, Options, Part};
 use calibconv::io::write_bytes_atomic;
-use calibconv::ops::SmallKernelIsa;
+use calibconv::ops::{GemmLibrary, SmallKernelIsa};
 
 use super::load_camera;
-use crate::cli::{BenchArgs, BenchPart, SmallKernelLevel};
+use crate::cli::{BenchArgs, BenchPart, GemmChoice, SmallKernelLevel};
 
 pub fn run(args: BenchArgs) -> Result<()> {
     if [args.quick, args.full, args.presets]
@@ -31,6 +31,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
             SmallKernelLevel::None => SmallKernelIsa::None,
             SmallKernelLevel::Avx2 => SmallKernelIsa::Avx2,
             SmallKernelLevel::Avx512 => SmallKernelIsa::Avx512,
+        });
+    }
+    if let Some(choice) = args.gemm {
+        calibconv::ops::set_gemm_library(match choice {
+            GemmChoice::Auto => None,
+            GemmChoice::Onednn => Some(GemmLibrary::OneDnn),
+            GemmChoice::Blas => Some(GemmLibrary::Blas),
         });
     }
     let camera = load_camera(&args.camera)?;

@@ -213,6 +213,43 @@ pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
     }
 }
 
+/// The library of the float32 products of one group that the few-output-channel kernels do not
+/// take (more than 128 or other output counts; the weight gradient from 32 outputs on where those
+/// kernels are absent). Both give the same values up to rounding.
+/// (The discriminants are the native code's.)
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(i32)]
+pub enum GemmLibrary {
+    /// oneDNN, as a 1x1 convolution (the library `conv2d` uses): the default on CPUs with
+    /// AVX-512.
+    OneDnn = 1,
+    /// The BLAS (`at::mm`, libtorch's MKL): the default on CPUs without AVX-512, where it was
+    /// 0.6-0.95x oneDNN's time at 128-1024 channels (README, "Performance").
+    Blas = 2,
+}
+
+/// The GEMM library this process uses ([`GemmLibrary::Blas`] without the native kernels, whose
+/// ATen composition multiplies with `at::mm`-style ops).
+pub fn gemm_library() -> GemmLibrary {
+    #[cfg(calibconv_native)]
+    return native::gemm_library(None);
+    #[cfg(not(calibconv_native))]
+    GemmLibrary::Blas
+}
+
+/// Sets the GEMM library for the rest of the process (every thread; `None`: the CPU's default;
+/// oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
+/// (`calibconv bench --gemm`); the results differ only by rounding.
+pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
+    #[cfg(calibconv_native)]
+    return native::gemm_library(Some(choice));
+    #[cfg(not(calibconv_native))]
+    {
+        let _ = choice;
+        GemmLibrary::Blas
+    }
+}
+
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).
 pub fn deform_conv2d_planned(
     input: &Tensor,

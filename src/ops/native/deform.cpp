@@ -131,14 +131,46 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
   }
 }
 
-// float32 GEMMs of one group (G = 1) go through oneDNN, as a 1x1 convolution
-// (at::mkldnn_convolution), when libtorch has it: libtorch's MKL runs its AVX2 code path on AMD
-// CPUs and, at the skinny shapes of few channels, reaches 80-110 GFLOP/s where oneDNN's JIT
-// kernels (the ones conv2d uses) reach 140-240 (one thread, tile shapes of 16-128 channels, AMD
-// EPYC Zen 5). Float64 (which oneDNN does not have) and grouped convolutions use at::mm.
+// float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through
+// oneDNN, as a 1x1 convolution (at::mkldnn_convolution), or through the BLAS (at::mm, libtorch's
+// MKL), picked once per process (use_dnn): oneDNN on CPUs with AVX-512, where libtorch's MKL runs
+// its AVX2 code on AMD CPUs and, at the skinny shapes of few channels, reached 80-110 GFLOP/s
+// where oneDNN's JIT kernels (the ones conv2d uses) reached 140-240 (one thread, tile shapes of
+// 16-128 channels, AMD EPYC Zen 5); the BLAS on CPUs without (both then run AVX2 code, and
+// oneDNN's 1x1 convolution, made for many pixels, is slow with thousands of input columns and few
+// rows: one thread, AMD EPYC Zen 3, calibrated / conv2d forward and f+b with oneDNN -> the BLAS:
+// 1024->1024 at 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 /
+// 1.17x, 256->256 at 8x8 B8 1.09 / 1.44x -> 0.95 / 1.06x, 128->256 at 8x8 B8 1.08 / 1.69x ->
+// 0.81 / 1.03x, 512->1024 at 16x16 1.53 / 1.34x -> 1.17 / 1.11x). Float64 (which oneDNN does not
+// have) and grouped convolutions use at::mm. calibconv_native_gemm overrides the choice (A/B).
 bool dnn_available() {
   static const bool ok = at::hasMKLDNN();
   return ok;
+}
+
+enum class Gemm : int32_t { Auto = 0, OneDnn = 1, Blas = 2 };
+std::atomic<int32_t> gemm_override{static_cast<int32_t>(Gemm::Auto)};
+
+// Whether the float32 GEMMs of one group go through oneDNN (see above).
+bool use_dnn() {
+  if (!dnn_available()) return false;
+  switch (static_cast<Gemm>(gemm_override.load())) {
+    case Gemm::OneDnn:
+      return true;
+    case Gemm::Blas:
+      return false;
+    case Gemm::Auto:
+      break;
+  }
+#if defined(__x86_64__) && defined(__GNUC__)
+  static const bool avx512 = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") != 0;
+  }();
+  return avx512;
+#else
+  return true;
+#endif
 }
 
 // y = a @ w^T for a [m, kd] (any strides) and w [n, kd] (any strides), through a 1x1 oneDNN
@@ -706,7 +738,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const int64_t tiles = (total + tile - 1) / tile;
   const TileKernels<T> kern = tile_kernels<T>(g);
   const SmallKernels small = small_kernels<T>(g);
-  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
   const at::Tensor w2 = wp.view({g.Cout, kcg});  // used with G = 1 only
   const at::Tensor wt = small ? w2.t().contiguous() : at::Tensor();  // [K*C, C_out]
   // Rows gathered at a time: a block (few output channels), else the whole tile.
@@ -803,7 +835,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const TileKernels<T> kern = tile_kernels<T>(g);
   const auto small = small_kernels<T>(g).weight_gradient;
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 &&
-                   g.Cout >= DNN_WEIGHT_MIN_COUT && dnn_available();
+                   g.Cout >= DNN_WEIGHT_MIN_COUT && use_dnn();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
   const auto body = [&](int64_t c0, int64_t c1) {
@@ -954,7 +986,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
       std::min(tile_rows(g.B * g.P, kc, g.Cout * kcg, sizeof(T)), per_task * band_pixels);
   const TileKernels<T> kern = tile_kernels<T>(g);
   const auto small = small_kernels<T>(g).column_gradient;
-  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && dnn_available();
+  const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
   const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
   // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
@@ -1149,6 +1181,14 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
 }
 
 void calibconv_free_error(char* message) { std::free(message); }
+
+// The library of the float32 GEMMs that the few-output-channel kernels do not take: sets it when
+// choice >= 0 (0 the CPU's default, 1 oneDNN, 2 the BLAS; oneDNN only where libtorch has it),
+// then returns the library in use (1 oneDNN, 2 the BLAS).
+int32_t calibconv_native_gemm(int32_t choice) {
+  if (choice >= 0 && choice <= 2) gemm_override.store(choice);
+  return use_dnn() ? 1 : 2;
+}
 
 // The instruction-set level of the few-output-channel kernels: caps it at `cap` (0 none, 1 AVX2,
 // 2 AVX-512) when cap >= 0, then returns the level in use (the CPU's, at most the cap).

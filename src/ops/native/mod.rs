@@ -30,6 +30,25 @@ extern "C" {
     fn calibconv_free_error(message: *mut c_char);
     /// See `deform.cpp`: caps the level when `cap >= 0`, returns the level in use.
     fn calibconv_native_small_isa(cap: i32) -> i32;
+    /// See `deform.cpp`: sets the GEMM library when `choice >= 0` (0 the CPU's default, 1
+    /// oneDNN, 2 the BLAS), returns the one in use (1 oneDNN, 2 the BLAS).
+    fn calibconv_native_gemm(choice: i32) -> i32;
+}
+
+/// The library of the float32 GEMMs in use (see [`super::GemmLibrary`]); with `choice`, first
+/// sets it (`Some(None)`: the CPU's default).
+pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super::GemmLibrary {
+    use super::GemmLibrary as Gemm;
+    let choice = match choice {
+        None => -1,
+        Some(None) => 0,
+        Some(Some(lib)) => lib as i32,
+    };
+    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
+    match unsafe { calibconv_native_gemm(choice) } {
+        1 => Gemm::OneDnn,
+        _ => Gemm::Blas,
+    }
 }
 
 /// The instruction-set level of the few-output-channel kernels in use (see

@@ -1,0 +1,89 @@
+//! The two libraries of the float32 products that the few-output-channel kernels do not take
+//! (oneDNN, the BLAS) against the ATen composition, in a process of their own: the choice is
+//! process-wide, and the library tests compare bits between runs.
+
+use calibconv::ops::{
+    deform_conv2d_planned_with, gemm_library, native_available, set_gemm_library, Backend,
+    ConvGeometry, GemmLibrary, SamplingPlan,
+};
+use tch::{Device, Kind, Tensor};
+
+/// Output and input, weight and bias gradients of `(conv(x) * probe).sum()`.
+fn run(
+    x: &Tensor,
+    plan: &SamplingPlan,
+    w: &Tensor,
+    b: &Tensor,
+    probe: &Tensor,
+    be: Backend,
+) -> Vec<Tensor> {
+    let (x, w, b) = (
+        x.detach().set_requires_grad(true),
+        w.detach().set_requires_grad(true),
+        b.detach().set_requires_grad(true),
+    );
+    let out = deform_conv2d_planned_with(&x, plan, &w, Some(&b), 1, be).unwrap();
+    let loss = (&out * probe).sum(Kind::Float);
+    let mut all = vec![out.detach()];
+    all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
+    all
+}
+
+fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
+    let scale = b.abs().max().double_value(&[]).max(1e-30);
+    (a - b).abs().max().double_value(&[]) / scale
+}
+
+#[test]
+fn both_gemm_libraries_match_the_aten_composition() {
+    if !native_available() {
+        return; // ops::tests::native_kernels_are_built fails instead
+    }
+    // The CPU's default: oneDNN with AVX-512 (where libtorch has oneDNN), else the BLAS.
+    let default = gemm_library();
+    #[cfg(target_arch = "x86_64")]
+    if default == GemmLibrary::OneDnn {
+        assert!(std::arch::is_x86_feature_detected!("avx512f"));
+    } else if std::arch::is_x86_feature_detected!("avx512f") {
+        assert!(
+            !tch::utils::has_mkldnn(),
+            "AVX-512 and oneDNN, yet the BLAS"
+        );
+    }
+    tch::manual_seed(3);
+    let opts = (Kind::Float, Device::Cpu);
+    // 24 -> 40 channels (no few-output-channel kernels: every product through the library),
+    // several tiles.
+    let (b, c, co, h, w) = (2, 24, 40, 23, 19);
+    let off = Tensor::randn([18, h, w], opts) * 2.0;
+    let plan = SamplingPlan::new(
+        &off,
+        [h, w],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap();
+    let x = Tensor::randn([b, c, h, w], opts);
+    let wt = Tensor::randn([co, c, 3, 3], opts) * 0.1;
+    let bias = Tensor::randn([co], opts);
+    let probe = Tensor::randn([b, co, h, w], opts);
+    let aten = run(&x, &plan, &wt, &bias, &probe, Backend::Aten);
+    let mut libs = vec![GemmLibrary::Blas];
+    if tch::utils::has_mkldnn() {
+        libs.push(GemmLibrary::OneDnn);
+    }
+    for lib in libs {
+        assert_eq!(set_gemm_library(Some(lib)), lib);
+        let got = run(&x, &plan, &wt, &bias, &probe, Backend::Auto);
+        for (name, g, a) in ["output", "grad input", "grad weight", "grad bias"]
+            .iter()
+            .zip(&got)
+            .zip(&aten)
+            .map(|((n, g), a)| (n, g, a))
+        {
+            let rel = max_rel(g, a);
+            assert!(rel < 2e-5, "{lib:?}: {name} differs from ATen by {rel:e}");
+        }
+    }
+    assert_eq!(set_gemm_library(None), default);
+}
