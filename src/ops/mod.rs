@@ -23,21 +23,24 @@
 //!     (group, tap, channel) is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over
 //!     contiguous channel vectors; the gather is compiled for 1-4, 8, 16, 32 and 64 channels as
 //!     whole-vector operations and in general, each for AVX-512 / AVX2 / baseline, picked at
-//!     load time (at 4-16 channels in two stages per 64 samples: their corner addresses and
-//!     weights first, vectorised across samples, then the vector loads and multiply-adds). Then
-//!     one GEMM per group against the weight packed as `[G, C_out/G, K, C/G]`: for float32 and
-//!     one group through oneDNN (`at::mkldnn_convolution` with a 1x1 kernel, the library
-//!     `conv2d` itself uses; libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's
-//!     speed at these shapes), else `at::mm`; the result is written into the output (NCHW, or
+//!     load time (at 3-16 channels in two stages per 64 samples: their corner addresses and
+//!     weights first, vectorised across samples, then the vector loads and multiply-adds; 3
+//!     channels as vectors of 4). Then one GEMM per group against the weight packed as
+//!     `[G, C_out/G, K, C/G]`: for float32 and one group through oneDNN on CPUs with AVX-512
+//!     (`at::mkldnn_convolution` with a 1x1 kernel, the library `conv2d` itself uses;
+//!     libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's speed at these shapes)
+//!     and the BLAS on CPUs without (where oneDNN's 1x1 convolution was the slower one, see
+//!     [`GemmLibrary`]), else `at::mm`; the result is written into the output (NCHW, or
 //!     channels-last for a channels-last input, as `conv2d`). Tiles run in parallel
 //!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
-//!     except for a first layer: an input without gradient and <= 4 channels (an image) keeps
-//!     its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which would otherwise
-//!     gather them again at a cost close to the whole convolution's.
+//!     except for a first layer in grad mode: an input without gradient and <= 4 channels (an
+//!     image) keeps its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which
+//!     would otherwise gather them again at a cost close to the whole convolution's.
 //!   - *Weight gradient*: column tiles are recomputed (or the kept ones read) and
 //!     `gy^T @ cols` is accumulated per thread chunk (fixed chunks, so the result is the same on
-//!     every run for a given thread count), then summed and laid out as the weight; oneDNN from
-//!     32 output channels on (below, its reduction over pixels was slower than MKL's).
+//!     every run for a given thread count), then summed and laid out as the weight; oneDNN (where
+//!     it is the GEMM library) from 32 output channels on (below, its reduction over pixels was
+//!     slower than MKL's).
 //!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
 //!     to its four corners of a channels-last buffer. Tiles run in bands of output rows in two
 //!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
