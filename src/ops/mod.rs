@@ -189,7 +189,8 @@ pub enum SmallKernelIsa {
     /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers
     /// go through oneDNN / the BLAS like any other.
     None = 0,
-    /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats.
+    /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats; 8, 16 and 32 outputs (64 and 128 go
+    /// through the GEMM library, faster at this level).
     Avx2 = 1,
     /// x86-64-v4 (AVX-512): 32 registers of 16 floats.
     Avx512 = 2,

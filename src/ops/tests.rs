@@ -782,10 +782,11 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 }
 
 /// The few-output-channel kernels are compiled per instruction-set level with different register
-/// blocking (AVX-512, AVX2): both give bit-identical results (the same fused multiply-adds in
-/// the same order per element), and both match the ATen composition, for 8, 16, 32, 64 and 128
-/// outputs and row counts that leave partial blocks. On a CPU without AVX-512 the AVX2 kernels are
-/// still held to ATen.
+/// blocking (AVX-512 for 8-128 outputs, AVX2 for 8-32): where both levels have kernels they give
+/// bit-identical results (the same fused multiply-adds in the same order per element); every
+/// level's path (at AVX2, 64 and 128 outputs go through the GEMM library) matches the ATen
+/// composition, for 8, 16, 32, 64 and 128 outputs and row counts that leave partial blocks. On a
+/// CPU without AVX-512 the AVX2 path is still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -827,6 +828,8 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         );
         if top == SmallKernelIsa::Avx512 {
             assert_eq!(level, SmallKernelIsa::Avx2, "the cap must take effect");
+        }
+        if top == SmallKernelIsa::Avx512 && co <= 32 {
             for (name, a, c) in [
                 ("output", &at_top.out, &avx2.out),
                 ("grad input", &at_top.input, &avx2.input),

@@ -1,5 +1,5 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
-// 8 to 128): register-blocked products on L1-sized blocks of gathered columns, compiled per
+// 8 to 128 with AVX-512, 8 to 32 with AVX2): register-blocked products on L1-sized blocks of gathered columns, compiled per
 // instruction-set level and picked at run time. Included once, by deform.cpp, which calls them
 // through small_kernels_for.
 #pragma once
@@ -12,10 +12,11 @@
 
 namespace {
 
-// Few output channels (float32, one group, C_out 8, 16, 32, 64 or 128): the three products of
+// Few output channels (float32, one group, C_out 8, 16, 32, 64 or 128 with AVX-512; 8, 16 or 32
+// with AVX2, see below): the three products of
 // a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
 // oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
-// than in arithmetic (with 64 and 128 outputs these kernels are faster than oneDNN even on
+// than in arithmetic (with 64 and 128 outputs the AVX-512 kernels are faster than oneDNN even on
 // large maps), and its column tile (megabytes, so that the call is worth it) makes a
 // round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
 // multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
@@ -32,11 +33,12 @@ namespace {
 // weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 as passes of 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
 //                                        outputs at once; column gradient 4 rows x 4 vectors;
-//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2 / 2, JB = 8 / 4 / 2 / 2, 64 and
-//                                        128 outputs as passes of 32; column gradient 4 x 3.
+//   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
+//                                        outputs; 64 and 128 go through the BLAS, which beat
+//                                        passes of 32); column gradient 4 x 3.
 // The arithmetic of every output element (one fused multiply-add per reduction step, in the
-// same order) is the same at both levels, so the two give identical results. CPUs without AVX2
-// and FMA (and other architectures) use the oneDNN / BLAS path.
+// same order) is the same at both levels, so where both have kernels they give identical
+// results. CPUs without AVX2 and FMA (and other architectures) use the oneDNN / BLAS path.
 
 constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
 
@@ -251,8 +253,13 @@ CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 64, 8, 2, 2, 32, 8, 4, 3)
-CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 128, 8, 2, 2, 32, 8, 4, 3)
+// (AVX2 has none for 64 and 128 outputs: as passes of 32 they lost to the BLAS at every shape
+// measured, one process, one thread, AMD EPYC Zen 3, calibrated / conv2d forward and f+b with
+// these kernels -> the BLAS: 64->64 at 32x32 B8 1.43 / 1.08x -> 1.14 / 1.01x, 128->128 at 16x16
+// 1.50 / 1.25x -> 1.03 / 1.03x, 32->64 at 32x32 1.43 / 1.08x -> 1.23 / 1.01x, 128->64 at 32x32
+// 1.48 / 1.12x -> 1.12 / 0.96x, 64->128 at 16x16 1.26 / 1.16x -> 1.06 / 1.13x, 256->128 at
+// 16x16 1.53 / 1.33x -> 1.11 / 1.07x, 64->64 at 8x8 1.00 / 1.03x -> 0.89 / 0.96x. At 32
+// outputs the two were even forward, these kernels ahead in f+b: 1.08x against 1.15x.)
 #undef CALIBCONV_SMALL_KERNELS
 #endif
 
@@ -294,23 +301,25 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
     s.column_gradient = small_column_gradient_##CO##_##SUFFIX; \
     s.weight_gradient = small_weight_gradient_##CO##_##SUFFIX; \
     break;
-// The output counts compiled above, for one level.
-#define CALIBCONV_SMALL_PICK_ALL(SUFFIX) \
-  switch (cout) {                        \
-    CALIBCONV_SMALL_PICK(8, SUFFIX)      \
-    CALIBCONV_SMALL_PICK(16, SUFFIX)     \
-    CALIBCONV_SMALL_PICK(32, SUFFIX)     \
-    CALIBCONV_SMALL_PICK(64, SUFFIX)     \
-    CALIBCONV_SMALL_PICK(128, SUFFIX)    \
-    default:                             \
-      return s;                          \
-  }
   if (isa == SmallIsa::Avx512) {
-    CALIBCONV_SMALL_PICK_ALL(v4)
+    switch (cout) {
+      CALIBCONV_SMALL_PICK(8, v4)
+      CALIBCONV_SMALL_PICK(16, v4)
+      CALIBCONV_SMALL_PICK(32, v4)
+      CALIBCONV_SMALL_PICK(64, v4)
+      CALIBCONV_SMALL_PICK(128, v4)
+      default:
+        return s;
+    }
   } else if (isa == SmallIsa::Avx2) {
-    CALIBCONV_SMALL_PICK_ALL(v3)
+    switch (cout) {
+      CALIBCONV_SMALL_PICK(8, v3)
+      CALIBCONV_SMALL_PICK(16, v3)
+      CALIBCONV_SMALL_PICK(32, v3)
+      default:
+        return s;
+    }
   }
-#undef CALIBCONV_SMALL_PICK_ALL
 #undef CALIBCONV_SMALL_PICK
 #endif
   if (kc % 8 != 0) s.column_gradient = nullptr;
