@@ -8,6 +8,9 @@ use calibconv::ops::{
 };
 use tch::{Device, Kind, Tensor};
 
+mod common;
+use common::max_rel;
+
 /// Output and input, weight and bias gradients of `(conv(x) * probe).sum()`.
 fn run(
     x: &Tensor,
@@ -27,11 +30,6 @@ fn run(
     let mut all = vec![out.detach()];
     all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
     all
-}
-
-fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
-    let scale = b.abs().max().double_value(&[]).max(1e-30);
-    (a - b).abs().max().double_value(&[]) / scale
 }
 
 #[test]

@@ -20,9 +20,9 @@
 //   two bands of the same phase touch are disjoint: no atomics, no races, and the summation order
 //   does not depend on the number of threads.
 // - bias: a sum of the output gradient.
-// - few output channels (float32, one group, C_out 8 to 128): the three products run
-//   through register-blocked kernels on L1-sized blocks of pixels (gathered, multiplied,
-//   scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
+// - few output channels (float32, one group, C_out 8 to 128; 8 to 32 with AVX2): the three
+//   products run through register-blocked kernels on L1-sized blocks of pixels (gathered,
+//   multiplied, scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
 //   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
 //
 // The instruction-set helpers are in simd.h, the few-output-channel kernels in small_kernels.h.

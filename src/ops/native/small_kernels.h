@@ -1,7 +1,7 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
-// 8 to 128 with AVX-512, 8 to 32 with AVX2): register-blocked products on L1-sized blocks of gathered columns, compiled per
-// instruction-set level and picked at run time. Included once, by deform.cpp, which calls them
-// through small_kernels_for.
+// 8 to 128 with AVX-512, 8 to 32 with AVX2): register-blocked products on L1-sized blocks of
+// gathered columns, compiled per instruction-set level and picked at run time. Included once, by
+// deform.cpp, which calls them through small_kernels_for.
 #pragma once
 
 #include <algorithm>
