@@ -136,6 +136,7 @@ fn filled<T: Element>(n: usize, fill: impl FnOnce(&mut [T])) -> Tensor {
     // SAFETY: `t` is a fresh contiguous CPU tensor of exactly `n` elements of `T` (same size as
     // `T::KIND`, the contract of `Element`); nothing else refers to its memory while `fill` runs.
     let data = unsafe { elements_mut::<T>(t.data_ptr(), n) };
+    calibconv_geometry::memory::advise_huge_pages(data);
     fill(data);
     t
 }
@@ -222,8 +223,11 @@ impl Layout {
             (y, j * dilation[1] - padding[1], dy, dx)
         };
         let taps_of_row: Vec<_> = (0..taps).map(tap).collect();
-        let mut reach = [i32::MAX, i32::MIN];
         let (idx, frac) = (&mut idx[..4 * taps * wo_u], &mut frac[..2 * taps * wo_u]);
+        if !wrap {
+            return fill_row_zeros(&taps_of_row, [stride[1], h, w], zero, base, idx, frac);
+        }
+        let mut reach = [i32::MAX, i32::MIN];
         for (ox, (corners, fracs)) in idx
             .chunks_exact_mut(4 * taps)
             .zip(frac.chunks_exact_mut(2 * taps))
@@ -297,6 +301,7 @@ impl Layout {
         // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `4 * samples` elements, only
         // written through this slice (by disjoint row chunks) before it is moved into the plan.
         let idx = unsafe { elements_mut::<i32>(index.data_ptr(), 4 * samples) };
+        calibconv_geometry::memory::advise_huge_pages(idx);
         let mut reach: Vec<[i32; 2]> = Vec::new();
         fn rows_of<O: Copy + Into<f64> + Sync, W: PlanFloat>(
             layout: &Layout,
@@ -600,6 +605,89 @@ impl SamplingPlan {
             }
         }
         Ok((b, c, h, w))
+    }
+}
+
+/// [`Layout::fill_row`] with zeros outside (no wrap), a tap at a time so that the arithmetic
+/// vectorises: per tap, the row's samples are computed into columns (corners, fractions) by a
+/// loop without branches or bounds checks, then stored to their places in the plan. The same
+/// values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`) has corners
+/// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
+/// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
+/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`.
+fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
+    taps_of_row: &[(f64, i64, &[O], &[O])],
+    [stride_x, h, w]: [i64; 3],
+    zero: i32,
+    base: i64,
+    idx: &mut [i32],
+    frac: &mut [W],
+) -> [i32; 2] {
+    let taps = taps_of_row.len();
+    let wo = idx.len() / (4 * taps);
+    let (hf, wf) = (h as f64, w as f64);
+    // Indices wrap in i32: a corner that is stored is a real index (< 2^31, checked when the
+    // plan is sized), and modular arithmetic gets it right whatever the intermediate values.
+    let (w32, base32) = (w as i32, base as i32);
+    let column: Vec<f64> = (0..wo as i64).map(|ox| (ox * stride_x) as f64).collect();
+    let mut corners = [
+        vec![0i32; wo],
+        vec![0i32; wo],
+        vec![0i32; wo],
+        vec![0i32; wo],
+    ];
+    let (mut fy_col, mut fx_col) = (vec![W::from_f64(0.0); wo], vec![W::from_f64(0.0); wo]);
+    let (mut lo, mut hi) = (i32::MAX, i32::MIN);
+    for (k, &(ty, tx, dy, dx)) in taps_of_row.iter().enumerate() {
+        let (dy, dx, column) = (&dy[..wo], &dx[..wo], &column[..wo]);
+        let [c0, c1, c2, c3] = &mut corners;
+        let (c0, c1, c2, c3) = (&mut c0[..wo], &mut c1[..wo], &mut c2[..wo], &mut c3[..wo]);
+        let (fy_c, fx_c) = (&mut fy_col[..wo], &mut fx_col[..wo]);
+        let txf = tx as f64;
+        for ox in 0..wo {
+            let y = ty + dy[ox].into();
+            let x = (column[ox] + txf) + dx[ox].into();
+            // `a > b` is false for NaN: non-finite samples land outside.
+            let inside = y > -1.0 && y < hf && x > -1.0 && x < wf;
+            // Outside samples are computed at (0, 0), then replaced: the i32 floors below only
+            // see values in (-1, max(h, w)).
+            let (fy, fx) = (
+                floor32(if inside { y } else { 0.0 }),
+                floor32(if inside { x } else { 0.0 }),
+            );
+            let (y0, x0) = (fy as i32, fx as i32);
+            let (top, bottom) = (y0 >= 0, y0 + 1 < h as i32);
+            let (left, right) = (x0 >= 0, x0 + 1 < w32);
+            let at = base32.wrapping_add(y0.wrapping_mul(w32)).wrapping_add(x0);
+            let pick = |ok: bool, v: i32| if inside & ok { v } else { zero };
+            c0[ox] = pick(top & left, at);
+            c1[ox] = pick(top & right, at.wrapping_add(1));
+            c2[ox] = pick(bottom & left, at.wrapping_add(w32));
+            c3[ox] = pick(bottom & right, at.wrapping_add(w32).wrapping_add(1));
+            fy_c[ox] = W::from_f64(if inside { y - fy } else { 0.0 });
+            fx_c[ox] = W::from_f64(if inside { x - fx } else { 0.0 });
+            // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
+            lo = lo.min(if inside { y0 } else { i32::MAX });
+            hi = hi.max(if inside { y0 + 1 } else { i32::MIN });
+        }
+        for ox in 0..wo {
+            let s = ox * taps + k;
+            idx[4 * s..4 * s + 4].copy_from_slice(&[c0[ox], c1[ox], c2[ox], c3[ox]]);
+            frac[2 * s] = fy_c[ox];
+            frac[2 * s + 1] = fx_c[ox];
+        }
+    }
+    [lo, hi]
+}
+
+/// [`floor`] for finite `|v| < 2^31` (through i32, which vectorises).
+#[inline]
+fn floor32(v: f64) -> f64 {
+    let t = v as i32 as f64;
+    if t > v {
+        t - 1.0
+    } else {
+        t
     }
 }
 

@@ -37,6 +37,7 @@
 pub mod camera;
 pub mod error;
 pub mod kernel;
+pub mod memory;
 pub mod vec3;
 
 pub use error::{Error, Result};

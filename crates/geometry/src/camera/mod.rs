@@ -111,6 +111,20 @@ pub trait CameraModel: Send + Sync + std::fmt::Debug {
     /// Pixel `[u, v]` of a ray `[x, y, z]` (any length > 0), or `None` outside the model's valid
     /// domain (behind a pinhole, past the monotonic range of a fisheye polynomial, zero ray).
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]>;
+    /// [`CameraModel::project`] of many rays at once, given as columns `[x, y, z]` of equal
+    /// length: ray `i` goes to `u[i], v[i]` with `ok[i] = true`, or gets `ok[i] = false` where
+    /// `project` gives `None` (its `u[i], v[i]` are then unspecified). The same values as
+    /// `project`, ray by ray; a model overrides it where a loop over whole columns is faster
+    /// (Kannala-Brandt: vectorised). The calibrated offsets project a row of anchors per tap
+    /// through it.
+    fn project_columns(&self, rays: [&[f64]; 3], u: &mut [f64], v: &mut [f64], ok: &mut [bool]) {
+        let [x, y, z] = rays;
+        for (i, (ui, vi)) in u.iter_mut().zip(v.iter_mut()).enumerate() {
+            let p = self.project([x[i], y[i], z[i]]);
+            ok[i] = p.is_some();
+            [*ui, *vi] = p.unwrap_or([0.0; 2]);
+        }
+    }
     /// Unit ray of pixel `[u, v]`, or `None` where the model has no inverse.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]>;
     /// Image size `[width, height]` in pixels.
@@ -212,6 +226,15 @@ macro_rules! camera_models {
             }
             fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
                 match self { $(Camera::$variant(m) => m.unproject(px),)* }
+            }
+            fn project_columns(
+                &self,
+                rays: [&[f64]; 3],
+                u: &mut [f64],
+                v: &mut [f64],
+                ok: &mut [bool],
+            ) {
+                match self { $(Camera::$variant(m) => m.project_columns(rays, u, v, ok),)* }
             }
             fn size(&self) -> [usize; 2] {
                 match self { $(Camera::$variant(m) => m.size(),)* }

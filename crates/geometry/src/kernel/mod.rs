@@ -37,7 +37,7 @@ use rayon::prelude::*;
 
 use crate::camera::{Camera, CameraModel, KernelFrame, PixelConvention};
 use crate::error::{Error, Result};
-use crate::vec3::{cross, rotate, Mat3};
+use crate::vec3::{cross, Mat3};
 
 /// Geometry of one convolution layer: all pairs are `[y, x]` (rows, columns).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -247,7 +247,9 @@ fn zeroed(n: usize) -> Option<Vec<f32>> {
     }
     // SAFETY: `ptr` comes from the global allocator with the layout of `n` f32 (what a Vec of
     // capacity `n` uses), and all-zero bytes are `n` valid values (0.0).
-    Some(unsafe { Vec::from_raw_parts(ptr, n, n) })
+    let mut v = unsafe { Vec::from_raw_parts(ptr, n, n) };
+    crate::memory::advise_huge_pages(&mut v);
+    Some(v)
 }
 
 /// Computes the calibrated offsets of one layer.
@@ -302,41 +304,82 @@ pub fn compute_offsets(
     for (i, chunk) in data.chunks_mut(wo.max(1)).enumerate() {
         by_row[i % ho].push(chunk); // chunk i is plane i / ho, row i % ho
     }
+    // Anchor columns (the same in every row), then per row: each anchor's rotation, kept as 9
+    // columns of entries, and per tap the row's rays as columns `x, y, z`, projected together
+    // (`CameraModel::project_columns`: vectorised for Kannala-Brandt).
+    let anchor_x: Vec<f64> = (0..wo)
+        .map(|ox| {
+            (ox * geometry.stride[1] + cw * geometry.dilation[1]) as f64
+                - geometry.padding[1] as f64
+        })
+        .collect();
     let counts: Vec<(usize, usize)> = by_row
         .into_par_iter()
         .enumerate()
         .map(|(oy, mut out)| {
-            let (mut bad_anchors, mut bad_taps) = (0, 0);
-            // `ox` is the anchor's column, not just an index into the 2 * taps row slices.
-            #[allow(clippy::needless_range_loop)]
-            for ox in 0..wo {
-                let ay = (oy * geometry.stride[0] + ch * geometry.dilation[0]) as f64
-                    - geometry.padding[0] as f64;
-                let ax = (ox * geometry.stride[1] + cw * geometry.dilation[1]) as f64
-                    - geometry.padding[1] as f64;
+            let ay = (oy * geometry.stride[0] + ch * geometry.dilation[0]) as f64
+                - geometry.padding[0] as f64;
+            let mut bad_anchors = 0;
+            let mut rot = vec![0.0; 9 * wo];
+            let mut anchored = vec![false; wo];
+            for (ox, &ax) in anchor_x.iter().enumerate() {
                 let Some(ray) = cam.unproject([ax, ay]) else {
                     bad_anchors += 1;
                     continue;
                 };
-                let rot = match frame_kind {
+                let m = match frame_kind {
                     KernelFrame::MinimalRotation => align_optical_axis(ray),
                     KernelFrame::Upright => upright_frame(ray),
                 };
-                for i in 0..kh {
-                    let ty = (i as f64 - ch as f64) * geometry.dilation[0] as f64;
-                    for j in 0..kw {
-                        let tx = (j as f64 - cw as f64) * geometry.dilation[1] as f64;
-                        let k = i * kw + j;
-                        match cam.project(rotate(&rot, [tx, ty, d])) {
-                            Some([u, v]) => {
-                                let mut dx = u - (ax + tx);
-                                if wrap {
-                                    dx -= period * (dx / period).round();
-                                }
-                                out[2 * k][ox] = (v - (ay + ty)) as f32;
-                                out[2 * k + 1][ox] = dx as f32;
-                            }
-                            None => bad_taps += 1,
+                for (e, &entry) in m.as_flattened().iter().enumerate() {
+                    rot[e * wo + ox] = entry;
+                }
+                anchored[ox] = true;
+            }
+            let col = |e: usize| &rot[e * wo..(e + 1) * wo];
+            let mut ray = [vec![0.0; wo], vec![0.0; wo], vec![0.0; wo]];
+            let (mut u, mut v, mut ok) = (vec![0.0; wo], vec![0.0; wo], vec![false; wo]);
+            let mut bad_taps = 0;
+            for i in 0..kh {
+                let ty = (i as f64 - ch as f64) * geometry.dilation[0] as f64;
+                for j in 0..kw {
+                    let tx = (j as f64 - cw as f64) * geometry.dilation[1] as f64;
+                    // The tap rotated onto each anchor's ray: row r of the matrix times
+                    // (tx, ty, d), as `vec3::rotate`.
+                    for (r, out) in ray.iter_mut().enumerate() {
+                        let (m0, m1, m2) = (col(3 * r), col(3 * r + 1), col(3 * r + 2));
+                        for ox in 0..wo {
+                            out[ox] = m0[ox] * tx + m1[ox] * ty + m2[ox] * d;
+                        }
+                    }
+                    cam.project_columns([&ray[0], &ray[1], &ray[2]], &mut u, &mut v, &mut ok);
+                    // An anchor without a ray keeps zeros; a tap without a pixel keeps its
+                    // regular position (zeros as well: the buffer starts zeroed).
+                    let k = i * kw + j;
+                    let [dy_row, dx_row] =
+                        out.get_disjoint_mut([2 * k, 2 * k + 1]).expect("2 rows");
+                    // All of length `wo`, so that the loops below vectorise without bounds checks.
+                    let (dy_row, dx_row) = (&mut dy_row[..wo], &mut dx_row[..wo]);
+                    let (u, v, ok, anchored) = (&u[..wo], &v[..wo], &ok[..wo], &anchored[..wo]);
+                    let anchor_x = &anchor_x[..wo];
+                    bad_taps += anchored.iter().zip(ok).filter(|&(&a, &o)| a & !o).count();
+                    for ox in 0..wo {
+                        let keep = anchored[ox] & ok[ox];
+                        let dy = v[ox] - (ay + ty);
+                        let dx = u[ox] - (anchor_x[ox] + tx);
+                        dy_row[ox] = if keep { dy as f32 } else { 0.0 };
+                        dx_row[ox] = if keep { dx as f32 } else { 0.0 };
+                    }
+                    if wrap {
+                        // dx modulo the period, to the representative nearest the regular tap.
+                        for ox in 0..wo {
+                            let dx = u[ox] - (anchor_x[ox] + tx);
+                            let dx = dx - period * (dx / period).round();
+                            dx_row[ox] = if anchored[ox] & ok[ox] {
+                                dx as f32
+                            } else {
+                                0.0
+                            };
                         }
                     }
                 }

@@ -1,5 +1,6 @@
 use super::*;
 use crate::camera::{Intrinsics, KannalaBrandt, Pinhole};
+use crate::vec3::rotate;
 
 /// Offsets are stored as f32: 1e-4 px covers rounding of values up to ~100 px.
 const OFFSET_TOL: f32 = 1e-4;
@@ -220,4 +221,133 @@ fn offsets_too_large_to_hold_are_refused_naming_the_size() {
     };
     assert!(compute_offsets(&cam, [32, 32], &huge, &InputFrame::default()).is_err());
     assert_eq!(huge.output_size([32, 32]), None);
+}
+
+/// The offsets by the rule of the module docs, ray by ray through `CameraModel::project` (what
+/// `compute_offsets` computed before it projected whole columns).
+fn offsets_ray_by_ray(
+    camera: &Camera,
+    input_size: [usize; 2],
+    g: &LayerGeometry,
+    frame: &InputFrame,
+) -> Offsets {
+    let [ho, wo] = g.output_size(input_size).unwrap();
+    let [w_c, h_c] = camera.size();
+    let scale = [
+        input_size[1] as f64 / (w_c + frame.padding[0]) as f64,
+        input_size[0] as f64 / (h_c + frame.padding[1]) as f64,
+    ];
+    let cam = camera.rescaled(scale, frame.convention);
+    let [kh, kw] = g.kernel;
+    let d = kernel_focal(kw, camera.fov(), input_size[1]).unwrap();
+    let plane = ho * wo;
+    let mut data = vec![0.0f32; 2 * kh * kw * plane];
+    let (mut bad_anchors, mut bad_taps) = (0, 0);
+    let period = input_size[1] as f64;
+    for oy in 0..ho {
+        for ox in 0..wo {
+            let ay = (oy * g.stride[0] + (kh - 1) / 2 * g.dilation[0]) as f64 - g.padding[0] as f64;
+            let ax = (ox * g.stride[1] + (kw - 1) / 2 * g.dilation[1]) as f64 - g.padding[1] as f64;
+            let Some(ray) = cam.unproject([ax, ay]) else {
+                bad_anchors += 1;
+                continue;
+            };
+            let rot = match camera.kernel_frame() {
+                KernelFrame::MinimalRotation => align_optical_axis(ray),
+                KernelFrame::Upright => upright_frame(ray),
+            };
+            for i in 0..kh {
+                let ty = (i as f64 - ((kh - 1) / 2) as f64) * g.dilation[0] as f64;
+                for j in 0..kw {
+                    let tx = (j as f64 - ((kw - 1) / 2) as f64) * g.dilation[1] as f64;
+                    let k = i * kw + j;
+                    let Some([u, v]) = cam.project(rotate(&rot, [tx, ty, d])) else {
+                        bad_taps += 1;
+                        continue;
+                    };
+                    let mut dx = u - (ax + tx);
+                    if camera.wraps_horizontally() {
+                        dx -= period * (dx / period).round();
+                    }
+                    data[2 * k * plane + oy * wo + ox] = (v - (ay + ty)) as f32;
+                    data[(2 * k + 1) * plane + oy * wo + ox] = dx as f32;
+                }
+            }
+        }
+    }
+    Offsets {
+        data,
+        kernel: g.kernel,
+        input_size,
+        output_size: [ho, wo],
+        fallback_anchors: bad_anchors,
+        fallback_taps: bad_taps,
+    }
+}
+
+#[test]
+fn offsets_are_the_ray_by_ray_rule_bit_for_bit() {
+    // Kannala-Brandt projects whole columns (vectorised), the other models ray by ray: both give
+    // the bits of the per-ray rule, fallbacks included (the folding lens loses anchors outside
+    // its image circle and taps past its fold), for strides, dilations, wide kernels, a padded
+    // frame and the panorama's wrap.
+    let folding = Camera::KannalaBrandt(KannalaBrandt::unchecked(
+        Intrinsics::from_parts([30.0, 30.0, 63.5, 47.5], [128, 96]),
+        [-0.5, 0.0, 0.0, 0.0],
+        90.0,
+    ));
+    let pinhole = Camera::Pinhole(
+        Pinhole::new(Intrinsics::from_parts([50.0, 50.0, 63.5, 47.5], [128, 96])).unwrap(),
+    );
+    let panorama = Camera::Equirectangular(crate::camera::Equirectangular::new(128, 64).unwrap());
+    let strided = LayerGeometry {
+        kernel: [5, 3],
+        stride: [2, 1],
+        padding: [1, 2],
+        dilation: [1, 2],
+    };
+    let padded = InputFrame {
+        padding: [0, 8],
+        ..Default::default()
+    };
+    let mut fallbacks = [0, 0];
+    for (cam, size, g, frame) in [
+        (
+            symmetric_kb(),
+            [48, 64],
+            LayerGeometry::same(3),
+            InputFrame::default(),
+        ),
+        (symmetric_kb(), [24, 32], strided, padded),
+        (
+            folding.clone(),
+            [96, 128],
+            LayerGeometry::same(3),
+            InputFrame::default(),
+        ),
+        (folding, [48, 64], strided, padded),
+        (pinhole, [48, 64], strided, InputFrame::default()),
+        (
+            panorama,
+            [32, 64],
+            LayerGeometry::same(3),
+            InputFrame::default(),
+        ),
+    ] {
+        let got = compute_offsets(&cam, size, &g, &frame).unwrap();
+        let want = offsets_ray_by_ray(&cam, size, &g, &frame);
+        let bits = |o: &Offsets| o.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert!(
+            bits(&got) == bits(&want),
+            "{} {size:?} {g:?}",
+            cam.model_name()
+        );
+        assert_eq!(
+            (got.fallback_anchors, got.fallback_taps),
+            (want.fallback_anchors, want.fallback_taps)
+        );
+        fallbacks[0] += got.fallback_anchors;
+        fallbacks[1] += got.fallback_taps;
+    }
+    assert!(fallbacks[0] > 0 && fallbacks[1] > 0, "{fallbacks:?}");
 }
