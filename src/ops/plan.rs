@@ -225,7 +225,13 @@ impl Layout {
         let taps_of_row: Vec<_> = (0..taps).map(tap).collect();
         let (idx, frac) = (&mut idx[..4 * taps * wo_u], &mut frac[..2 * taps * wo_u]);
         if !wrap {
-            return fill_row_zeros(&taps_of_row, [stride[1], h, w], zero, base, idx, frac);
+            let args = [stride[1], h, w];
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2, the only feature the function enables.
+                return unsafe { fill_row_zeros_avx2(&taps_of_row, args, zero, base, idx, frac) };
+            }
+            return fill_row_zeros(&taps_of_row, args, zero, base, idx, frac);
         }
         let mut reach = [i32::MAX, i32::MIN];
         for (ox, (corners, fracs)) in idx
@@ -615,6 +621,24 @@ impl SamplingPlan {
 /// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
 /// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
 /// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`.
+/// [`fill_row_zeros`] compiled for AVX2 (4 samples a step instead of 2).
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fill_row_zeros_avx2<O: Copy + Into<f64>, W: PlanFloat>(
+    taps_of_row: &[(f64, i64, &[O], &[O])],
+    geometry: [i64; 3],
+    zero: i32,
+    base: i64,
+    idx: &mut [i32],
+    frac: &mut [W],
+) -> [i32; 2] {
+    fill_row_zeros(taps_of_row, geometry, zero, base, idx, frac)
+}
+
+#[inline(always)]
 fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],
     [stride_x, h, w]: [i64; 3],
@@ -681,7 +705,7 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
 }
 
 /// [`floor`] for finite `|v| < 2^31` (through i32, which vectorises).
-#[inline]
+#[inline(always)]
 fn floor32(v: f64) -> f64 {
     let t = v as i32 as f64;
     if t > v {

@@ -23,7 +23,9 @@ use std::f64::consts::PI;
 
 use super::intrinsics::deref_intrinsics;
 use super::schema::{checked, raw_camera_file, CameraFile, Checked, Invalid};
-use super::solve::{increasing_root, last_ok};
+use super::solve::{increasing_roots, last_ok};
+#[cfg(doc)]
+use super::solve::increasing_root;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 
 /// Convergence threshold on the Newton (or bisection) step, in radians: `fx * EPS` is about
@@ -166,19 +168,36 @@ impl KannalaBrandt {
     /// Solves `d(theta) = r_d` for `theta in [0, theta_max]` with the shared safeguarded Newton
     /// ([`increasing_root`]: `theta <- theta - (d(theta) - r_d) / d'(theta)`, bisecting whenever
     /// Newton would leave the bracket), converged when `|step| < EPS`. Returns
-    /// `(theta, iterations)`, or `None` without convergence in [`MAX_ITER`](super::solve::MAX_ITER) steps or for `r_d`
-    /// outside `[0, d(theta_max)]`.
+    /// `(theta, iterations)`, or `None` without convergence in
+    /// [`MAX_ITER`](super::solve::MAX_ITER) steps or for `r_d` outside `[0, d(theta_max)]`.
+    /// (`unproject` solves four at a time; the tests count this one's iterations.)
+    #[cfg(test)]
     pub(crate) fn solve_theta(&self, r_d: f64) -> Option<(f64, usize)> {
+        let [theta] = self.solve_thetas([r_d], [true]);
+        theta
+    }
+
+    /// [`KannalaBrandt::solve_theta`] for the radii `r_d[l]` with `solve[l]` (the others give
+    /// `None`), their Newton iterations in lockstep ([`increasing_roots`]): the same bits as one
+    /// at a time.
+    fn solve_thetas<const L: usize>(
+        &self,
+        r_d: [f64; L],
+        solve: [bool; L],
+    ) -> [Option<(f64, usize)>; L] {
         let hi = self.theta_max;
-        if !(r_d >= 0.0 && r_d <= self.distort(hi)) {
-            return None;
-        }
-        if r_d == 0.0 {
-            return Some((0.0, 0));
-        }
+        let d_hi = self.distort(hi);
+        let in_range: [bool; L] = std::array::from_fn(|l| solve[l] && r_d[l] >= 0.0 && r_d[l] <= d_hi);
         // d(theta) ~ theta for realistic lenses: r_d itself is an excellent first guess.
-        let g = |t: f64| (self.distort(t) - r_d, self.distort_derivative(t));
-        increasing_root(g, [0.0, hi], r_d, EPS)
+        let g = |l: usize, t: f64| (self.distort(t) - r_d[l], self.distort_derivative(t));
+        let newton = std::array::from_fn(|l| in_range[l] && r_d[l] != 0.0);
+        let mut thetas = increasing_roots(g, [[0.0, hi]; L], r_d, newton, EPS);
+        for l in 0..L {
+            if in_range[l] && r_d[l] == 0.0 {
+                thetas[l] = Some((0.0, 0));
+            }
+        }
+        thetas
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`] at `ray`, or `None`
@@ -340,18 +359,43 @@ impl CameraModel for KannalaBrandt {
     /// point. `None` for non-finite input, for `r_d > d(theta_max)` and if Newton does not
     /// converge.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
-        let mx = (px[0] - self.cx) / self.fx;
-        let my = (px[1] - self.cy) / self.fy;
-        let r_d = (mx * mx + my * my).sqrt();
-        if !r_d.is_finite() {
-            return None;
+        let ([mut x], [mut y], [mut z], mut ok) = ([0.0], [0.0], [0.0], [false]);
+        let ray = [std::slice::from_mut(&mut x), std::slice::from_mut(&mut y), std::slice::from_mut(&mut z)];
+        self.unproject_columns([&px[..1], &px[1..]], ray, &mut ok);
+        ok[0].then_some([x, y, z])
+    }
+
+    /// Four pixels at a time, their Newton iterations in lockstep
+    /// ([`KannalaBrandt::solve_thetas`]), so that the CPU overlaps their chains of dependent
+    /// operations; each pixel gets the bits it gets alone.
+    fn unproject_columns(&self, [pu, pv]: [&[f64]; 2], rays: [&mut [f64]; 3], ok: &mut [bool]) {
+        const LANES: usize = 4;
+        let [rx, ry, rz] = rays;
+        for start in (0..ok.len()).step_by(LANES) {
+            let lanes = LANES.min(ok.len() - start);
+            let m: [[f64; 3]; LANES] = std::array::from_fn(|l| {
+                let i = (start + l).min(ok.len() - 1);
+                let mx = (pu[i] - self.cx) / self.fx;
+                let my = (pv[i] - self.cy) / self.fy;
+                [mx, my, (mx * mx + my * my).sqrt()]
+            });
+            // Non-finite radii fail; the principal point is the optical axis.
+            let solve = std::array::from_fn(|l| l < lanes && m[l][2].is_finite() && m[l][2] != 0.0);
+            let thetas = self.solve_thetas(m.map(|v| v[2]), solve);
+            for l in 0..lanes {
+                let (i, [mx, my, r_d]) = (start + l, m[l]);
+                let ray = if r_d == 0.0 {
+                    Some([0.0, 0.0, 1.0])
+                } else {
+                    thetas[l].map(|(theta, _)| {
+                        let (s, c) = theta.sin_cos();
+                        [s * mx / r_d, s * my / r_d, c]
+                    })
+                };
+                ok[i] = ray.is_some();
+                [rx[i], ry[i], rz[i]] = ray.unwrap_or([0.0; 3]);
+            }
         }
-        if r_d == 0.0 {
-            return Some([0.0, 0.0, 1.0]);
-        }
-        let (theta, _) = self.solve_theta(r_d)?;
-        let (s, c) = theta.sin_cos();
-        Some([s * mx / r_d, s * my / r_d, c])
     }
 
     fn size(&self) -> [usize; 2] {

@@ -17,34 +17,61 @@ pub const MAX_ITER: usize = 100;
 /// `(x, iterations)`, or `None` without convergence in [`MAX_ITER`] steps.
 pub(crate) fn increasing_root(
     g_and_slope: impl Fn(f64) -> (f64, f64),
-    [mut lo, mut hi]: [f64; 2],
+    bracket: [f64; 2],
     x0: f64,
     eps: f64,
 ) -> Option<(f64, usize)> {
-    let mut x = x0.clamp(lo, hi);
+    let [root] = increasing_roots(|_, x| g_and_slope(x), [bracket], [x0], [true], eps);
+    root
+}
+
+/// [`increasing_root`] for `L` equations at once, in lockstep: iteration `i` takes one step of
+/// every lane still running, so that the CPU overlaps the lanes' independent chains of
+/// dependent operations (a lone Newton iteration is one such chain). Each lane performs the
+/// same operations as it would alone, so it gives the same bits. `g_and_slope(lane, x)`;
+/// lanes with `solve[lane] == false` are skipped and return `None`.
+pub(crate) fn increasing_roots<const L: usize>(
+    g_and_slope: impl Fn(usize, f64) -> (f64, f64),
+    brackets: [[f64; 2]; L],
+    x0: [f64; L],
+    mut solve: [bool; L],
+    eps: f64,
+) -> [Option<(f64, usize)>; L] {
+    let mut roots = [None; L];
+    let [mut lo, mut hi] = [0, 1].map(|e| brackets.map(|b| b[e]));
+    let mut x: [f64; L] = std::array::from_fn(|l| x0[l].clamp(lo[l], hi[l]));
     for iter in 1..=MAX_ITER {
-        let (g, slope) = g_and_slope(x);
-        if g == 0.0 {
-            return Some((x, iter));
+        if !solve.contains(&true) {
+            break;
         }
-        if g < 0.0 {
-            lo = x;
-        } else {
-            hi = x;
-        }
-        let newton = x - g / slope;
-        let next = if newton.is_finite() && newton >= lo && newton <= hi {
-            newton
-        } else {
-            0.5 * (lo + hi)
-        };
-        let step = next - x;
-        x = next;
-        if step.abs() < eps {
-            return Some((x, iter));
+        for l in 0..L {
+            if !solve[l] {
+                continue;
+            }
+            let (g, slope) = g_and_slope(l, x[l]);
+            if g == 0.0 {
+                (roots[l], solve[l]) = (Some((x[l], iter)), false);
+                continue;
+            }
+            if g < 0.0 {
+                lo[l] = x[l];
+            } else {
+                hi[l] = x[l];
+            }
+            let newton = x[l] - g / slope;
+            let next = if newton.is_finite() && newton >= lo[l] && newton <= hi[l] {
+                newton
+            } else {
+                0.5 * (lo[l] + hi[l])
+            };
+            let step = next - x[l];
+            x[l] = next;
+            if step.abs() < eps {
+                (roots[l], solve[l]) = (Some((x[l], iter)), false);
+            }
         }
     }
-    None
+    roots
 }
 
 /// Bisection steps refining a boundary once bracketed: 60 halvings take any bracket the scans

@@ -141,25 +141,27 @@ impl Offsets {
 }
 
 /// Rotation matrix (row-major) of the minimal rotation taking `(0, 0, 1)` onto the unit ray `r`
-/// (Rodrigues' formula about `z x r`; a half turn about x for `r = -z`).
+/// (Rodrigues' formula about `z x r`; a half turn about x for `r = -z`). Without branches, so
+/// that a loop over anchors vectorises.
+#[inline(always)]
 pub fn align_optical_axis(r: [f64; 3]) -> Mat3 {
     let (s, c) = ((r[0] * r[0] + r[1] * r[1]).sqrt(), r[2]);
-    if s < 1e-12 {
-        return if c > 0.0 {
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-        } else {
-            [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]
-        };
-    }
     // Unit axis k = (z x r) / |z x r| = (-ry, rx, 0) / s.
     let (kx, ky) = (-r[1] / s, r[0] / s);
     let t = 1.0 - c;
     // R = c I + s [k]x + t k k^T with kz = 0.
-    [
+    let rodrigues = [
         [c + t * kx * kx, t * kx * ky, s * ky],
         [t * kx * ky, c + t * ky * ky, -s * kx],
         [-s * ky, s * kx, c],
-    ]
+    ];
+    // On the axis (no rotation axis): the identity forward, a half turn about x backward.
+    let d = if c > 0.0 { 1.0 } else { -1.0 };
+    let on_axis = [[1.0, 0.0, 0.0], [0.0, d, 0.0], [0.0, 0.0, d]];
+    let axis = s < 1e-12;
+    std::array::from_fn(|i| {
+        std::array::from_fn(|j| if axis { on_axis[i][j] } else { rodrigues[i][j] })
+    })
 }
 
 /// Rotation matrix (row-major) taking `(0, 0, 1)` onto the unit ray `r` with no roll: its
@@ -319,22 +321,28 @@ pub fn compute_offsets(
         .map(|(oy, mut out)| {
             let ay = (oy * geometry.stride[0] + ch * geometry.dilation[0]) as f64
                 - geometry.padding[0] as f64;
-            let mut bad_anchors = 0;
             let mut rot = vec![0.0; 9 * wo];
             let mut anchored = vec![false; wo];
-            for (ox, &ax) in anchor_x.iter().enumerate() {
-                let Some(ray) = cam.unproject([ax, ay]) else {
-                    bad_anchors += 1;
-                    continue;
-                };
+            let mut anchor_ray = [vec![0.0; wo], vec![0.0; wo], vec![0.0; wo]];
+            {
+                let [x, y, z] = &mut anchor_ray;
+                let row = vec![ay; wo];
+                cam.unproject_columns([&anchor_x, &row], [x, y, z], &mut anchored);
+            }
+            let bad_anchors = anchored.iter().filter(|&&a| !a).count();
+            let [x, y, z] = &anchor_ray;
+            let (x, y, z) = (&x[..wo], &y[..wo], &z[..wo]);
+            let mut entries: Vec<&mut [f64]> = rot.chunks_exact_mut(wo.max(1)).collect();
+            for ox in 0..wo {
+                let ray = [x[ox], y[ox], z[ox]];
+                // (Anchors without a ray get some rotation; their taps are dropped below.)
                 let m = match frame_kind {
                     KernelFrame::MinimalRotation => align_optical_axis(ray),
                     KernelFrame::Upright => upright_frame(ray),
                 };
                 for (e, &entry) in m.as_flattened().iter().enumerate() {
-                    rot[e * wo + ox] = entry;
+                    entries[e][ox] = entry;
                 }
-                anchored[ox] = true;
             }
             let col = |e: usize| &rot[e * wo..(e + 1) * wo];
             let mut ray = [vec![0.0; wo], vec![0.0; wo], vec![0.0; wo]];
@@ -363,12 +371,14 @@ pub fn compute_offsets(
                     let (u, v, ok, anchored) = (&u[..wo], &v[..wo], &ok[..wo], &anchored[..wo]);
                     let anchor_x = &anchor_x[..wo];
                     bad_taps += anchored.iter().zip(ok).filter(|&(&a, &o)| a & !o).count();
+                    // Zero unless kept, as a bit mask: the loop has no branch and vectorises.
+                    let kept = |ox: usize, value: f64| {
+                        let mask = 0u32.wrapping_sub(u32::from(anchored[ox] & ok[ox]));
+                        f32::from_bits((value as f32).to_bits() & mask)
+                    };
                     for ox in 0..wo {
-                        let keep = anchored[ox] & ok[ox];
-                        let dy = v[ox] - (ay + ty);
-                        let dx = u[ox] - (anchor_x[ox] + tx);
-                        dy_row[ox] = if keep { dy as f32 } else { 0.0 };
-                        dx_row[ox] = if keep { dx as f32 } else { 0.0 };
+                        dy_row[ox] = kept(ox, v[ox] - (ay + ty));
+                        dx_row[ox] = kept(ox, u[ox] - (anchor_x[ox] + tx));
                     }
                     if wrap {
                         // dx modulo the period, to the representative nearest the regular tap.
