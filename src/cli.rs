@@ -307,14 +307,14 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Cap the native few-output-channel kernels (8 to 128 outputs) at this instruction-set
-    /// level (`none`: such layers use oneDNN like the others); default: the CPU's level. For
-    /// A/B timings of the kernels on one machine.
+    /// Cap the native few-output-channel kernels (AVX-512: 8 to 128 outputs, AVX2: 8 to 32) at
+    /// this instruction-set level (`none`: such layers use the GEMM library like the others);
+    /// default: the CPU's level. For A/B timings of the kernels on one machine.
     #[arg(long, value_enum)]
     pub small_kernels: Option<SmallKernelLevel>,
     /// The library of the float32 products the few-output-channel kernels do not take (layers
-    /// of more than 128 outputs; `auto`: oneDNN on CPUs with AVX-512, else the BLAS). For A/B
-    /// timings on one machine.
+    /// of other output counts: more than 128 outputs, and 64 or 128 on CPUs without AVX-512;
+    /// `auto`: oneDNN on CPUs with AVX-512, else the BLAS). For A/B timings on one machine.
     #[arg(long, value_enum)]
     pub gemm: Option<GemmChoice>,
 }
