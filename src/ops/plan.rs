@@ -614,13 +614,6 @@ impl SamplingPlan {
     }
 }
 
-/// [`Layout::fill_row`] with zeros outside (no wrap), a tap at a time so that the arithmetic
-/// vectorises: per tap, the row's samples are computed into columns (corners, fractions) by a
-/// loop without branches or bounds checks, then stored to their places in the plan. The same
-/// values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`) has corners
-/// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
-/// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
-/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`.
 /// [`fill_row_zeros`] compiled for AVX2 (4 samples a step instead of 2).
 ///
 /// # Safety
@@ -638,6 +631,13 @@ unsafe fn fill_row_zeros_avx2<O: Copy + Into<f64>, W: PlanFloat>(
     fill_row_zeros(taps_of_row, geometry, zero, base, idx, frac)
 }
 
+/// [`Layout::fill_row`] with zeros outside (no wrap), a tap at a time so that the arithmetic
+/// vectorises: per tap, the row's samples are computed into columns (corners, fractions) by a
+/// loop without branches or bounds checks, then stored to their places in the plan. The same
+/// values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`) has corners
+/// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
+/// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
+/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`.
 #[inline(always)]
 fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],

@@ -361,8 +361,8 @@ pub fn compute_offsets(
                         }
                     }
                     cam.project_columns([&ray[0], &ray[1], &ray[2]], &mut u, &mut v, &mut ok);
-                    // An anchor without a ray keeps zeros; a tap without a pixel keeps its
-                    // regular position (zeros as well: the buffer starts zeroed).
+                    // An anchor without a ray, and a tap without a pixel, get zero offsets (the
+                    // tap's regular position).
                     let k = i * kw + j;
                     let [dy_row, dx_row] =
                         out.get_disjoint_mut([2 * k, 2 * k + 1]).expect("2 rows");
@@ -385,11 +385,7 @@ pub fn compute_offsets(
                         for ox in 0..wo {
                             let dx = u[ox] - (anchor_x[ox] + tx);
                             let dx = dx - period * (dx / period).round();
-                            dx_row[ox] = if anchored[ox] & ok[ox] {
-                                dx as f32
-                            } else {
-                                0.0
-                            };
+                            dx_row[ox] = kept(ox, dx);
                         }
                     }
                 }
