@@ -227,7 +227,7 @@ impl Layout {
         if !wrap {
             let args = [stride[1], h, w];
             #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if std::arch::is_x86_feature_detected!("avx2") && !portable_fill_only() {
                 // SAFETY: the CPU has AVX2, the only feature the function enables.
                 return unsafe { fill_row_zeros_avx2(&taps_of_row, args, zero, base, idx, frac) };
             }
@@ -614,6 +614,19 @@ impl SamplingPlan {
     }
 }
 
+/// Whether this thread's tests asked for the portable [`fill_row_zeros`] (never outside tests):
+/// the test of the fill holds both clones to the per-sample rule on a CPU with AVX2.
+fn portable_fill_only() -> bool {
+    #[cfg(test)]
+    {
+        tests::PORTABLE_FILL.with(|p| p.get())
+    }
+    #[cfg(not(test))]
+    {
+        false
+    }
+}
+
 /// [`fill_row_zeros`] compiled for AVX2 (4 samples a step instead of 2).
 ///
 /// # Safety
@@ -731,6 +744,11 @@ fn floor(v: f64) -> f64 {
 mod tests {
     use super::{floor, Border, ConvGeometry, Layout};
 
+    thread_local! {
+        /// Set by a test: `Layout::fill_row` takes the portable fill even where AVX2 is there.
+        pub(super) static PORTABLE_FILL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    }
+
     /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
     /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
     /// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
@@ -841,10 +859,14 @@ mod tests {
                 border,
             };
             let row = wo as usize * taps;
-            for r in 0..(n_items * ho) as usize {
+            // Both clones of the fill without wrap (AVX2 where the CPU has it, and portable).
+            for (r, portable) in (0..(n_items * ho) as usize).flat_map(|r| [(r, false), (r, true)])
+            {
                 let mut idx = vec![-7i32; 4 * row];
                 let mut frac = vec![-7.0f64; 2 * row];
+                PORTABLE_FILL.with(|p| p.set(portable));
                 let reach = layout.fill_row(&off, r, &mut idx, &mut frac);
+                PORTABLE_FILL.with(|p| p.set(false));
                 let (item, oy) = (r as i64 / ho, r as i64 % ho);
                 let base = if items.is_some() {
                     item * (h * w + 1)
