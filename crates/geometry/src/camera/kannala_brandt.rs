@@ -243,6 +243,31 @@ impl KannalaBrandt {
 }
 
 impl KannalaBrandt {
+    /// [`CameraModel::unproject`] of `L` pixels, their Newton iterations in lockstep
+    /// ([`KannalaBrandt::solve_thetas`]), so that the CPU overlaps their chains of dependent
+    /// operations: with `r_d = sqrt(((u - cx) / fx)^2 + ((v - cy) / fy)^2)`, non-finite radii
+    /// fail, the principal point is the optical axis, and otherwise `d(theta) = r_d` gives
+    /// `[sin(theta) cos(phi), sin(theta) sin(phi), cos(theta)]`.
+    fn unproject_lanes<const L: usize>(&self, px: [[f64; 2]; L]) -> [Option<[f64; 3]>; L] {
+        let m = px.map(|[u, v]| {
+            let mx = (u - self.cx) / self.fx;
+            let my = (v - self.cy) / self.fy;
+            [mx, my, (mx * mx + my * my).sqrt()]
+        });
+        let solve = m.map(|[_, _, r_d]| r_d.is_finite() && r_d != 0.0);
+        let thetas = self.solve_thetas(m.map(|v| v[2]), solve);
+        std::array::from_fn(|l| {
+            let [mx, my, r_d] = m[l];
+            if r_d == 0.0 {
+                return Some([0.0, 0.0, 1.0]);
+            }
+            thetas[l].map(|(theta, _)| {
+                let (s, c) = theta.sin_cos();
+                [s * mx / r_d, s * my / r_d, c]
+            })
+        })
+    }
+
     /// [`CameraModel::project`] without branches: `(u, v, ok)`, `u, v` unspecified where `ok`
     /// is false (a zero or non-finite ray, `theta > theta_max`, the ray straight back).
     #[inline(always)]
@@ -359,42 +384,29 @@ impl CameraModel for KannalaBrandt {
     /// point. `None` for non-finite input, for `r_d > d(theta_max)` and if Newton does not
     /// converge.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
-        let ([mut x], [mut y], [mut z], mut ok) = ([0.0], [0.0], [0.0], [false]);
-        let ray = [std::slice::from_mut(&mut x), std::slice::from_mut(&mut y), std::slice::from_mut(&mut z)];
-        self.unproject_columns([&px[..1], &px[1..]], ray, &mut ok);
-        ok[0].then_some([x, y, z])
+        let [ray] = self.unproject_lanes([px]);
+        ray
     }
 
-    /// Four pixels at a time, their Newton iterations in lockstep
-    /// ([`KannalaBrandt::solve_thetas`]), so that the CPU overlaps their chains of dependent
-    /// operations; each pixel gets the bits it gets alone.
+    /// Four pixels at a time through [`KannalaBrandt::unproject_lanes`] (their Newton
+    /// iterations in lockstep), the last few one by one; each pixel gets the bits it gets alone.
     fn unproject_columns(&self, [pu, pv]: [&[f64]; 2], rays: [&mut [f64]; 3], ok: &mut [bool]) {
         const LANES: usize = 4;
         let [rx, ry, rz] = rays;
-        for start in (0..ok.len()).step_by(LANES) {
-            let lanes = LANES.min(ok.len() - start);
-            let m: [[f64; 3]; LANES] = std::array::from_fn(|l| {
-                let i = (start + l).min(ok.len() - 1);
-                let mx = (pu[i] - self.cx) / self.fx;
-                let my = (pv[i] - self.cy) / self.fy;
-                [mx, my, (mx * mx + my * my).sqrt()]
-            });
-            // Non-finite radii fail; the principal point is the optical axis.
-            let solve = std::array::from_fn(|l| l < lanes && m[l][2].is_finite() && m[l][2] != 0.0);
-            let thetas = self.solve_thetas(m.map(|v| v[2]), solve);
-            for l in 0..lanes {
-                let (i, [mx, my, r_d]) = (start + l, m[l]);
-                let ray = if r_d == 0.0 {
-                    Some([0.0, 0.0, 1.0])
-                } else {
-                    thetas[l].map(|(theta, _)| {
-                        let (s, c) = theta.sin_cos();
-                        [s * mx / r_d, s * my / r_d, c]
-                    })
-                };
-                ok[i] = ray.is_some();
-                [rx[i], ry[i], rz[i]] = ray.unwrap_or([0.0; 3]);
+        let mut put = |i: usize, ray: Option<[f64; 3]>| {
+            ok[i] = ray.is_some();
+            [rx[i], ry[i], rz[i]] = ray.unwrap_or([0.0; 3]);
+        };
+        let n = pu.len().min(pv.len());
+        let whole = n / LANES * LANES;
+        for start in (0..whole).step_by(LANES) {
+            let px = std::array::from_fn(|l| [pu[start + l], pv[start + l]]);
+            for (l, ray) in self.unproject_lanes::<LANES>(px).into_iter().enumerate() {
+                put(start + l, ray);
             }
+        }
+        for i in whole..n {
+            put(i, self.unproject([pu[i], pv[i]]));
         }
     }
 

@@ -325,7 +325,14 @@ fn offsets_are_the_ray_by_ray_rule_bit_for_bit() {
             LayerGeometry::same(3),
             InputFrame::default(),
         ),
-        (folding, [48, 64], strided, padded),
+        (folding.clone(), [48, 64], strided, padded),
+        // A width that is no multiple of 4: Kannala-Brandt unprojects the last anchors alone.
+        (
+            folding,
+            [47, 61],
+            LayerGeometry::same(3),
+            InputFrame::default(),
+        ),
         (pinhole, [48, 64], strided, InputFrame::default()),
         (
             panorama,
