@@ -309,6 +309,15 @@ constexpr int staged_lanes() {
   return 0;
 }
 
+// Sample i of a stage: its four corners' vectors, weighted and summed (one expression for the
+// samples stored whole and for the call's last sample of 3 channels, stored value by value).
+template <typename V, typename T>
+CALIBCONV_ALWAYS_INLINE inline V staged_sample(const T* const* addr, const T (*w)[STAGE],
+                                               int64_t i) {
+  return w[0][i] * load<V>(addr[4 * i]) + w[1][i] * load<V>(addr[4 * i + 1]) +
+         w[2][i] * load<V>(addr[4 * i + 2]) + w[3][i] * load<V>(addr[4 * i + 3]);
+}
+
 template <typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
                                                   const int32_t* index, const T* frac,
@@ -346,19 +355,10 @@ CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
     T* __restrict dst = cols + (s0 - s_begin) * NC;
     // (NC < L) the call's last sample stores its NC values alone, below.
     const int64_t vec = NC < L && s0 + m == s_end ? m - 1 : m;
-    for (int64_t i = 0; i < vec; ++i) {
-      const T *a0 = addr[4 * i], *a1 = addr[4 * i + 1], *a2 = addr[4 * i + 2],
-              *a3 = addr[4 * i + 3];
-      store(dst + i * NC, w[0][i] * load<V>(a0) + w[1][i] * load<V>(a1) +
-                              w[2][i] * load<V>(a2) + w[3][i] * load<V>(a3));
-    }
+    for (int64_t i = 0; i < vec; ++i) store(dst + i * NC, staged_sample<V>(addr, w, i));
     if (vec < m) {
-      const int64_t i = vec;
-      const T *a0 = addr[4 * i], *a1 = addr[4 * i + 1], *a2 = addr[4 * i + 2],
-              *a3 = addr[4 * i + 3];
-      const V v = w[0][i] * load<V>(a0) + w[1][i] * load<V>(a1) + w[2][i] * load<V>(a2) +
-                  w[3][i] * load<V>(a3);
-      for (int c = 0; c < NC; ++c) dst[i * NC + c] = v[c];
+      const V v = staged_sample<V>(addr, w, vec);
+      for (int c = 0; c < NC; ++c) dst[vec * NC + c] = v[c];
     }
   }
 }
