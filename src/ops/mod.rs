@@ -9,23 +9,25 @@
 //! contributes 0; [`Border::WrapX`] instead takes columns modulo `W`). The corner weights
 //! `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` do not depend on the border rule, which only remaps
 //! indices, so every kernel below consumes any plan unchanged. The plan also records, per output
-//! row, the input rows its samples read (for the scatter schedule below). Plans are built in
-//! parallel over output rows, written in place.
+//! row, the input rows its samples read (for the scatter schedule below), and per sample its
+//! top-left corner in the input padded by one row above, two below and a column on each side
+//! (4 more bytes a sample): there the four corners are always neighbours, which the native
+//! gather reads with one index. Plans are built in parallel over output rows, written in place.
 //!
 //! # Two implementations, one semantics ([`Backend`])
 //! - **Native CPU kernels** (`native/deform.cpp` with `small_kernels.h` and `simd.h`, compiled
 //!   by `build.rs` against libtorch; the default for CPU tensors): a
 //!   `torch::autograd::Function` with hand-written kernels.
-//!   - *Forward*: the input is read channels-last (converted once per call in 8x8 register
-//!     transposes; a channels-last input is used in place). Per tile of output pixels (tiles
+//!   - *Forward*: the input is read channels-last and padded (a copy per call; an NCHW input
+//!     is converted in 8x8 register transposes first, or in the same pass at <= 4 channels;
+//!     with [`Border::WrapX`] the padding columns hold the other side's pixels). Per tile of output pixels (tiles
 //!     run over the flattened `(item, pixel)` rows, so the small maps of a U-Net batch into
 //!     GEMMs of >= 1024 rows instead of one small GEMM per item) a column tile `[T, K*C]`
 //!     (group, tap, channel) is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over
-//!     contiguous channel vectors; the gather is compiled for 1-4, 8, 16, 32 and 64 channels as
-//!     whole-vector operations and in general, each for AVX-512 / AVX2 / baseline, picked at
-//!     load time (at 3-16 channels in two stages per 64 samples: their corner addresses and
-//!     weights first, vectorised across samples, then the vector loads and multiply-adds; 3
-//!     channels as vectors of 4). Then one GEMM per group against the weight packed as
+//!     contiguous channel vectors from the sample's top-left corner `t` and its neighbours
+//!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input; the gather is compiled for 1-4, 8,
+//!     16, 32 and 64 channels as whole-vector operations (3 channels as vectors of 4) and in
+//!     general, each for AVX-512 / AVX2 / baseline, picked at load time. Then one GEMM per group against the weight packed as
 //!     `[G, C_out/G, K, C/G]`: for float32 and one group through oneDNN on CPUs with AVX-512
 //!     (`at::mkldnn_convolution` with a 1x1 kernel, the library `conv2d` itself uses;
 //!     libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's speed at these shapes)

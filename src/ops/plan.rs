@@ -100,10 +100,23 @@ impl ConvGeometry {
 /// kernels read the same indices and weights. `rows` `[items, H_out, 2]` (int32) holds, per
 /// output row, the lowest and highest input row its in-range corners read (lowest > highest if
 /// none): the native input gradient schedules its scatter with it.
+///
+/// The native CPU gather reads a third form, `top_left` `[N]` (int32, CPU): the index of each
+/// sample's top-left corner in the input *padded* by one row above, two below, one column left
+/// and one right ([`padded_size`]; per-item plans stack the padded items). There the four corners
+/// are always `t, t + 1, t + W + 2, t + W + 3`: a sample inside (`-1 < y < H`, `-1 < x < W`) has
+/// its top-left corner in rows `-1..H` and columns `-1..W`, so corners off the input read the
+/// padding's zeros, and a sample outside points at the block of rows `H..H+2`, column `-1..1`,
+/// all zeros. With [`Border::WrapX`] the right padding column holds the input's first column
+/// (the gather fills it so), and a corner's column is taken modulo `W` as in `index`. One load
+/// per sample instead of four indices and four selects: the gather of 3-16 channels takes
+/// 0.6-0.8x the time.
 #[derive(Debug)]
 pub struct SamplingPlan {
     /// `[N * 4]` int32: four corners per sample.
     index: Tensor,
+    /// `[N]` int32 (CPU): each sample's top-left corner in the padded input.
+    top_left: Tensor,
     /// `[N * 2]`: `(ly, lx)` per sample, in the plan's kind.
     frac: Tensor,
     /// `[items, H_out, 2]` int32: input rows read by each output row.
@@ -113,6 +126,13 @@ pub struct SamplingPlan {
     kernel: [i64; 2],
     /// `Some(B)` for per-item offsets.
     batch: Option<i64>,
+    border: Border,
+}
+
+/// `[H + 3, W + 2]`: the size of an `[H, W]` input padded as the plan's `top_left` indices read
+/// it (one row above and two below, one column on each side).
+pub fn padded_size([h, w]: [i64; 2]) -> [i64; 2] {
+    [h + 3, w + 2]
 }
 
 /// Plan weights: float32 or float64.
@@ -195,6 +215,7 @@ impl Layout {
         off: &[O],
         row: usize,
         idx: &mut [i32],
+        top_left: &mut [i32],
         frac: &mut [W],
     ) -> [i32; 2] {
         let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
@@ -210,6 +231,10 @@ impl Layout {
         // Per-item tables stack the items' pixels, each followed by its zero row.
         let base = if self.per_item { item * (h * w + 1) } else { 0 };
         let zero = (base + h * w) as i32;
+        // The same in the padded input: this item's first padded pixel, and the zero block.
+        let [hp, wp] = padded_size([h, w]);
+        let padded_base = if self.per_item { item * hp * wp } else { 0 };
+        let blank = (padded_base + (h + 1) * wp) as i32;
         let wrap = self.border == Border::WrapX;
         let (hf, wf) = (h as f64, w as f64);
         // Per tap: its regular position (row; column at ox = 0) and its offset rows.
@@ -224,19 +249,23 @@ impl Layout {
         };
         let taps_of_row: Vec<_> = (0..taps).map(tap).collect();
         let (idx, frac) = (&mut idx[..4 * taps * wo_u], &mut frac[..2 * taps * wo_u]);
+        let top_left = &mut top_left[..taps * wo_u];
         if !wrap {
             let args = [stride[1], h, w];
+            let bases = [base, padded_base];
+            let out = (idx, top_left, frac);
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx2") && !portable_fill_only() {
                 // SAFETY: the CPU has AVX2, the only feature the function enables.
-                return unsafe { fill_row_zeros_avx2(&taps_of_row, args, zero, base, idx, frac) };
+                return unsafe { fill_row_zeros_avx2(&taps_of_row, args, zero, bases, out) };
             }
-            return fill_row_zeros(&taps_of_row, args, zero, base, idx, frac);
+            return fill_row_zeros(&taps_of_row, args, zero, bases, out);
         }
         let mut reach = [i32::MAX, i32::MIN];
-        for (ox, (corners, fracs)) in idx
+        for (ox, ((corners, fracs), tls)) in idx
             .chunks_exact_mut(4 * taps)
             .zip(frac.chunks_exact_mut(2 * taps))
+            .zip(top_left.chunks_exact_mut(taps))
             .enumerate()
         {
             let ox_in = ox as i64 * stride[1];
@@ -251,6 +280,7 @@ impl Layout {
                 if outside {
                     c.fill(zero);
                     f.fill(W::from_f64(0.0));
+                    tls[k] = blank;
                     continue;
                 }
                 let (fy, fx) = (floor(y), floor(x));
@@ -268,6 +298,7 @@ impl Layout {
                 c[1] = pick(top && right, row0 + x1);
                 c[2] = pick(bottom && left, row0 + w + x0);
                 c[3] = pick(bottom && right, row0 + w + x1);
+                tls[k] = (padded_base + (y0 + 1) * wp + x0 + 1) as i32;
                 // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
                 reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
                 f[0] = W::from_f64(y - fy);
@@ -296,7 +327,8 @@ impl Layout {
         let items = batch.unwrap_or(1);
         let samples = (items * ho * wo * taps) as usize;
         // Indices are int32 (half the memory of int64); refuse what overflows.
-        if items * (h * w + 1) > i32::MAX as i64 || 4 * samples > i32::MAX as usize {
+        let [hp, wp] = padded_size([h, w]);
+        if items * hp * wp > i32::MAX as i64 || 4 * samples > i32::MAX as usize {
             return Err(Error::InvalidArgument(format!(
                 "a sampling plan of {items} x {ho}x{wo} x {taps} samples on a {h}x{w} input is \
                  too large for int32 indices"
@@ -308,33 +340,41 @@ impl Layout {
         // written through this slice (by disjoint row chunks) before it is moved into the plan.
         let idx = unsafe { elements_mut::<i32>(index.data_ptr(), 4 * samples) };
         calibconv_geometry::memory::advise_huge_pages(idx);
+        let top_left = Tensor::empty([samples as i64], (Kind::Int, Device::Cpu));
+        // SAFETY: as `index`: fresh, contiguous int32 CPU, `samples` elements, only this slice.
+        let tl = unsafe { elements_mut::<i32>(top_left.data_ptr(), samples) };
+        calibconv_geometry::memory::advise_huge_pages(tl);
         let mut reach: Vec<[i32; 2]> = Vec::new();
         fn rows_of<O: Copy + Into<f64> + Sync, W: PlanFloat>(
             layout: &Layout,
             off: &[O],
-            idx: &mut [i32],
+            (idx, tl): (&mut [i32], &mut [i32]),
             frac: &mut [W],
             row: usize,
         ) -> Vec<[i32; 2]> {
             idx.par_chunks_mut(4 * row)
+                .zip(tl.par_chunks_mut(row))
                 .zip(frac.par_chunks_mut(2 * row))
                 .enumerate()
-                .map(|(r, (i, f))| layout.fill_row(off, r, i, f))
+                .map(|(r, ((i, t), f))| layout.fill_row(off, r, i, t, f))
                 .collect()
         }
+        let out = (idx, tl);
         let frac = match kind {
-            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
-            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, idx, f, row)),
+            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, out, f, row)),
+            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, out, f, row)),
         };
         let rows: Vec<i32> = reach.into_iter().flatten().collect();
         Ok(SamplingPlan {
             index,
+            top_left,
             frac,
             rows: Tensor::from_slice(&rows),
             input_size: [h, w],
             output_size: [ho, wo],
             kernel: self.geom.kernel,
             batch,
+            border: self.border,
         })
     }
 }
@@ -442,6 +482,7 @@ impl SamplingPlan {
         }
         SamplingPlan {
             index: self.index.to_device(device),
+            top_left: self.top_left.shallow_clone(),
             frac: self.frac.to_device(device),
             rows: self.rows.shallow_clone(),
             ..*self
@@ -452,6 +493,7 @@ impl SamplingPlan {
     pub fn shallow_clone(&self) -> Self {
         SamplingPlan {
             index: self.index.shallow_clone(),
+            top_left: self.top_left.shallow_clone(),
             frac: self.frac.shallow_clone(),
             rows: self.rows.shallow_clone(),
             ..*self
@@ -498,6 +540,17 @@ impl SamplingPlan {
         (&self.index, &self.frac)
     }
 
+    /// `[N]` (int32, CPU): each sample's top-left corner in the padded input (see the type's
+    /// documentation and [`padded_size`]).
+    pub fn top_left(&self) -> &Tensor {
+        &self.top_left
+    }
+
+    /// What the samples read outside the input.
+    pub fn border(&self) -> Border {
+        self.border
+    }
+
     /// The bilinear corner weights `[N * 4]` in `kind`, in the order of the corner indices:
     /// `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` (on the plan's device).
     pub fn f_weights(&self, kind: Kind) -> Result<Tensor> {
@@ -527,7 +580,7 @@ impl SamplingPlan {
 
     /// Bytes held by the plan's tensors.
     pub fn memory_bytes(&self) -> usize {
-        [&self.index, &self.frac, &self.rows]
+        [&self.index, &self.top_left, &self.frac, &self.rows]
             .iter()
             .map(|t| t.numel() * t.kind().elt_size_in_bytes())
             .sum()
@@ -637,11 +690,10 @@ unsafe fn fill_row_zeros_avx2<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],
     geometry: [i64; 3],
     zero: i32,
-    base: i64,
-    idx: &mut [i32],
-    frac: &mut [W],
+    bases: [i64; 2],
+    out: (&mut [i32], &mut [i32], &mut [W]),
 ) -> [i32; 2] {
-    fill_row_zeros(taps_of_row, geometry, zero, base, idx, frac)
+    fill_row_zeros(taps_of_row, geometry, zero, bases, out)
 }
 
 /// [`Layout::fill_row`] with zeros outside (no wrap), a tap at a time so that the arithmetic
@@ -650,15 +702,16 @@ unsafe fn fill_row_zeros_avx2<O: Copy + Into<f64>, W: PlanFloat>(
 /// values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`) has corners
 /// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
 /// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
-/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`.
+/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`;
+/// `bases`: the item's first index in the stacked input and in the stacked padded input; `out`:
+/// the row's corners, top-left corners in the padded input, and fractions.
 #[inline(always)]
 fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],
     [stride_x, h, w]: [i64; 3],
     zero: i32,
-    base: i64,
-    idx: &mut [i32],
-    frac: &mut [W],
+    [base, padded_base]: [i64; 2],
+    (idx, top_left, frac): (&mut [i32], &mut [i32], &mut [W]),
 ) -> [i32; 2] {
     let taps = taps_of_row.len();
     let wo = idx.len() / (4 * taps);
@@ -666,6 +719,11 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
     // Indices wrap in i32: a corner that is stored is a real index (< 2^31, checked when the
     // plan is sized), and modular arithmetic gets it right whatever the intermediate values.
     let (w32, base32) = (w as i32, base as i32);
+    let wp32 = padded_size([h, w])[1] as i32;
+    // The padded input's first pixel of row 0 of this item (top-left corners add y0 * wp + x0),
+    // and its zero block (row h, column -1) for samples outside.
+    let padded_origin = (padded_base as i32).wrapping_add(wp32).wrapping_add(1);
+    let blank = (padded_base as i32).wrapping_add((h as i32 + 1).wrapping_mul(wp32));
     let column: Vec<f64> = (0..wo as i64).map(|ox| (ox * stride_x) as f64).collect();
     let mut corners = [
         vec![0i32; wo],
@@ -674,11 +732,13 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
         vec![0i32; wo],
     ];
     let (mut fy_col, mut fx_col) = (vec![W::from_f64(0.0); wo], vec![W::from_f64(0.0); wo]);
+    let mut tl_col = vec![0i32; wo];
     let (mut lo, mut hi) = (i32::MAX, i32::MIN);
     for (k, &(ty, tx, dy, dx)) in taps_of_row.iter().enumerate() {
         let (dy, dx, column) = (&dy[..wo], &dx[..wo], &column[..wo]);
         let [c0, c1, c2, c3] = &mut corners;
         let (c0, c1, c2, c3) = (&mut c0[..wo], &mut c1[..wo], &mut c2[..wo], &mut c3[..wo]);
+        let tl_c = &mut tl_col[..wo];
         let (fy_c, fx_c) = (&mut fy_col[..wo], &mut fx_col[..wo]);
         let txf = tx as f64;
         for ox in 0..wo {
@@ -701,6 +761,10 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
             c1[ox] = pick(top & right, at.wrapping_add(1));
             c2[ox] = pick(bottom & left, at.wrapping_add(w32));
             c3[ox] = pick(bottom & right, at.wrapping_add(w32).wrapping_add(1));
+            let padded = padded_origin
+                .wrapping_add(y0.wrapping_mul(wp32))
+                .wrapping_add(x0);
+            tl_c[ox] = if inside { padded } else { blank };
             fy_c[ox] = W::from_f64(if inside { y - fy } else { 0.0 });
             fx_c[ox] = W::from_f64(if inside { x - fx } else { 0.0 });
             // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
@@ -710,6 +774,7 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
         for ox in 0..wo {
             let s = ox * taps + k;
             idx[4 * s..4 * s + 4].copy_from_slice(&[c0[ox], c1[ox], c2[ox], c3[ox]]);
+            top_left[s] = tl_col[ox];
             frac[2 * s] = fy_c[ox];
             frac[2 * s + 1] = fx_c[ox];
         }
@@ -742,7 +807,7 @@ fn floor(v: f64) -> f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::{floor, Border, ConvGeometry, Layout};
+    use super::{floor, padded_size, Border, ConvGeometry, Layout};
 
     thread_local! {
         /// Set by a test: `Layout::fill_row` takes the portable fill even where AVX2 is there.
@@ -864,8 +929,9 @@ mod tests {
             {
                 let mut idx = vec![-7i32; 4 * row];
                 let mut frac = vec![-7.0f64; 2 * row];
+                let mut top_left = vec![-7i32; row];
                 PORTABLE_FILL.with(|p| p.set(portable));
-                let reach = layout.fill_row(&off, r, &mut idx, &mut frac);
+                let reach = layout.fill_row(&off, r, &mut idx, &mut top_left, &mut frac);
                 PORTABLE_FILL.with(|p| p.set(false));
                 let (item, oy) = (r as i64 / ho, r as i64 % ho);
                 let base = if items.is_some() {
@@ -873,6 +939,8 @@ mod tests {
                 } else {
                     0
                 };
+                let [hp, wp] = padded_size([h, w]);
+                let padded_base = if items.is_some() { item * hp * wp } else { 0 };
                 let mut want_reach = [i32::MAX, i32::MIN];
                 for ox in 0..wo {
                     for k in 0..taps as i64 {
@@ -887,9 +955,23 @@ mod tests {
                         let what = format!("case {case}, row {r}, ox {ox}, tap {k}: y {y}, x {x}");
                         assert_eq!(idx[4 * s..4 * s + 4], want_idx, "{what}");
                         assert_eq!(frac[2 * s..2 * s + 2], want_frac, "{what}");
-                        if want_frac != [0.0, 0.0]
-                            || want_idx.iter().any(|&c| c != (base + h * w) as i32)
-                        {
+                        let inside = want_frac != [0.0, 0.0]
+                            || want_idx.iter().any(|&c| c != (base + h * w) as i32);
+                        // The padded input: the top-left corner (its column modulo w with
+                        // wrap), or the zero block at row h, column -1.
+                        let want_top_left = if inside {
+                            let x0 = floor(x) as i64;
+                            let x0 = if border == Border::WrapX {
+                                x0.rem_euclid(w)
+                            } else {
+                                x0
+                            };
+                            padded_base + (floor(y) as i64 + 1) * wp + x0 + 1
+                        } else {
+                            padded_base + (h + 1) * wp
+                        };
+                        assert_eq!(top_left[s] as i64, want_top_left, "{what}");
+                        if inside {
                             let y0 = floor(y) as i32;
                             want_reach = [want_reach[0].min(y0), want_reach[1].max(y0 + 1)];
                         }

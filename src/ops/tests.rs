@@ -545,28 +545,47 @@ fn float32_plan_serves_a_float64_input() {
 #[test]
 fn native_matches_aten_with_wrap_around() {
     tch::manual_seed(7);
-    let opts = (Kind::Double, Device::Cpu);
-    for (h, w) in [(6, 8), (5, 1)] {
-        let off = Tensor::randn([18, h, w], opts) * 4.0;
-        let plan = SamplingPlan::with_border(
-            &off,
-            [h, w],
-            ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-            Kind::Double,
-            Border::WrapX,
-        )
-        .unwrap();
-        let x = Tensor::randn([2, 3, h, w], opts);
-        let (wt, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
-        let probe = Tensor::randn([2, 4, h, w], opts);
-        let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
-        let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
-        assert_same(
-            &native,
-            &aten,
-            F64_IMPL_TOL,
-            &format!("wrap-around {h}x{w}"),
-        );
+    // The gather reads a padded input whose side columns hold the other side's pixels: 3
+    // channels (vectors of four), 8 (whole vectors) and 5 (the scalar loop), shared and per-item
+    // plans, a one-pixel-wide input.
+    for (h, w, c, per_item) in [
+        (6, 8, 3, false),
+        (5, 1, 3, false),
+        (7, 9, 8, true),
+        (4, 6, 5, false),
+    ] {
+        for kind in [Kind::Double, Kind::Float] {
+            let opts = (kind, Device::Cpu);
+            let off = if per_item {
+                Tensor::randn([2, 18, h, w], opts) * 4.0
+            } else {
+                Tensor::randn([18, h, w], opts) * 4.0
+            };
+            let plan = SamplingPlan::with_border(
+                &off,
+                [h, w],
+                ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+                kind,
+                Border::WrapX,
+            )
+            .unwrap();
+            let x = Tensor::randn([2, c, h, w], opts);
+            let (wt, bias) = (Tensor::randn([4, c, 3, 3], opts), Tensor::randn([4], opts));
+            let probe = Tensor::randn([2, 4, h, w], opts);
+            let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+            let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+            let tol = if kind == Kind::Double {
+                F64_IMPL_TOL
+            } else {
+                F32_IMPL_TOL
+            };
+            assert_same(
+                &native,
+                &aten,
+                tol,
+                &format!("wrap-around {h}x{w}, {c} channels, per-item {per_item}, {kind:?}"),
+            );
+        }
     }
 }
 

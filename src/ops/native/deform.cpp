@@ -7,12 +7,13 @@
 //   output channel swapped, a cheap local transpose); the backward pass repacks it rather than
 //   keeping a weight-sized buffer alive between the passes.
 // - forward: per tile of T output pixels (rows q = b * P + p of the whole batch), gather the
-//   column tile [T, K*C] (layout: group, tap, channel) from a channels-last view of the input
-//   with the plan's four corner indices and the bilinear weights of its fractions (ly, lx), then
+//   column tile [T, K*C] (layout: group, tap, channel) from a padded channels-last copy of the
+//   input (padded_input) with the plan's top-left corners and the bilinear weights of its
+//   fractions (ly, lx), then
 //   y[T, C_out] = cols @ WP^T + bias (oneDNN for float32 with one group, else one at::mm per
 //   group), copied into the output (NCHW or channels-last, as the input). A first layer (input
 //   without gradient, <= 4 channels) keeps its whole column matrix for the weight gradient.
-// - backward, weight: the column tiles are recomputed (never stored) and
+// - backward, weight: the column tiles are recomputed (never stored; the input padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
 //   to its four corners of a channels-last gradient buffer (a scatter). Tiles run in bands of
@@ -192,6 +193,9 @@ at::Tensor dnn_linear(const Mat<const float>& a, const at::Tensor& w, const at::
 
 struct Geo {
   int64_t B, C, H, W, HW, Ho, Wo, P, K, G, Cg, Cout, Coutg;
+  // The padded input the gather reads: H + 3 rows, W + 2 columns (plan.rs, `padded_size`).
+  int64_t Hp, Wp;
+  bool wrap;  // Border::WrapX: the padding columns hold the input's last and first columns
   bool per_item;  // the plan holds one set of samples per batch item
   // Plan item of batch item b.
   int64_t item(int64_t b) const { return per_item ? b : 0; }
@@ -199,7 +203,7 @@ struct Geo {
 
 // input [B, C, H, W]; a weight [C_out, C/G, kh, kw] with kh * kw = K.
 Geo geometry(const at::Tensor& input, int64_t cout, int64_t k, int64_t ho, int64_t wo,
-             int64_t groups, bool per_item) {
+             int64_t groups, bool per_item, bool wrap) {
   Geo g{};
   g.B = input.size(0);
   g.C = input.size(1);
@@ -215,6 +219,9 @@ Geo geometry(const at::Tensor& input, int64_t cout, int64_t k, int64_t ho, int64
   g.Cout = cout;
   g.Coutg = g.Cout / groups;
   g.per_item = per_item;
+  g.Hp = g.H + 3;
+  g.Wp = g.W + 2;
+  g.wrap = wrap;
   return g;
 }
 
@@ -234,19 +241,11 @@ void parallel_tasks(int64_t n, const Init& init, const F& f) {
   });
 }
 
-// Per-thread buffers: a column tile [T, K*C], an output-sized tile [T, C_out] and a zero
-// vector for out-of-range corners.
+// Per-thread buffers: a column tile [T, K*C] and an output-sized tile [T, C_out].
 template <typename T>
 struct Scratch {
-  std::vector<T> tile, y, zero;
+  std::vector<T> tile, y;
 };
-
-// The pixel that out-of-range corners read: C zeros, at least 4 (the gather reads 3 channels as
-// vectors of 4).
-template <typename T>
-std::vector<T> zero_pixel(const Geo& g) {
-  return std::vector<T>(std::max<int64_t>(g.C, 4), T(0));
-}
 
 // Calls f(b, p0, len, offset) for the pieces of the flattened rows [q0, q0 + n) (q = b * P + p)
 // that lie in one batch item each; offset is the piece's first row within the tile.
@@ -276,140 +275,95 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
 }
 
-// The gather of one group of NC = 3, 4, 8 or 16 channels (a vector), in two stages per STAGE
-// samples: first the four corner addresses and the four bilinear weights of every sample, in
-// loops across samples that the compiler vectorises, then per sample only its four vector loads
-// and multiply-adds. Sample by sample, the index and weight arithmetic is most of the work at
-// these channel counts and runs scalar. The columns of one group are the samples' rows back to
-// back, and each value is the same expression as in gather_columns_body (the same bits).
-// Three channels (a first layer's RGB) go through vectors of four: each corner load also reads
-// the next pixel's first channel, and each sample's store writes one value past its row, which
-// the next sample's store overwrites; the call's last sample stores its three values alone (the
-// values after it belong to another call, maybe another thread's), and a corner at the last
-// pixel of the batch reads a padded copy of it (nothing is read past the input).
-// Measured in one process against the sample-by-sample gather (float32, B8, one thread, F195
-// plans): forward 8->8 at 64x64 0.73x, 16->16 at 32x32 and 128x128 0.90x; forward+backward
-// 0.87x and 0.92-0.93x. At 32 channels it was 0.98-1.05x: 32 stays sample by sample. Three
-// channels staged as scalars were 1.04-1.07x; as vectors of four (AVX2, Zen 3) the first layers'
-// forward is 0.94x (3->16 at 128x128) and 0.96x (3->8 at 64x64), 0.87x and 0.93x without grad
-// mode, forward+backward unchanged (0.99x, 1.01x). Staging the scatter the same way, or
-// reordering its samples so that neighbours' read-modify-writes of shared corners do not follow
-// each other, gave 0.96-1.18x and 1.00-1.05x: it stays as it is. Gathering all items of a
-// shared plan at once (the stage's addresses and weights computed once per batch, not per item)
-// was 0.96-1.13x forward and 0.87-1.11x forward+backward on 3-16 channels, in one process, with
-// no consistent sign: not kept.
-constexpr int64_t STAGE = 64;  // 2 KiB of addresses and 1 KiB of weights on the stack
-
-// Lanes of the vectors of gather_staged for NC channels (NC rounded up to a power of two, 0 if
-// it has no staged gather).
+// The gather of the columns of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
+// (layout: group, tap, channel within the group) from the padded channels-last input xp
+// (padded_input): a sample's corners are t, t + 1, t + Wp, t + Wp + 1 from its top-left corner t
+// (the plan's top_left; plan.rs says why every corner, inside or not, is a real pixel of the
+// padded input), each weighted by its bilinear weight: one index load per sample, no selects.
+// Against the plan's four corner indices into the unpadded input, each with a select for
+// out-of-range corners (the gather before this one, which staged the addresses of 64 samples at
+// a time), in one C++ process (float32, F195 plans, B8, one thread, Zen 3, the padding copy
+// included): 3 channels at 64x64 and 128x128 0.56-0.62x, 8 channels 0.67-0.77x, 16 channels
+// 0.74-0.81x; the same bits (each value is the same expression of the same numbers).
+// NC > 0 fixes the channel count at compile time (one group): at 3-64 channels a sample is a few
+// vector operations, so the channel loop must be unrolled and vectorised for the instruction set
+// (the callers below are multiversioned; this body is inlined into every clone). Three channels
+// (a first layer's RGB) go through vectors of four: each corner load also reads the next pixel's
+// first channel (the padded input ends with slack for it), and each sample's store writes one
+// value past its row, which the next sample's store overwrites; the call's last sample stores its
+// three values alone (the values after it belong to another call, maybe another thread's).
 template <typename T, int NC>
-constexpr int staged_lanes() {
+constexpr int gather_lanes() {
   constexpr int L = NC == 3 ? 4 : NC;
-  if constexpr (NC >= 3 && NC <= 16 && VecOf<T, L>::ok) return L;
+  if constexpr (NC >= 3 && VecOf<T, L>::ok) return L;
   return 0;
 }
 
-// Sample i of a stage: its four corners' vectors, weighted and summed (one expression for the
-// samples stored whole and for the call's last sample of 3 channels, stored value by value).
-template <typename V, typename T>
-CALIBCONV_ALWAYS_INLINE inline V staged_sample(const T* const* addr, const T (*w)[STAGE],
-                                               int64_t i) {
-  return w[0][i] * load<V>(addr[4 * i]) + w[1][i] * load<V>(addr[4 * i + 1]) +
-         w[2][i] * load<V>(addr[4 * i + 2]) + w[3][i] * load<V>(addr[4 * i + 3]);
+// Sample i's value: its four corners (from its top-left corner a, `down` values a padded row),
+// weighted and summed (one expression for the samples stored whole and the call's last sample of
+// 3 channels, stored value by value; an always-inlined template takes its caller's clone's
+// instruction set).
+template <typename V, typename T, int NC>
+CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, const T* f,
+                                               int64_t down, int64_t i) {
+  const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+  const T* a = xb + int64_t{tl[i]} * NC;
+  return (hy * hx) * load<V>(a) + (hy * lx) * load<V>(a + NC) + (ly * hx) * load<V>(a + down) +
+         (ly * lx) * load<V>(a + down + NC);
 }
 
 template <typename T, int NC>
-CALIBCONV_ALWAYS_INLINE inline void gather_staged(const Geo& g, const T* x,
-                                                  const int32_t* index, const T* frac,
-                                                  const T* zero, int64_t b, int64_t p0,
-                                                  int64_t n, T* cols) {
-  constexpr int L = staged_lanes<T, NC>();
-  using V = typename VecOf<T, L>::type;
+CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
+                                                        const int32_t* top_left, const T* frac,
+                                                        int64_t b, int64_t p0, int64_t n,
+                                                        T* cols) {
   const int64_t item = g.item(b);
-  const int64_t shift = item * (g.HW + 1), HW = g.HW;
-  const T* xb = x + b * HW * NC;
-  // (NC < L) the batch's last pixel, padded to L values, and where it is in x.
-  alignas(64) T last[L] = {};
-  const T* const tail = NC < L && b == g.B - 1 && HW > 0 ? xb + (HW - 1) * NC : nullptr;
-  if (tail) std::copy(tail, tail + NC, last);
-  const int64_t s_begin = (item * g.P + p0) * g.K, s_end = s_begin + n * g.K;
-  const T* addr[4 * STAGE];
-  alignas(64) T w[4][STAGE];
-  for (int64_t s0 = s_begin; s0 < s_end; s0 += STAGE) {
-    const int64_t m = std::min(STAGE, s_end - s0);
-    const int32_t* __restrict ix = index + 4 * s0;
-    for (int64_t j = 0; j < 4 * m; ++j) {
-      const int64_t r = ix[j] - shift;
-      const T* a = r == HW ? zero : xb + r * NC;
-      if constexpr (NC < L) a = a == tail ? last : a;
-      addr[j] = a;
-    }
-    const T* __restrict f = frac + 2 * s0;
-    for (int64_t i = 0; i < m; ++i) {
-      const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-      w[0][i] = hy * hx;
-      w[1][i] = hy * lx;
-      w[2][i] = ly * hx;
-      w[3][i] = ly * lx;
-    }
-    T* __restrict dst = cols + (s0 - s_begin) * NC;
-    // (NC < L) the call's last sample stores its NC values alone, below.
-    const int64_t vec = NC < L && s0 + m == s_end ? m - 1 : m;
-    for (int64_t i = 0; i < vec; ++i) store(dst + i * NC, staged_sample<V>(addr, w, i));
-    if (vec < m) {
-      const V v = staged_sample<V>(addr, w, vec);
-      for (int c = 0; c < NC; ++c) dst[vec * NC + c] = v[c];
-    }
-  }
-}
-
-// Gathers the column tile of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
-// (layout: group, tap, channel within the group) from the channels-last input x. NC > 0 fixes
-// the channel count at compile time (one group): at 3-32 channels the per-sample work is a few
-// vector operations, so the channel loop must be unrolled and vectorised for the instruction
-// set (the callers below are multiversioned; this body is inlined into every clone).
-template <typename T, int NC>
-CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x,
-                                                        const int32_t* index, const T* frac,
-                                                        const T* zero, int64_t b, int64_t p0,
-                                                        int64_t n, T* cols) {
-  if constexpr (NC > 0 && staged_lanes<T, NC>() > 0) {
-    return gather_staged<T, NC>(g, x, index, frac, zero, b, p0, n, cols);
-  }
-  const int64_t item = g.item(b);
-  const int64_t shift = item * (g.HW + 1);  // per-item plans index a stacked table
+  const int64_t frame = g.Hp * g.Wp;
+  const int64_t shift = item * frame;  // per-item plans index the stacked padded items
   const int64_t C = NC > 0 ? NC : g.C, Cg = NC > 0 ? NC : g.Cg, G = NC > 0 ? 1 : g.G;
-  const int64_t HW = g.HW, K = g.K;
-  const T* xb = x + b * HW * C;
-  const int64_t row = K * C;
+  const int64_t K = g.K, down = g.Wp * C;
+  const T* xb = xp + (b * frame - shift) * C;
   const int64_t s_begin = (item * g.P + p0) * K;
+  const int32_t* __restrict tl = top_left + s_begin;
+  const T* __restrict f = frac + 2 * s_begin;
+  if constexpr (NC > 0 && gather_lanes<T, NC>() > 0) {
+    // One group: the columns are the samples' rows back to back.
+    constexpr int L = gather_lanes<T, NC>();
+    using V = typename VecOf<T, L>::type;
+    const int64_t count = n * K;
+    // (NC < L) the call's last sample stores its NC values alone, below.
+    const int64_t whole = NC < L ? count - 1 : count;
+    for (int64_t i = 0; i < whole; ++i) {
+      store(cols + i * NC, gather_sample<V, T, NC>(xb, tl, f, down, i));
+    }
+    if (whole < count && count > 0) {
+      const V v = gather_sample<V, T, NC>(xb, tl, f, down, whole);
+      for (int c = 0; c < NC; ++c) cols[whole * NC + c] = v[c];
+    }
+    return;
+  }
+  const int64_t row = K * C;
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
-      const int64_t s = s_begin + t * K + k;
-      const int32_t* ix = index + s * 4;
-      const T ly = frac[2 * s], lx = frac[2 * s + 1], hy = 1 - ly, hx = 1 - lx;
+      const int64_t i = t * K + k;
+      const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
       const T w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
-      const int64_t r0 = ix[0] - shift, r1 = ix[1] - shift, r2 = ix[2] - shift,
-                    r3 = ix[3] - shift;
-      const T* __restrict a0 = r0 == HW ? zero : xb + r0 * C;
-      const T* __restrict a1 = r1 == HW ? zero : xb + r1 * C;
-      const T* __restrict a2 = r2 == HW ? zero : xb + r2 * C;
-      const T* __restrict a3 = r3 == HW ? zero : xb + r3 * C;
+      const T* __restrict a0 = xb + int64_t{tl[i]} * C;
+      const T* __restrict a1 = a0 + C;
+      const T* __restrict a2 = a0 + down;
+      const T* __restrict a3 = a2 + C;
       T* __restrict dst = cols + t * row + k * Cg;
-      if constexpr (NC > 0 && VecOf<T, NC>::ok) {
-        using V = typename VecOf<T, NC>::type;
-        store(dst, w0 * load<V>(a0) + w1 * load<V>(a1) + w2 * load<V>(a2) + w3 * load<V>(a3));
-      } else if constexpr (NC > 0) {
-        for (int i = 0; i < NC; ++i) {
-          dst[i] = w0 * a0[i] + w1 * a1[i] + w2 * a2[i] + w3 * a3[i];
+      if constexpr (NC > 0) {
+        for (int c = 0; c < NC; ++c) {
+          dst[c] = w0 * a0[c] + w1 * a1[c] + w2 * a2[c] + w3 * a3[c];
         }
       } else {
         for (int64_t gi = 0; gi < G; ++gi) {
           const int64_t o = gi * Cg;
           T* __restrict d = dst + gi * K * Cg;
           CALIBCONV_IVDEP
-          for (int64_t i = 0; i < Cg; ++i) {
-            d[i] = w0 * a0[o + i] + w1 * a1[o + i] + w2 * a2[o + i] + w3 * a3[o + i];
+          for (int64_t c = 0; c < Cg; ++c) {
+            d[c] = w0 * a0[o + c] + w1 * a1[o + c] + w2 * a2[o + c] + w3 * a3[o + c];
           }
         }
       }
@@ -473,10 +427,10 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gx,
 // The multiversioned entry points, one per (element type, fixed channel count): NC = 0 is the
 // general case (any channels, any groups).
 #define CALIBCONV_TILE_KERNELS(T, NC)                                                          \
-  CALIBCONV_CLONES void gather_##T##_##NC(const Geo& g, const T* x, const int32_t* index,      \
-                                          const T* frac, const T* zero, int64_t b, int64_t p0, \
-                                          int64_t n, T* cols) {                                \
-    gather_columns_body<T, NC>(g, x, index, frac, zero, b, p0, n, cols);                       \
+  CALIBCONV_CLONES void gather_##T##_##NC(const Geo& g, const T* xp, const int32_t* top_left, \
+                                          const T* frac, int64_t b, int64_t p0, int64_t n,     \
+                                          T* cols) {                                           \
+    gather_columns_body<T, NC>(g, xp, top_left, frac, b, p0, n, cols);                         \
   }                                                                                            \
   CALIBCONV_CLONES void scatter_##T##_##NC(const Geo& g, T* gx, const int32_t* index,          \
                                            const T* frac, int64_t b, int64_t p0, int64_t n,    \
@@ -499,8 +453,8 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // The kernels of one element type, picked by channel count (one group) once per call.
 template <typename T>
 struct TileKernels {
-  using Gather = void (*)(const Geo&, const T*, const int32_t*, const T*, const T*, int64_t,
-                          int64_t, int64_t, T*);
+  using Gather = void (*)(const Geo&, const T*, const int32_t*, const T*, int64_t, int64_t,
+                          int64_t, T*);
   using Scatter = void (*)(const Geo&, T*, const int32_t*, const T*, int64_t, int64_t, int64_t,
                            const T*);
   Gather gather;
@@ -543,13 +497,13 @@ SmallKernels small_kernels(const Geo& g) {
 }
 
 // Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
-// piece by piece within batch items (for_items), from the channels-last input x.
+// piece by piece within batch items (for_items), from the padded channels-last input xp.
 template <typename T>
-void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* x, const int32_t* index,
-                 const T* frac, const T* zero, int64_t q0, int64_t n, T* cols) {
+void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* xp, const int32_t* top_left,
+                 const T* frac, int64_t q0, int64_t n, T* cols) {
   const int64_t kc = g.K * g.C;
   for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-    kern.gather(g, x, index, frac, zero, b, p0, len, cols + off * kc);
+    kern.gather(g, xp, top_left, frac, b, p0, len, cols + off * kc);
   });
 }
 
@@ -713,19 +667,68 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
   return weight.reshape({g.G, g.Coutg, g.Cg, g.K}).transpose(2, 3).contiguous();
 }
 
+// Values of slack after the padded input: the gather's vector-of-four loads of 3 channels read
+// one value past a pixel.
+constexpr int64_t PAD_SLACK = 4;
+
+// The input as the gather reads it: channels-last, padded to [B, H + 3, W + 2, C] (one row above,
+// two below, one column on each side; see `padded_size` in plan.rs) with zeros, or with
+// Border::WrapX the input's last column in the left padding column and its first in the right;
+// then PAD_SLACK zeros. A copy of the input (a few percent of the gather's reads, which are
+// 4 * K values a pixel); an NCHW input of few channels (an image) is transposed in the same pass.
+template <typename T>
+at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
+  const bool direct = !input.is_contiguous(at::MemoryFormat::ChannelsLast) && g.C <= 4;
+  const at::Tensor x = direct ? input.contiguous() : channels_last<T>(input);
+  const int64_t C = g.C, H = g.H, W = g.W, Wp = g.Wp, Hp = g.Hp, frame = Hp * Wp * C;
+  at::Tensor out = at::empty({g.B * frame + PAD_SLACK}, x.options());
+  const T* src = x.const_data_ptr<T>();
+  T* dst = out.mutable_data_ptr<T>();
+  std::fill(dst + g.B * frame, dst + g.B * frame + PAD_SLACK, T(0));
+  const int64_t grain = std::max<int64_t>(1, (1 << 15) / std::max<int64_t>(1, Wp * C));
+  at::parallel_for(0, g.B * Hp, grain, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      const int64_t b = r / Hp, y = r % Hp - 1;
+      T* d = dst + r * Wp * C;
+      if (y < 0 || y >= H) {
+        std::fill(d, d + Wp * C, T(0));
+        continue;
+      }
+      T* row = d + C;  // column 0
+      if (direct) {  // NCHW: row y of every channel plane
+        const T* s = src + b * C * g.HW + y * W;
+        for (int64_t x0 = 0; x0 < W; ++x0) {
+          for (int64_t c = 0; c < C; ++c) row[x0 * C + c] = s[c * g.HW + x0];
+        }
+      } else {
+        const T* s = src + (b * g.HW + y * W) * C;
+        std::copy(s, s + W * C, row);
+      }
+      if (g.wrap) {
+        std::copy(row + (W - 1) * C, row + W * C, d);
+        std::copy(row, row + C, row + W * C);
+      } else {
+        std::fill(d, d + C, T(0));
+        std::fill(row + W * C, row + (W + 1) * C, T(0));
+      }
+    }
+  });
+  return out;
+}
+
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
-                        const at::Tensor& bias, const at::Tensor& index, const at::Tensor& frac,
-                        const at::Tensor& keep) {
+                        const at::Tensor& bias, const at::Tensor& top_left,
+                        const at::Tensor& frac, const at::Tensor& keep) {
   const auto fmt = memory_format(input);
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
-  const at::Tensor x = channels_last<T>(input);
+  const at::Tensor x = padded_input<T>(input, g);
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
   const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
   const T* bp = bias.defined() ? bias_c.const_data_ptr<T>() : nullptr;
   const T* xp = x.const_data_ptr<T>();
   const T* wpp = wp.const_data_ptr<T>();
-  const int32_t* ip = index.const_data_ptr<int32_t>();
+  const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
@@ -747,8 +750,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
     const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
-    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(y_rows * g.Cout),
-                      zero_pixel<T>(g)};
+    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(y_rows * g.Cout)};
   };
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
@@ -762,7 +764,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
         for (int64_t t0 = 0; t0 < n; t0 += block) {
           const int64_t m = std::min(block, n - t0);
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
-          gather_rows(g, kern, xp, ip, fp, s.zero.data(), q0 + t0, m, cb);
+          gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cb);
           small.forward(cb, m, kc, wtp, bp, yp + t0 * g.Cout);
         }
         if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
@@ -770,7 +772,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       }
     }
     T* tp = kp ? kp + q0 * kc : s.tile.data();
-    gather_rows(g, kern, xp, ip, fp, s.zero.data(), q0, n, tp);
+    gather_rows(g, kern, xp, tp_left, fp, q0, n, tp);
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
         const Mat<const float> cols{tp, n, kc, kc, 1};
@@ -804,12 +806,12 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
 // Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
-                            const at::Tensor& index, const at::Tensor& frac,
+                            const at::Tensor& top_left, const at::Tensor& frac,
                             const at::Tensor& kept) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
-  // The columns the forward pass kept, or the channels-last input to gather them again from.
+  // The columns the forward pass kept, or the padded input to gather them again from.
   const T* kp = kept.defined() ? kept.const_data_ptr<T>() : nullptr;
-  const at::Tensor x = kp ? input : channels_last<T>(input);
+  const at::Tensor x = kp ? input : padded_input<T>(input, g);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
   const bool whole = whole_rows(total, kc, g.Cout * kcg);
@@ -830,7 +832,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const auto acc = [&](int64_t chunk) { return chunk == 0 ? gwp : rp + (chunk - 1) * wsize; };
   const T* xp = x.const_data_ptr<T>();
   const T* gp = gy.const_data_ptr<T>();
-  const int32_t* ip = index.const_data_ptr<int32_t>();
+  const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   const TileKernels<T> kern = tile_kernels<T>(g);
   const auto small = small_kernels<T>(g).weight_gradient;
@@ -840,7 +842,6 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
   const auto body = [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
-    const std::vector<T> zero = zero_pixel<T>(g);
     // Few output channels: the chunk's sum transposed, [K*C, C_out], added to its accumulator
     // at the end of the chunk.
     std::vector<T> acc_t(small ? kc * g.Cout : 0);
@@ -855,14 +856,14 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
             for (int64_t t0 = 0; t0 < n; t0 += block) {
               const int64_t m = std::min(block, n - t0);
               const float* cb = kp ? kp + (q0 + t0) * kc : cols.data();
-              if (!kp) gather_rows(g, kern, xp, ip, fp, zero.data(), q0 + t0, m, cols.data());
+              if (!kp) gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cols.data());
               small(cb, m, kc, yt + t0 * g.Cout, acc_t.data());
             }
             continue;
           }
         }
         const T* cp = kp ? kp + q0 * kc : cols.data();
-        if (!kp) gather_rows(g, kern, xp, ip, fp, zero.data(), q0, n, cols.data());
+        if (!kp) gather_rows(g, kern, xp, tp_left, fp, q0, n, cols.data());
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
             const Mat<const float> cols_t{cp, kc, n, 1, kc};
@@ -991,7 +992,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
   auto init = [&] {
-    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout), {}};
+    return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout)};
   };
   // Rows [first, second) of the flattened (item, pixel) rows of task `task` of phase `phase`.
   const auto task_rows = [&](int64_t phase, int64_t task) {
@@ -1073,22 +1074,25 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
 struct DeformConv : public torch::autograd::Function<DeformConv> {
   static at::Tensor forward(AutogradContext* ctx, const at::Tensor& input,
                             const at::Tensor& weight, const at::Tensor& bias,
-                            const at::Tensor& index, const at::Tensor& frac,
-                            const at::Tensor& rows, int64_t ho, int64_t wo, int64_t groups,
-                            bool per_item, bool has_bias, bool grad_mode) {
+                            const at::Tensor& index, const at::Tensor& top_left,
+                            const at::Tensor& frac, const at::Tensor& rows, int64_t ho,
+                            int64_t wo, int64_t groups, bool per_item, bool wrap, bool has_bias,
+                            bool grad_mode) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
-                           per_item);
+                           per_item, wrap);
     const at::Tensor wp = pack_weight(weight, g);
     // The weight (a parameter, alive anyway) rather than its packed copy: the backward pass
     // repacks it, so no weight-sized buffer lives from forward to backward.
     ctx->save_for_backward({input, weight});
     ctx->saved_data["index"] = index;
+    ctx->saved_data["top_left"] = top_left;
     ctx->saved_data["frac"] = frac;
     ctx->saved_data["rows"] = rows;
     ctx->saved_data["ho"] = ho;
     ctx->saved_data["wo"] = wo;
     ctx->saved_data["groups"] = groups;
     ctx->saved_data["per_item"] = per_item;
+    ctx->saved_data["wrap"] = wrap;
     ctx->saved_data["has_bias"] = has_bias;
     // A first layer (its input, the image, needs no gradient) with few channels: its column
     // matrix is small (K*C values a pixel) and the weight gradient would gather it again, at a
@@ -1104,7 +1108,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
-      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), index, frac,
+      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), top_left, frac,
                                    keep);
     });
     return out;
@@ -1119,7 +1123,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     auto& d = ctx->saved_data;
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3),
                            d["ho"].toInt(), d["wo"].toInt(), d["groups"].toInt(),
-                           d["per_item"].toBool());
+                           d["per_item"].toBool(), d["wrap"].toBool());
     // The output gradient is read in place if it is NCHW- or channels-last-contiguous.
     at::Tensor gy = grads[0];
     if (!gy.is_contiguous() && !gy.is_contiguous(at::MemoryFormat::ChannelsLast)) {
@@ -1129,8 +1133,8 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
-        gw = grad_weight_impl<scalar_t>(g, input, gy, d["index"].toTensor(), d["frac"].toTensor(),
-                                        kept)
+        gw = grad_weight_impl<scalar_t>(g, input, gy, d["top_left"].toTensor(),
+                                        d["frac"].toTensor(), kept)
                  .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
@@ -1141,8 +1145,9 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     if (d["has_bias"].toBool() && ctx->needs_input_grad(2)) {
       gb = gy.sum({0, 2, 3});
     }
-    return {gx,           gw,           gb,           at::Tensor(), at::Tensor(), at::Tensor(),
-            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
+    return {gx,           gw,           gb,           at::Tensor(), at::Tensor(),
+            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(),
+            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
   }
 };
 
@@ -1162,15 +1167,15 @@ extern "C" {
 // (release it with calibconv_free_error).
 char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* weight,
                                   const at::Tensor* bias, const at::Tensor* index,
-                                  const at::Tensor* frac, const at::Tensor* rows, int64_t ho,
-                                  int64_t wo, int64_t groups, int32_t per_item,
-                                  at::Tensor** out) {
+                                  const at::Tensor* top_left, const at::Tensor* frac,
+                                  const at::Tensor* rows, int64_t ho, int64_t wo, int64_t groups,
+                                  int32_t per_item, int32_t wrap, at::Tensor** out) {
   try {
     // autograd Functions take defined tensors: no bias is an empty tensor and a flag.
     const at::Tensor none = bias ? at::Tensor() : at::empty({0}, input->options());
-    at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *index, *frac, *rows, ho,
-                                     wo, groups, per_item != 0, bias != nullptr,
-                                     at::GradMode::is_enabled());
+    at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *index, *top_left,
+                                     *frac, *rows, ho, wo, groups, per_item != 0, wrap != 0,
+                                     bias != nullptr, at::GradMode::is_enabled());
     *out = new at::Tensor(std::move(y));
     return nullptr;
   } catch (const std::exception& e) {

@@ -19,12 +19,14 @@ extern "C" {
         weight: *const C_tensor,
         bias: *const C_tensor,
         index: *const C_tensor,
+        top_left: *const C_tensor,
         frac: *const C_tensor,
         rows: *const C_tensor,
         ho: i64,
         wo: i64,
         groups: i64,
         per_item: i32,
+        wrap: i32,
         out: *mut *mut C_tensor,
     ) -> *mut c_char;
     fn calibconv_free_error(message: *mut c_char);
@@ -87,12 +89,14 @@ pub(super) fn deform_conv2d_cpu(
             weight.as_ptr(),
             bias.map_or(std::ptr::null(), |b| b.as_ptr()),
             index.as_ptr(),
+            plan.top_left().as_ptr(),
             frac.as_ptr(),
             plan.rows().as_ptr(),
             ho,
             wo,
             groups,
             i32::from(plan.batch().is_some()),
+            i32::from(plan.border() == super::plan::Border::WrapX),
             &mut out,
         )
     };
