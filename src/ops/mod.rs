@@ -44,7 +44,8 @@
 //!     it is the GEMM library) from 32 output channels on (below, its reduction over pixels was
 //!     slower than MKL's).
 //!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
-//!     to its four corners of a channels-last buffer. Tiles run in bands of output rows in two
+//!     to its four corners of a padded channels-last buffer (from its top-left corner, as the
+//!     gather; the padding is dropped at the end). Tiles run in bands of output rows in two
 //!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
 //!     16 bands per batch up) for which the input rows read by two bands of the same phase are
 //!     disjoint (from the plan's row ranges); with one band per item a task takes whole items.

@@ -18,7 +18,6 @@ extern "C" {
         input: *const C_tensor,
         weight: *const C_tensor,
         bias: *const C_tensor,
-        index: *const C_tensor,
         top_left: *const C_tensor,
         frac: *const C_tensor,
         rows: *const C_tensor,
@@ -76,7 +75,7 @@ pub(super) fn deform_conv2d_cpu(
     groups: i64,
 ) -> Result<Tensor> {
     let kind = input.kind();
-    let (index, frac) = plan.samples();
+    let frac = plan.samples().1;
     let frac = frac.to_kind(kind);
     let [ho, wo] = plan.output_size();
     let mut out: *mut C_tensor = std::ptr::null_mut();
@@ -88,7 +87,6 @@ pub(super) fn deform_conv2d_cpu(
             input.as_ptr(),
             weight.as_ptr(),
             bias.map_or(std::ptr::null(), |b| b.as_ptr()),
-            index.as_ptr(),
             plan.top_left().as_ptr(),
             frac.as_ptr(),
             plan.rows().as_ptr(),
