@@ -300,15 +300,28 @@ constexpr int gather_lanes() {
   return 0;
 }
 
+// Lanes of the vectors that the gather and the scatter of NC channels compute with: NC (4 for
+// 3), at most 32 bytes. Wider channel vectors go in chunks of 32 bytes: GCC 12 lowers a store
+// of a vector wider than the clone's registers, inside these loops, through the stack (spills,
+// general-register moves, four 16-byte stores that read back across two 32-byte writes, a
+// store-forwarding stall), which made 16 float channels' gather on AVX2 ~2x slower than 8's per
+// value; in 32-byte chunks it is two plain stores (the same values: each lane is the same
+// expression).
+template <typename T, int NC>
+constexpr int chunk_lanes() {
+  constexpr int L = NC == 3 ? 4 : NC, most = static_cast<int>(32 / sizeof(T));
+  return L < most ? L : most;
+}
+
 // Sample i's value: its four corners (from its top-left corner a, `down` values a padded row),
 // weighted and summed (one expression for the samples stored whole and the call's last sample of
 // 3 channels, stored value by value; an always-inlined template takes its caller's clone's
 // instruction set).
 template <typename V, typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, const T* f,
-                                               int64_t down, int64_t i) {
+                                               int64_t down, int64_t i, int c0) {
   const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-  const T* a = xb + int64_t{tl[i]} * NC;
+  const T* a = xb + int64_t{tl[i]} * NC + c0;
   return (hy * hx) * load<V>(a) + (hy * lx) * load<V>(a + NC) + (ly * hx) * load<V>(a + down) +
          (ly * lx) * load<V>(a + down + NC);
 }
@@ -329,16 +342,18 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const T* __restrict f = frac + 2 * s_begin;
   if constexpr (NC > 0 && gather_lanes<T, NC>() > 0) {
     // One group: the columns are the samples' rows back to back.
-    constexpr int L = gather_lanes<T, NC>();
-    using V = typename VecOf<T, L>::type;
+    constexpr int L = gather_lanes<T, NC>(), CL = chunk_lanes<T, NC>();
+    using V = typename VecOf<T, CL>::type;
     const int64_t count = n * K;
     // (NC < L) the call's last sample stores its NC values alone, below.
     const int64_t whole = NC < L ? count - 1 : count;
     for (int64_t i = 0; i < whole; ++i) {
-      store(cols + i * NC, gather_sample<V, T, NC>(xb, tl, f, down, i));
+      for (int c0 = 0; c0 < L; c0 += CL) {
+        store(cols + i * NC + c0, gather_sample<V, T, NC>(xb, tl, f, down, i, c0));
+      }
     }
-    if (whole < count && count > 0) {
-      const V v = gather_sample<V, T, NC>(xb, tl, f, down, whole);
+    if (whole < count && count > 0) {  // NC = 3: one chunk
+      const V v = gather_sample<V, T, NC>(xb, tl, f, down, whole, 0);
       for (int c = 0; c < NC; ++c) cols[whole * NC + c] = v[c];
     }
     return;
@@ -413,8 +428,11 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
         T* __restrict dst = a + corner[c];
         const T wc = w[c];
         if constexpr (NC > 0 && VecOf<T, NC>::ok) {
-          using V = typename VecOf<T, NC>::type;
-          store(dst, load<V>(dst) + wc * load<V>(src));
+          constexpr int CL = chunk_lanes<T, NC>();
+          using V = typename VecOf<T, CL>::type;
+          for (int c0 = 0; c0 < NC; c0 += CL) {
+            store(dst + c0, load<V>(dst + c0) + wc * load<V>(src + c0));
+          }
         } else if constexpr (NC > 0) {
           for (int j = 0; j < NC; ++j) dst[j] += wc * src[j];
         } else {
