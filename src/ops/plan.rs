@@ -85,36 +85,36 @@ impl ConvGeometry {
 /// Precomputed bilinear sampling of a deformable convolution with fixed offsets.
 ///
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
-/// times `B` for per-item offsets), `index` `[N * 4]` (int32) holds the flat indices of the four
-/// bilinear corners (top-left, top-right, bottom-left, bottom-right) into the input's `H*W`
-/// pixels, with one extra zero row at index `H*W` for corners outside the input (or wrapped
-/// around, [`Border`]), and `frac` `[N * 2]` the fractional parts `(ly, lx)` of the sample
-/// position, from which the corner weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx`
-/// ([`SamplingPlan::f_weights`]). Every border rule only remaps corner indices, so the weights are
-/// the same for all of them, and storing two fractions instead of four weights makes the plan a
-/// quarter smaller (24 bytes a sample). Per-item plans index a table that stacks the items, each
-/// followed by its zero row: item `b`'s indices are offset by `b * (H*W + 1)`.
+/// times `B` for per-item offsets), `top_left` `[N]` (int32, CPU) holds the index of each
+/// sample's top-left bilinear corner in the input *padded* by one row above, two below and one
+/// column on each side (`(H + 3) x (W + 2)` pixels, [`padded_size`]; per-item plans index the
+/// stacked padded items, item `b`'s indices offset by `b * (H + 3) * (W + 2)`), and `frac`
+/// `[N * 2]` the fractional parts `(ly, lx)` of the sample position, from which the corner
+/// weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` ([`SamplingPlan::f_weights`]);
+/// 12 bytes a float32 sample. In the padded input a sample's four corners (top-left, top-right,
+/// bottom-left, bottom-right) are always `t, t + 1, t + W + 2, t + W + 3`: a sample inside
+/// (`-1 < y < H`, `-1 < x < W`; torchvision's rule) has its top-left corner in rows `-1..H` and
+/// columns `-1..W`, so corners off the input read the padding's zeros, and a sample outside
+/// points at the block of rows `H..H+2`, columns `-1..1`, all zeros (fractions 0). With
+/// [`Border::WrapX`] the top-left corner's column is taken modulo `W` and the right padding
+/// column holds the input's first column (the native kernels fill it so). Every border rule
+/// only moves corners, so the weights are the same for all of them. The native CPU kernels read
+/// this form: one index a sample, no selects for corners off the input (against four corner
+/// indices with a select each, the gather of 3-16 channels took 0.6-0.8x the time).
 ///
-/// A column is then one weighted "bag" of four rows of a pixel-major table, which libtorch's
-/// `embedding_bag` computes (and differentiates) in one fused op (the ATen path); the native CPU
-/// kernels read the same indices and weights. `rows` `[items, H_out, 2]` (int32) holds, per
+/// The ATen path (any device) computes a column as one weighted "bag" of four rows of a
+/// pixel-major table with libtorch's `embedding_bag`, which computes (and differentiates) it in
+/// one fused op: its indices ([`SamplingPlan::corner_index`]) point into the input's `H*W`
+/// pixels, with one extra zero row at index `H*W` for corners outside the input, items stacked
+/// each with its zero row. A CPU plan derives them when asked; a plan moved to another device
+/// keeps them (16 more bytes a sample there). `rows` `[items, H_out, 2]` (int32) holds, per
 /// output row, the lowest and highest input row its in-range corners read (lowest > highest if
 /// none): the native input gradient schedules its scatter with it.
-///
-/// The native CPU gather reads a third form, `top_left` `[N]` (int32, CPU): the index of each
-/// sample's top-left corner in the input *padded* by one row above, two below, one column left
-/// and one right ([`padded_size`]; per-item plans stack the padded items). There the four corners
-/// are always `t, t + 1, t + W + 2, t + W + 3`: a sample inside (`-1 < y < H`, `-1 < x < W`) has
-/// its top-left corner in rows `-1..H` and columns `-1..W`, so corners off the input read the
-/// padding's zeros, and a sample outside points at the block of rows `H..H+2`, column `-1..1`,
-/// all zeros. With [`Border::WrapX`] the right padding column holds the input's first column
-/// (the gather fills it so), and a corner's column is taken modulo `W` as in `index`. One load
-/// per sample instead of four indices and four selects: the gather of 3-16 channels takes
-/// 0.6-0.8x the time.
 #[derive(Debug)]
 pub struct SamplingPlan {
-    /// `[N * 4]` int32: four corners per sample.
-    index: Tensor,
+    /// `[N * 4]` int32: four corners per sample, kept on devices other than the CPU only (see
+    /// [`SamplingPlan::corner_index`]).
+    index: Option<Tensor>,
     /// `[N]` int32 (CPU): each sample's top-left corner in the padded input.
     top_left: Tensor,
     /// `[N * 2]`: `(ly, lx)` per sample, in the plan's kind.
@@ -214,7 +214,6 @@ impl Layout {
         &self,
         off: &[O],
         row: usize,
-        idx: &mut [i32],
         top_left: &mut [i32],
         frac: &mut [W],
     ) -> [i32; 2] {
@@ -228,10 +227,8 @@ impl Layout {
         let taps = (kh * kw) as usize;
         let (plane, wo_u) = ((ho * wo) as usize, wo as usize);
         let (item, oy) = (row as i64 / ho, row as i64 % ho);
-        // Per-item tables stack the items' pixels, each followed by its zero row.
-        let base = if self.per_item { item * (h * w + 1) } else { 0 };
-        let zero = (base + h * w) as i32;
-        // The same in the padded input: this item's first padded pixel, and the zero block.
+        // Per-item plans stack the padded items: this item's first padded pixel, and its zero
+        // block.
         let [hp, wp] = padded_size([h, w]);
         let padded_base = if self.per_item { item * hp * wp } else { 0 };
         let blank = (padded_base + (h + 1) * wp) as i32;
@@ -248,23 +245,21 @@ impl Layout {
             (y, j * dilation[1] - padding[1], dy, dx)
         };
         let taps_of_row: Vec<_> = (0..taps).map(tap).collect();
-        let (idx, frac) = (&mut idx[..4 * taps * wo_u], &mut frac[..2 * taps * wo_u]);
-        let top_left = &mut top_left[..taps * wo_u];
+        let (top_left, frac) = (&mut top_left[..taps * wo_u], &mut frac[..2 * taps * wo_u]);
         if !wrap {
             let args = [stride[1], h, w];
-            let bases = [base, padded_base];
-            let out = (idx, top_left, frac);
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx2") && !portable_fill_only() {
                 // SAFETY: the CPU has AVX2, the only feature the function enables.
-                return unsafe { fill_row_zeros_avx2(&taps_of_row, args, zero, bases, out) };
+                return unsafe {
+                    fill_row_zeros_avx2(&taps_of_row, args, padded_base, top_left, frac)
+                };
             }
-            return fill_row_zeros(&taps_of_row, args, zero, bases, out);
+            return fill_row_zeros(&taps_of_row, args, padded_base, top_left, frac);
         }
         let mut reach = [i32::MAX, i32::MIN];
-        for (ox, ((corners, fracs), tls)) in idx
-            .chunks_exact_mut(4 * taps)
-            .zip(frac.chunks_exact_mut(2 * taps))
+        for (ox, (fracs, tls)) in frac
+            .chunks_exact_mut(2 * taps)
             .zip(top_left.chunks_exact_mut(taps))
             .enumerate()
         {
@@ -275,29 +270,16 @@ impl Layout {
                 // `!(a < b)` rather than `a >= b`: NaN lands outside as well.
                 let outside =
                     !(y > -1.0 && y < hf && x.is_finite() && (wrap || (x > -1.0 && x < wf)));
-                let c = &mut corners[4 * k..4 * k + 4];
                 let f = &mut fracs[2 * k..2 * k + 2];
                 if outside {
-                    c.fill(zero);
                     f.fill(W::from_f64(0.0));
                     tls[k] = blank;
                     continue;
                 }
                 let (fy, fx) = (floor(y), floor(x));
-                let (y0, mut x0) = (fy as i64, fx as i64);
-                let mut x1 = x0 + 1;
-                if wrap {
-                    x0 = x0.rem_euclid(w);
-                    x1 = x1.rem_euclid(w);
-                }
-                let (top, bottom) = (y0 >= 0, y0 + 1 < h);
-                let (left, right) = (x0 >= 0 && x0 < w, x1 >= 0 && x1 < w);
-                let row0 = base + y0 * w;
-                let pick = |ok: bool, at: i64| if ok { at as i32 } else { zero };
-                c[0] = pick(top && left, row0 + x0);
-                c[1] = pick(top && right, row0 + x1);
-                c[2] = pick(bottom && left, row0 + w + x0);
-                c[3] = pick(bottom && right, row0 + w + x1);
+                // Wrapped: the top-left corner's column modulo w (its right neighbour, column
+                // w, is the padding column that holds column 0).
+                let (y0, x0) = (fy as i64, (fx as i64).rem_euclid(w));
                 tls[k] = (padded_base + (y0 + 1) * wp + x0 + 1) as i32;
                 // Corner rows are floor(y) and floor(y) + 1 (a superset is safe).
                 reach = [reach[0].min(y0 as i32), reach[1].max(y0 as i32 + 1)];
@@ -326,7 +308,8 @@ impl Layout {
         let taps = self.geom.kernel[0] * self.geom.kernel[1];
         let items = batch.unwrap_or(1);
         let samples = (items * ho * wo * taps) as usize;
-        // Indices are int32 (half the memory of int64); refuse what overflows.
+        // Indices are int32 (half the memory of int64); refuse what overflows (the ATen path's
+        // corner indices as well).
         let [hp, wp] = padded_size([h, w]);
         if items * hp * wp > i32::MAX as i64 || 4 * samples > i32::MAX as usize {
             return Err(Error::InvalidArgument(format!(
@@ -335,38 +318,32 @@ impl Layout {
             )));
         }
         let row = (wo * taps) as usize;
-        let index = Tensor::empty([4 * samples as i64], (Kind::Int, Device::Cpu));
-        // SAFETY: `index` is a fresh contiguous int32 CPU tensor of `4 * samples` elements, only
-        // written through this slice (by disjoint row chunks) before it is moved into the plan.
-        let idx = unsafe { elements_mut::<i32>(index.data_ptr(), 4 * samples) };
-        calibconv_geometry::memory::advise_huge_pages(idx);
         let top_left = Tensor::empty([samples as i64], (Kind::Int, Device::Cpu));
-        // SAFETY: as `index`: fresh, contiguous int32 CPU, `samples` elements, only this slice.
+        // SAFETY: `top_left` is a fresh contiguous int32 CPU tensor of `samples` elements, only
+        // written through this slice (by disjoint row chunks) before it is moved into the plan.
         let tl = unsafe { elements_mut::<i32>(top_left.data_ptr(), samples) };
         calibconv_geometry::memory::advise_huge_pages(tl);
         let mut reach: Vec<[i32; 2]> = Vec::new();
         fn rows_of<O: Copy + Into<f64> + Sync, W: PlanFloat>(
             layout: &Layout,
             off: &[O],
-            (idx, tl): (&mut [i32], &mut [i32]),
+            tl: &mut [i32],
             frac: &mut [W],
             row: usize,
         ) -> Vec<[i32; 2]> {
-            idx.par_chunks_mut(4 * row)
-                .zip(tl.par_chunks_mut(row))
+            tl.par_chunks_mut(row)
                 .zip(frac.par_chunks_mut(2 * row))
                 .enumerate()
-                .map(|(r, ((i, t), f))| layout.fill_row(off, r, i, t, f))
+                .map(|(r, (t, f))| layout.fill_row(off, r, t, f))
                 .collect()
         }
-        let out = (idx, tl);
         let frac = match kind {
-            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, out, f, row)),
-            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, out, f, row)),
+            Kind::Float => filled::<f32>(2 * samples, |f| reach = rows_of(self, off, tl, f, row)),
+            _ => filled::<f64>(2 * samples, |f| reach = rows_of(self, off, tl, f, row)),
         };
         let rows: Vec<i32> = reach.into_iter().flatten().collect();
         Ok(SamplingPlan {
-            index,
+            index: None,
             top_left,
             frac,
             rows: Tensor::from_slice(&rows),
@@ -475,13 +452,15 @@ impl SamplingPlan {
         layout.build(&offsets.data, None, kind)
     }
 
-    /// The same plan with its tensors on `device` (shared, not copied, if already there).
+    /// The same plan with its tensors on `device` (shared, not copied, if already there). On a
+    /// device other than the CPU the plan keeps the corner indices of the ATen path (the
+    /// top-left corners stay on the CPU).
     pub fn to_device(&self, device: Device) -> Self {
         if device == self.device() {
             return self.shallow_clone();
         }
         SamplingPlan {
-            index: self.index.to_device(device),
+            index: (device != Device::Cpu).then(|| self.corner_index().to_device(device)),
             top_left: self.top_left.shallow_clone(),
             frac: self.frac.to_device(device),
             rows: self.rows.shallow_clone(),
@@ -492,7 +471,7 @@ impl SamplingPlan {
     /// Another handle on the same tensors (no copy; libtorch reference counting).
     pub fn shallow_clone(&self) -> Self {
         SamplingPlan {
-            index: self.index.shallow_clone(),
+            index: self.index.as_ref().map(Tensor::shallow_clone),
             top_left: self.top_left.shallow_clone(),
             frac: self.frac.shallow_clone(),
             rows: self.rows.shallow_clone(),
@@ -502,7 +481,7 @@ impl SamplingPlan {
 
     /// Whether two plans hold the same tensor storage.
     pub fn shares_storage_with(&self, other: &SamplingPlan) -> bool {
-        self.index.data_ptr() == other.index.data_ptr()
+        self.frac.data_ptr() == other.frac.data_ptr()
     }
 
     /// Output size `[H_out, W_out]`.
@@ -527,7 +506,7 @@ impl SamplingPlan {
 
     /// Device of the plan's tensors.
     pub fn device(&self) -> Device {
-        self.index.device()
+        self.frac.device()
     }
 
     /// Kind of the plan's fractions (and weights).
@@ -535,9 +514,31 @@ impl SamplingPlan {
         self.frac.kind()
     }
 
-    /// The corner indices `[N * 4]` (int32) and fractions `(ly, lx)` `[N * 2]`.
-    pub fn samples(&self) -> (&Tensor, &Tensor) {
-        (&self.index, &self.frac)
+    /// The fractions `(ly, lx)` `[N * 2]` (on the plan's device).
+    pub fn frac(&self) -> &Tensor {
+        &self.frac
+    }
+
+    /// The four bilinear corners of every sample, `[N * 4]` int32 (top-left, top-right,
+    /// bottom-left, bottom-right) as flat indices into the stacked `[H*W + 1]`-row tables of the
+    /// ATen path, on the plan's device. A CPU plan derives them from its top-left corners on
+    /// each call (one parallel pass; the native kernels never need them), a plan on another
+    /// device keeps them.
+    pub fn corner_index(&self) -> Tensor {
+        if let Some(index) = &self.index {
+            return index.shallow_clone();
+        }
+        let n = self.top_left.numel();
+        // SAFETY: `top_left` is built by this module as a contiguous int32 CPU tensor of `n`
+        // elements and never written after; it outlives the slice (a local borrow).
+        let tl: &[i32] = if n == 0 {
+            &[]
+        } else {
+            unsafe { std::slice::from_raw_parts(self.top_left.data_ptr() as *const i32, n) }
+        };
+        filled::<i32>(4 * n, |out| {
+            corners_of_top_left(tl, self.input_size, self.border, out)
+        })
     }
 
     /// `[N]` (int32, CPU): each sample's top-left corner in the padded input (see the type's
@@ -580,10 +581,16 @@ impl SamplingPlan {
 
     /// Bytes held by the plan's tensors.
     pub fn memory_bytes(&self) -> usize {
-        [&self.index, &self.top_left, &self.frac, &self.rows]
-            .iter()
-            .map(|t| t.numel() * t.kind().elt_size_in_bytes())
-            .sum()
+        [
+            Some(&self.top_left),
+            Some(&self.frac),
+            Some(&self.rows),
+            self.index.as_ref(),
+        ]
+        .into_iter()
+        .flatten()
+        .map(|t| t.numel() * t.kind().elt_size_in_bytes())
+        .sum()
     }
 
     /// The column matrix of `input`: for each output pixel, the bilinear samples of every tap
@@ -599,12 +606,13 @@ impl SamplingPlan {
             self.output_size[0] * self.output_size[1],
             self.kernel[0] * self.kernel[1],
         );
-        let n = self.index.numel() as i64 / 4;
+        let index = self.corner_index();
+        let n = index.numel() as i64 / 4;
         let bags = Tensor::f_arange_start_step(0, 4 * n, 4, (Kind::Int, self.device()))?;
         let bag = |table: &Tensor| -> Result<Tensor> {
             let (sum, _, _, _) = Tensor::f_embedding_bag(
                 table,
-                &self.index,
+                &index,
                 &bags,
                 false,
                 0, // mode: sum
@@ -689,55 +697,45 @@ fn portable_fill_only() -> bool {
 unsafe fn fill_row_zeros_avx2<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],
     geometry: [i64; 3],
-    zero: i32,
-    bases: [i64; 2],
-    out: (&mut [i32], &mut [i32], &mut [W]),
+    padded_base: i64,
+    top_left: &mut [i32],
+    frac: &mut [W],
 ) -> [i32; 2] {
-    fill_row_zeros(taps_of_row, geometry, zero, bases, out)
+    fill_row_zeros(taps_of_row, geometry, padded_base, top_left, frac)
 }
 
 /// [`Layout::fill_row`] with zeros outside (no wrap), a tap at a time so that the arithmetic
-/// vectorises: per tap, the row's samples are computed into columns (corners, fractions) by a
-/// loop without branches or bounds checks, then stored to their places in the plan. The same
-/// values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`) has corners
-/// `floor(y) (+1)`, `floor(x) (+1)` (those off the input read the zero pixel) and fractions
-/// `y - floor(y)`, `x - floor(x)`; outside, all four corners read the zero pixel and the
-/// fractions are 0. `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`;
-/// `bases`: the item's first index in the stacked input and in the stacked padded input; `out`:
-/// the row's corners, top-left corners in the padded input, and fractions.
+/// vectorises: per tap, the row's samples are computed into columns (top-left corners,
+/// fractions) by a loop without branches or bounds checks, then stored to their places in the
+/// plan. The same values as the per-sample rule: a sample inside (`-1 < y < h`, `-1 < x < w`)
+/// has its top-left corner at `(floor(y), floor(x))` of the padded input and fractions
+/// `y - floor(y)`, `x - floor(x)`; outside, it points at the zero block and the fractions are 0.
+/// `taps_of_row[k] = (y of tap k, its column offset at ox = 0, dy row, dx row)`; `padded_base`:
+/// the item's first index in the stacked padded input.
 #[inline(always)]
 fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
     taps_of_row: &[(f64, i64, &[O], &[O])],
     [stride_x, h, w]: [i64; 3],
-    zero: i32,
-    [base, padded_base]: [i64; 2],
-    (idx, top_left, frac): (&mut [i32], &mut [i32], &mut [W]),
+    padded_base: i64,
+    top_left: &mut [i32],
+    frac: &mut [W],
 ) -> [i32; 2] {
     let taps = taps_of_row.len();
-    let wo = idx.len() / (4 * taps);
+    let wo = top_left.len() / taps;
     let (hf, wf) = (h as f64, w as f64);
-    // Indices wrap in i32: a corner that is stored is a real index (< 2^31, checked when the
-    // plan is sized), and modular arithmetic gets it right whatever the intermediate values.
-    let (w32, base32) = (w as i32, base as i32);
+    // Indices wrap in i32: an index that is stored is a real one (< 2^31, checked when the plan
+    // is sized), and modular arithmetic gets it right whatever the intermediate values.
     let wp32 = padded_size([h, w])[1] as i32;
     // The padded input's first pixel of row 0 of this item (top-left corners add y0 * wp + x0),
     // and its zero block (row h, column -1) for samples outside.
     let padded_origin = (padded_base as i32).wrapping_add(wp32).wrapping_add(1);
     let blank = (padded_base as i32).wrapping_add((h as i32 + 1).wrapping_mul(wp32));
     let column: Vec<f64> = (0..wo as i64).map(|ox| (ox * stride_x) as f64).collect();
-    let mut corners = [
-        vec![0i32; wo],
-        vec![0i32; wo],
-        vec![0i32; wo],
-        vec![0i32; wo],
-    ];
     let (mut fy_col, mut fx_col) = (vec![W::from_f64(0.0); wo], vec![W::from_f64(0.0); wo]);
     let mut tl_col = vec![0i32; wo];
     let (mut lo, mut hi) = (i32::MAX, i32::MIN);
     for (k, &(ty, tx, dy, dx)) in taps_of_row.iter().enumerate() {
         let (dy, dx, column) = (&dy[..wo], &dx[..wo], &column[..wo]);
-        let [c0, c1, c2, c3] = &mut corners;
-        let (c0, c1, c2, c3) = (&mut c0[..wo], &mut c1[..wo], &mut c2[..wo], &mut c3[..wo]);
         let tl_c = &mut tl_col[..wo];
         let (fy_c, fx_c) = (&mut fy_col[..wo], &mut fx_col[..wo]);
         let txf = tx as f64;
@@ -753,14 +751,6 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
                 floor32(if inside { x } else { 0.0 }),
             );
             let (y0, x0) = (fy as i32, fx as i32);
-            let (top, bottom) = (y0 >= 0, y0 + 1 < h as i32);
-            let (left, right) = (x0 >= 0, x0 + 1 < w32);
-            let at = base32.wrapping_add(y0.wrapping_mul(w32)).wrapping_add(x0);
-            let pick = |ok: bool, v: i32| if inside & ok { v } else { zero };
-            c0[ox] = pick(top & left, at);
-            c1[ox] = pick(top & right, at.wrapping_add(1));
-            c2[ox] = pick(bottom & left, at.wrapping_add(w32));
-            c3[ox] = pick(bottom & right, at.wrapping_add(w32).wrapping_add(1));
             let padded = padded_origin
                 .wrapping_add(y0.wrapping_mul(wp32))
                 .wrapping_add(x0);
@@ -773,13 +763,46 @@ fn fill_row_zeros<O: Copy + Into<f64>, W: PlanFloat>(
         }
         for ox in 0..wo {
             let s = ox * taps + k;
-            idx[4 * s..4 * s + 4].copy_from_slice(&[c0[ox], c1[ox], c2[ox], c3[ox]]);
             top_left[s] = tl_col[ox];
             frac[2 * s] = fy_c[ox];
             frac[2 * s + 1] = fx_c[ox];
         }
     }
     [lo, hi]
+}
+
+/// The four bilinear corners of every sample (`[top_left.len() * 4]`: top-left, top-right,
+/// bottom-left, bottom-right) as flat indices into the stacked `[H*W + 1]`-row tables of the
+/// ATen path (an item's zero row last), from the samples' top-left corners in the padded input
+/// (see [`SamplingPlan`]): corners off the input, and every corner of a sample outside, are the
+/// zero row; with [`Border::WrapX`] the right corner of the last column is column 0.
+fn corners_of_top_left(top_left: &[i32], [h, w]: [i64; 2], border: Border, out: &mut [i32]) {
+    let [hp, wp] = padded_size([h, w]);
+    let (frame, blank) = (hp * wp, (h + 1) * wp);
+    let wrap = border == Border::WrapX;
+    out.par_chunks_mut(4 * 4096)
+        .zip(top_left.par_chunks(4096))
+        .for_each(|(out, tl)| {
+            for (c, &t) in out.chunks_exact_mut(4).zip(tl) {
+                let (item, r) = (t as i64 / frame, t as i64 % frame);
+                let base = item * (h * w + 1);
+                let zero = (base + h * w) as i32;
+                if r == blank {
+                    c.fill(zero);
+                    continue;
+                }
+                let (y0, x0) = (r / wp - 1, r % wp - 1);
+                let x1 = if wrap && x0 + 1 == w { 0 } else { x0 + 1 };
+                let at = |y: i64, x: i64| {
+                    if y >= 0 && y < h && x >= 0 && x < w {
+                        (base + y * w + x) as i32
+                    } else {
+                        zero
+                    }
+                };
+                c.copy_from_slice(&[at(y0, x0), at(y0, x1), at(y0 + 1, x0), at(y0 + 1, x1)]);
+            }
+        });
 }
 
 /// [`floor`] for finite `|v| < 2^31` (through i32, which vectorises).
@@ -807,7 +830,7 @@ fn floor(v: f64) -> f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::{floor, padded_size, Border, ConvGeometry, Layout};
+    use super::{corners_of_top_left, floor, padded_size, Border, ConvGeometry, Layout};
 
     thread_local! {
         /// Set by a test: `Layout::fill_row` takes the portable fill even where AVX2 is there.
@@ -931,8 +954,10 @@ mod tests {
                 let mut frac = vec![-7.0f64; 2 * row];
                 let mut top_left = vec![-7i32; row];
                 PORTABLE_FILL.with(|p| p.set(portable));
-                let reach = layout.fill_row(&off, r, &mut idx, &mut top_left, &mut frac);
+                let reach = layout.fill_row(&off, r, &mut top_left, &mut frac);
                 PORTABLE_FILL.with(|p| p.set(false));
+                // The ATen path's corner indices, derived from the top-left corners.
+                corners_of_top_left(&top_left, [h, w], border, &mut idx);
                 let (item, oy) = (r as i64 / ho, r as i64 % ho);
                 let base = if items.is_some() {
                     item * (h * w + 1)

@@ -615,8 +615,8 @@ fn plan_from_offsets_matches_plan_from_their_tensor() {
         Kind::Float,
     )
     .unwrap();
-    let ((i1, f1), (i2, f2)) = (direct.samples(), via.samples());
-    assert!(i1.equal(i2) && f1.equal(f2) && direct.rows().equal(via.rows()));
+    assert!(direct.top_left().equal(via.top_left()) && direct.frac().equal(via.frac()));
+    assert!(direct.corner_index().equal(&via.corner_index()) && direct.rows().equal(via.rows()));
     // A geometry the offsets were not computed for is an error, not a wrong plan.
     assert!(SamplingPlan::from_offsets(
         &off,
@@ -641,7 +641,7 @@ fn plan_weights_are_the_bilinear_weights() {
         Kind::Double,
     )
     .unwrap();
-    let (index, _) = plan.samples();
+    let index = plan.corner_index();
     assert_eq!(
         Vec::<i32>::try_from(index.narrow(0, 0, 4)).unwrap(),
         [7, 8, 12, 13]

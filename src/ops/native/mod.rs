@@ -75,7 +75,7 @@ pub(super) fn deform_conv2d_cpu(
     groups: i64,
 ) -> Result<Tensor> {
     let kind = input.kind();
-    let frac = plan.samples().1;
+    let frac = plan.frac();
     let frac = frac.to_kind(kind);
     let [ho, wo] = plan.output_size();
     let mut out: *mut C_tensor = std::ptr::null_mut();
