@@ -2,17 +2,20 @@
 //!
 //! # Sampling plan
 //! Offsets are data, not parameters, so all sampling is precomputed once per layer into a
-//! [`SamplingPlan`]: for every (output pixel, tap) the flat indices of the four bilinear corners
-//! (int32) and the fractional parts `(ly, lx)` of the sample position (24 bytes a sample), corners
-//! outside the input pointing at an extra zero row (torchvision's "zeros outside": a location
+//! [`SamplingPlan`]: for every (output pixel, tap) the index (int32) of its top-left bilinear
+//! corner in the input padded by one row above, two below and a column on each side, and the
+//! fractional parts `(ly, lx)` of the sample position (12 bytes a float32 sample). In the padded
+//! input the four corners are always neighbours, and torchvision's "zeros outside" (a location
 //! with `y <= -1`, `y >= H`, `x <= -1` or `x >= W` samples 0, and each out-of-range corner
-//! contributes 0; [`Border::WrapX`] instead takes columns modulo `W`). The corner weights
-//! `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` do not depend on the border rule, which only remaps
-//! indices, so every kernel below consumes any plan unchanged. The plan also records, per output
-//! row, the input rows its samples read (for the scatter schedule below), and per sample its
-//! top-left corner in the input padded by one row above, two below and a column on each side
-//! (4 more bytes a sample): there the four corners are always neighbours, which the native
-//! gather reads with one index. Plans are built in parallel over output rows, written in place.
+//! contributes 0) is the padding's zeros: corners off the input land in it, and samples wholly
+//! outside point at an all-zero block; [`Border::WrapX`] instead takes columns modulo `W` (the
+//! right padding column then holds the first column). The corner weights
+//! `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` do not depend on the border rule, which only moves
+//! corners, so every kernel below consumes any plan unchanged. The ATen path reads the four
+//! corners as flat indices into the unpadded input with an extra zero row
+//! ([`SamplingPlan::corner_index`], derived from the top-left corners). The plan also records,
+//! per output row, the input rows its samples read (for the scatter schedule below). Plans are
+//! built in parallel over output rows, written in place.
 //!
 //! # Two implementations, one semantics ([`Backend`])
 //! - **Native CPU kernels** (`native/deform.cpp` with `small_kernels.h` and `simd.h`, compiled
