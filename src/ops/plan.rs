@@ -528,15 +528,9 @@ impl SamplingPlan {
         if let Some(index) = &self.index {
             return index.shallow_clone();
         }
-        let n = self.top_left.numel();
-        // SAFETY: `top_left` is built by this module as a contiguous int32 CPU tensor of `n`
-        // elements and never written after; it outlives the slice (a local borrow).
-        let tl: &[i32] = if n == 0 {
-            &[]
-        } else {
-            unsafe { std::slice::from_raw_parts(self.top_left.data_ptr() as *const i32, n) }
-        };
-        filled::<i32>(4 * n, |out| {
+        let tl = elements::<i32>(&self.top_left)
+            .expect("a plan's top-left corners are a contiguous int32 CPU tensor");
+        filled::<i32>(4 * tl.len(), |out| {
             corners_of_top_left(tl, self.input_size, self.border, out)
         })
     }
