@@ -276,7 +276,9 @@ pub struct BenchArgs {
     #[arg(long)]
     pub full: bool,
     /// Every 3x3 layer of the tiny (64x64, B8), small (128x128, B8) and classic (256x256, B2)
-    /// U-Nets, first layers without input gradient (as in training).
+    /// U-Nets, first layers without input gradient (as in training); the training step of the
+    /// quick profile's network (tiny, 64x64) and of the study profile's (small, depth 3,
+    /// 144x160), B8 each.
     #[arg(long)]
     pub presets: bool,
     /// Also time the ATen composition (the CUDA path and the former CPU path).

@@ -262,35 +262,59 @@ pub(super) fn bench_pyramid(camera: &Camera) -> Result<PyramidResult> {
     Ok(r)
 }
 
+/// A U-Net of the training-step benchmark: what it stands for, batch, input (H, W), base
+/// channels and depth.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct UnetSpec {
+    pub(super) label: &'static str,
+    pub(super) batch: i64,
+    pub(super) input: [i64; 2],
+    pub(super) base: i64,
+    pub(super) depth: usize,
+}
+
+/// The U-Nets whose training step the benchmark times: base 32, depth 4, B2 at 256x256 (levels
+/// 256..16, 32..512 channels); `--full`: the paper's classic U-Net (base 64, 64..1024 channels);
+/// `--presets`: the networks the two CPU profiles fine-tune, the quick profile's tiny U-Net
+/// (base 8, depth 3) at B8, 64x64, and the study profile's small one at depth 3 (base 16) at B8,
+/// 144x160 (experiments/paper/profiles/study.toml: 160 px wide, 142 px high padded by 2);
+/// `--quick`: the tiny one at B1.
+pub(super) fn unet_specs(args: &Options) -> Vec<UnetSpec> {
+    let spec = |label, batch, input, base, depth| UnetSpec {
+        label,
+        batch,
+        input,
+        base,
+        depth,
+    };
+    if args.quick {
+        vec![spec("tiny", 1, [64, 64], 8, 3)]
+    } else if args.presets {
+        vec![
+            spec("quick profile: tiny", 8, [64, 64], 8, 3),
+            spec("study profile: small, depth 3", 8, [144, 160], 16, 3),
+        ]
+    } else if args.full {
+        vec![spec("classic", 2, [256, 256], 64, 4)]
+    } else {
+        vec![spec("base 32", 2, [256, 256], 32, 4)]
+    }
+}
+
 /// A training step (forward in training mode, backward, SGD update) of the project's U-Net
 /// ([`UNet`], batch norm, transposed up-sampling, 8-class segmentation head) with standard and
-/// with calibrated 3x3 kernels: base 32, depth 4, B2 at 256x256 (levels 256..16, 32..512
-/// channels); `--full`: the paper's classic U-Net (base 64, 64..1024 channels); `--presets`:
-/// the quick profile's tiny U-Net (base 8, depth 3) at B8, 64x64; `--quick`: the tiny one at B1.
+/// with calibrated 3x3 kernels (the camera's offsets at the network's input size).
 struct UnetBench {
     nets: Vec<(nn::VarStore, UNet, nn::Optimizer)>,
     x: Tensor,
-    batch: i64,
-    input: [i64; 2],
-    base: i64,
-    depth: usize,
 }
 
 impl UnetBench {
-    fn new(camera: &Camera, args: &Options) -> Result<Self> {
-        let (batch, input, base, depth) = if args.quick {
-            (1, [64, 64], 8, 3)
-        } else if args.presets {
-            (8, [64, 64], 8, 3)
-        } else if args.full {
-            (2, [256, 256], 64, 4)
-        } else {
-            (2, [256, 256], 32, 4)
-        };
+    fn new(camera: &Camera, spec: UnetSpec) -> Result<Self> {
         let config = UNetConfig {
             in_channels: 3,
-            base,
-            depth,
+            base: spec.base,
+            depth: spec.depth,
             up: UpMode::Transposed,
             head: Head::Segmentation { classes: 8 },
         };
@@ -305,19 +329,15 @@ impl UnetBench {
         for kind in &kinds {
             tch::manual_seed(0);
             let vs = nn::VarStore::new(Device::Cpu);
-            let net = UNet::new(&vs.root(), &config, kind, input)?;
+            let net = UNet::new(&vs.root(), &config, kind, spec.input)?;
             let opt = nn::Sgd::default().build(&vs, 1e-3)?;
             nets.push((vs, net, opt));
         }
-        let x = Tensor::randn([batch, 3, input[0], input[1]], (Kind::Float, Device::Cpu));
-        Ok(UnetBench {
-            nets,
-            x,
-            batch,
-            input,
-            base,
-            depth,
-        })
+        let x = Tensor::randn(
+            [spec.batch, 3, spec.input[0], spec.input[1]],
+            (Kind::Float, Device::Cpu),
+        );
+        Ok(UnetBench { nets, x })
     }
 
     /// One training step of net 0 (standard) or 1 (calibrated).
@@ -328,17 +348,23 @@ impl UnetBench {
     }
 }
 
-pub(super) fn bench_unet(camera: &Camera, args: &Options) -> Result<UnetResult> {
-    let mut nets = UnetBench::new(camera, args)?;
+pub(super) fn bench_unet(camera: &Camera, args: &Options) -> Result<Vec<UnetResult>> {
+    unet_specs(args)
+        .into_iter()
+        .map(|spec| bench_one_unet(camera, spec, args.quick))
+        .collect()
+}
+
+fn bench_one_unet(camera: &Camera, spec: UnetSpec, quick: bool) -> Result<UnetResult> {
+    let mut nets = UnetBench::new(camera, spec)?;
     nets.step(0);
     nets.step(1);
     let t_ref = time_ms(&mut || nets.step(0));
-    let reps = if args.quick {
+    let reps = if quick {
         MIN_REPS
     } else {
         ((2.0 * BUDGET_S * 1e3 / t_ref).round() as usize).clamp(MIN_REPS, MAX_REPS)
     };
-    let (batch, input, base, depth) = (nets.batch, nets.input, nets.base, nets.depth);
     let nets = std::cell::RefCell::new(nets);
     let pairs = paired(
         reps,
@@ -346,7 +372,15 @@ pub(super) fn bench_unet(camera: &Camera, args: &Options) -> Result<UnetResult> 
         &mut [&mut || nets.borrow_mut().step(1)],
     );
     let step = pairs.into_iter().next().expect("one candidate");
+    let UnetSpec {
+        label,
+        batch,
+        input,
+        base,
+        depth,
+    } = spec;
     let r = UnetResult {
+        network: label,
         what: format!(
             "nn::UNet (base {base}, depth {depth}, batch norm, transposed up-sampling, 8-class \
              head), training step with SGD"
@@ -362,13 +396,10 @@ pub(super) fn bench_unet(camera: &Camera, args: &Options) -> Result<UnetResult> 
         peak_ratio: None,
     };
     println!(
-        "\nU-Net B{} 3x{}x{}, base {}, depth {}: training step conv2d {:.1} ms, calibrated {:.1} \
-         ms ({:.2}x; CPU time {}x)",
-        r.batch,
-        r.input_hw[0],
-        r.input_hw[1],
-        r.base_channels,
-        r.depth,
+        "\nU-Net ({label}) B{batch} 3x{}x{}, base {base}, depth {depth}: training step conv2d \
+         {:.1} ms, calibrated {:.1} ms ({:.2}x; CPU time {}x)",
+        input[0],
+        input[1],
         r.step.reference_ms,
         r.step.candidate_ms,
         r.step.ratio,
@@ -457,12 +488,14 @@ pub fn memory_child(camera: &Camera, args: &Options) -> Result<()> {
         report.layers.push([r, c, a]);
     }
     if unet {
-        let mut nets = UnetBench::new(camera, args)?;
-        nets.step(0);
-        let r = peak_mib(&mut || nets.step(0));
-        nets.step(1);
-        let c = peak_mib(&mut || nets.step(1));
-        report.unet = Some([r, c]);
+        for spec in unet_specs(args) {
+            let mut nets = UnetBench::new(camera, spec)?;
+            nets.step(0);
+            let r = peak_mib(&mut || nets.step(0));
+            nets.step(1);
+            let c = peak_mib(&mut || nets.step(1));
+            report.unet.push([r, c]);
+        }
     }
     println!(
         "{}",

@@ -26,7 +26,8 @@
 //! experiments use them (tiny at 64x64 and small at 128x128, batch 8; classic at 256x256, batch
 //! 2, a CPU-sized stand-in for the paper's 1088x960 GPU runs). A network's first layer reads the
 //! image, which needs no gradient: its forward+backward computes the weight gradient only, as in
-//! training.
+//! training. Its U-Net training steps are those of the two CPU profiles' networks: the quick
+//! profile's tiny U-Net at 64x64 and the study profile's small one (depth 3) at 144x160, B8.
 //!
 //! Layout: this file holds the options, the report and its printing; `measure` the timed
 //! and measured workloads; `proc` the platform probes (`/proc`, `clock_gettime`, `mallopt`),
@@ -251,6 +252,8 @@ struct PyramidResult {
 
 #[derive(Debug, Serialize)]
 struct UnetResult {
+    /// Which network: the profile it stands for (`--presets`) or the bench's default.
+    network: &'static str,
     what: String,
     batch: i64,
     input_hw: [i64; 2],
@@ -276,17 +279,18 @@ pub struct Report {
     note: &'static str,
     shapes: Vec<ShapeResult>,
     pyramid: Option<PyramidResult>,
-    unet: Option<UnetResult>,
+    /// The U-Net training steps (`--presets`: the quick and the study profile's networks).
+    unet: Vec<UnetResult>,
     /// `ops::deform_conv2d` with one offsets tensor, forward+backward against `conv2d`.
     functional: Option<Paired>,
 }
 
 /// What the memory child process (`--memory-child`) prints on its last line of stdout: peaks
-/// (MiB) per layer, `[conv2d, calibrated, aten]`, and of the U-Net step `[conv2d, calibrated]`.
+/// (MiB) per layer, `[conv2d, calibrated, aten]`, and per U-Net step `[conv2d, calibrated]`.
 #[derive(Debug, Default, Serialize, Deserialize)]
 pub struct MemoryReport {
     layers: Vec<[Option<f64>; 3]>,
-    unet: Option<[Option<f64>; 2]>,
+    unet: Vec<[Option<f64>; 2]>,
 }
 
 /// The layers the arguments select.
@@ -352,9 +356,9 @@ pub fn run(
         None
     };
     let mut unet = if run_part(Part::Unet) {
-        Some(bench_unet(camera, args)?)
+        bench_unet(camera, args)?
     } else {
-        None
+        Vec::new()
     };
     // Part of the default run only when asked for (it repeats a layer of the table).
     let functional = if args.only.contains(&Part::Functional) {
@@ -364,11 +368,11 @@ pub fn run(
     };
     let load_after = load_average();
     println!("\nload after the timings: {}", fmt_load(load_after));
-    if !args.no_memory && (!results.is_empty() || unet.is_some()) {
+    if !args.no_memory && (!results.is_empty() || !unet.is_empty()) {
         match memory_in_child() {
             Ok(mem) => {
-                merge_memory(&mut results, unet.as_mut(), &mem);
-                print_memory(&results, unet.as_ref());
+                merge_memory(&mut results, &mut unet, &mem);
+                print_memory(&results, &unet);
             }
             Err(e) => println!(
                 "
@@ -398,7 +402,7 @@ fn fmt_load(l: Option<[f64; 3]>) -> String {
     })
 }
 
-fn merge_memory(results: &mut [ShapeResult], unet: Option<&mut UnetResult>, mem: &MemoryReport) {
+fn merge_memory(results: &mut [ShapeResult], unet: &mut [UnetResult], mem: &MemoryReport) {
     for (r, m) in results.iter_mut().zip(&mem.layers) {
         r.conv2d_peak_mib = m[0];
         r.calibrated.peak_mib = m[1];
@@ -408,14 +412,14 @@ fn merge_memory(results: &mut [ShapeResult], unet: Option<&mut UnetResult>, mem:
             a.peak_ratio = ratio(m[2], m[0]);
         }
     }
-    if let (Some(u), Some(m)) = (unet, mem.unet) {
+    for (u, m) in unet.iter_mut().zip(&mem.unet) {
         u.conv2d_peak_mib = m[0];
         u.calibrated_peak_mib = m[1];
         u.peak_ratio = ratio(m[1], m[0]);
     }
 }
 
-fn print_memory(results: &[ShapeResult], unet: Option<&UnetResult>) {
+fn print_memory(results: &[ShapeResult], unet: &[UnetResult]) {
     if !results.is_empty() {
         println!("\npeak memory of one training step (separate process, mmap threshold pinned):");
         println!(
@@ -436,9 +440,10 @@ fn print_memory(results: &[ShapeResult], unet: Option<&UnetResult>) {
             fmt_opt(r.calibrated.peak_ratio, 2),
         );
     }
-    if let Some(u) = unet {
+    for u in unet {
         println!(
-            "U-Net step peak: conv2d {} MiB, calibrated {} MiB ({}x)",
+            "U-Net ({}) step peak: conv2d {} MiB, calibrated {} MiB ({}x)",
+            u.network,
             fmt_opt(u.conv2d_peak_mib, 0),
             fmt_opt(u.calibrated_peak_mib, 0),
             fmt_opt(u.peak_ratio, 2)
@@ -602,5 +607,44 @@ mod tests {
             .iter()
             .filter(|l| l.shape[1] > 3)
             .all(|l| l.input_grad));
+    }
+
+    /// `--presets` times the training step of the networks the quick and the study profiles
+    /// fine-tune, at their batch size and input width: the bench follows the profiles.
+    #[test]
+    fn preset_unet_steps_are_the_profiles_networks() {
+        use crate::experiment::profile::Profile;
+        let specs = measure::unet_specs(&Options {
+            presets: true,
+            ..Default::default()
+        });
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        for (name, label) in [
+            ("quick", "quick profile: tiny"),
+            ("study", "study profile: small, depth 3"),
+        ] {
+            let file = root.join(format!("experiments/paper/profiles/{name}.toml"));
+            let profile = Profile::load(&file).unwrap();
+            let all = &profile.all;
+            let model = all["model"].as_table().unwrap();
+            let preset = model["preset"].as_str().unwrap();
+            let cfg = UNetConfig::preset(preset, Head::Depth).unwrap();
+            let depth = model
+                .get("depth")
+                .map_or(cfg.depth, |d| d.as_integer().unwrap() as usize);
+            let width = all["input"]["width"].as_integer().unwrap();
+            let batch = all["train"]["batch_size"].as_integer().unwrap();
+            let spec = specs.iter().find(|s| s.label == label).unwrap();
+            assert_eq!(
+                (spec.base, spec.depth, spec.input[1], spec.batch),
+                (cfg.base, depth, width, batch),
+                "{name}"
+            );
+            assert_eq!(
+                spec.input[0] % (1 << depth),
+                0,
+                "{name}: a height the U-Net takes"
+            );
+        }
     }
 }
