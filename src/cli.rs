@@ -316,7 +316,7 @@ pub struct BenchArgs {
     pub small_kernels: Option<SmallKernelLevel>,
     /// The library of the float32 products the few-output-channel kernels do not take (layers
     /// of other output counts: more than 128 outputs, and 64 or 128 on CPUs without AVX-512;
-    /// `auto`: oneDNN on CPUs with AVX-512, else the BLAS). For A/B timings on one machine.
+    /// `auto`: the default, the BLAS). For A/B timings on one machine.
     #[arg(long, value_enum)]
     pub gemm: Option<GemmChoice>,
 }

@@ -31,11 +31,8 @@
 //!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input; the gather is compiled for 1-4, 8,
 //!     16, 32 and 64 channels as whole-vector operations (3 channels as vectors of 4) and in
 //!     general, each for AVX-512 / AVX2 / baseline, picked at load time. Then one GEMM per group against the weight packed as
-//!     `[G, C_out/G, K, C/G]`: for float32 and one group through oneDNN on CPUs with AVX-512
-//!     (`at::mkldnn_convolution` with a 1x1 kernel, the library `conv2d` itself uses;
-//!     libtorch's MKL runs its AVX2 code on AMD CPUs, at half oneDNN's speed at these shapes)
-//!     and the BLAS on CPUs without (where oneDNN's 1x1 convolution was the slower one, see
-//!     [`GemmLibrary`]), else `at::mm`; the result is written into the output (NCHW, or
+//!     `[G, C_out/G, K, C/G]` through the BLAS (`at::mm`, libtorch's MKL; oneDNN's 1x1
+//!     convolution, `at::mkldnn_convolution`, when asked for: [`GemmLibrary`]); the result is written into the output (NCHW, or
 //!     channels-last for a channels-last input, as `conv2d`). Tiles run in parallel
 //!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
 //!     except for a first layer in grad mode: an input without gradient and <= 4 channels (an
@@ -211,7 +208,8 @@ pub fn small_kernel_isa() -> SmallKernelIsa {
 }
 
 /// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
-/// thread; both levels compute identical values, `None` sends those layers through oneDNN);
+/// thread; both levels compute identical values, `None` sends those layers through the GEMM
+/// library);
 /// returns the level now in use. For tests and A/B timings.
 pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
     #[cfg(calibconv_native)]
@@ -230,11 +228,12 @@ pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(i32)]
 pub enum GemmLibrary {
-    /// oneDNN, as a 1x1 convolution (the library `conv2d` uses): the default on CPUs with
-    /// AVX-512.
+    /// oneDNN, as a 1x1 convolution (the library `conv2d` uses), for A/B timings: it reorders
+    /// the weight on every call.
     OneDnn = 1,
-    /// The BLAS (`at::mm`, libtorch's MKL): the default on CPUs without AVX-512, where it was
-    /// 0.6-0.95x oneDNN's time at 128-1024 channels (README, "Performance").
+    /// The BLAS (`at::mm`, libtorch's MKL), the default: at the shapes left to the library
+    /// (128-1024 channels) faster than oneDNN's 1x1 convolution on an AMD Zen 3 (AVX2) and on a
+    /// Zen 4 (AVX-512), with less memory (README, "Performance").
     Blas = 2,
 }
 
@@ -247,8 +246,8 @@ pub fn gemm_library() -> GemmLibrary {
     GemmLibrary::Blas
 }
 
-/// Sets the GEMM library for the rest of the process (every thread; `None`: the CPU's default;
-/// oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
+/// Sets the GEMM library for the rest of the process (every thread; `None`: the default, the
+/// BLAS; oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
 /// (`calibconv bench --gemm`); the results differ only by rounding.
 pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
     #[cfg(calibconv_native)]

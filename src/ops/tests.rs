@@ -285,23 +285,24 @@ fn native_matches_aten_on_random_plans() {
         // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
         // items (B * P above a tile), scatter bands within an item (a tall map, small batch) and
         // tasks of several whole items (small maps). (Their float32 products with 8-128 outputs
-        // run through the few-output-channel kernels; oneDNN's: the 40- and 72-output cases.)
+        // run through the few-output-channel kernels; the GEMM library's: the 40- and 72-output
+        // cases.)
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
         // The few-output-channel kernels (float32, 8 to 128 outputs): blocks that do not
-        // divide the rows, and 4 channels (K*C = 36: the column gradient through oneDNN).
+        // divide the rows, and 4 channels (K*C = 36: the column gradient through the library).
         (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
         (2, 32, 32, 13, 11, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A 1x3 kernel: K*C = 24, below a chunk of the column gradient (its tail paths).
         (2, 8, 16, 9, 10, [1, 3], [1, 1], [0, 1], [1, 1], 1, false, 2.0),
-        // 40 outputs: the oneDNN forward and input gradient (not one of the few-output counts,
-        // 8 to 128), and the oneDNN weight gradient (from 32 outputs on).
+        // 40 outputs: the GEMM library's forward, input and weight gradients (not one of the
+        // few-output counts, 8 to 128; tests/gemm_library.rs runs both libraries).
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
-        // outputs through oneDNN, 64 through the few-output-channel kernels).
+        // outputs through the GEMM library, 64 through the few-output-channel kernels).
         (2, 64, 72, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 32, 48, 4, 3, [3, 3], [1, 1], [1, 1], [1, 1], 2, true, 2.0),
@@ -696,7 +697,7 @@ fn first_layer_without_input_gradient_matches_aten() {
     tch::manual_seed(5);
     for (kind, tol) in [(Kind::Double, F64_IMPL_TOL), (Kind::Float, F32_IMPL_TOL)] {
         // 8 and 16 output channels (the few-output-channel kernels), and 40 (the weight
-        // gradient through oneDNN from 32 on).
+        // gradient through the GEMM library).
         for (per_item, cout) in [(false, 8), (true, 8), (false, 16), (false, 40)] {
             let opts = (kind, Device::Cpu);
             let (b, c, h, w) = (3, 3, 30, 26);

@@ -10,8 +10,8 @@
 //   column tile [T, K*C] (layout: group, tap, channel) from a padded channels-last copy of the
 //   input (padded_input) with the plan's top-left corners and the bilinear weights of its
 //   fractions (ly, lx), then
-//   y[T, C_out] = cols @ WP^T + bias (oneDNN for float32 with one group, else one at::mm per
-//   group), copied into the output (NCHW or channels-last, as the input). A first layer (input
+//   y[T, C_out] = cols @ WP^T + bias (one at::mm per group; oneDNN for float32 with one group
+//   when asked, see use_dnn), copied into the output (NCHW or channels-last, as the input). A first layer (input
 //   without gradient, <= 4 channels) keeps its whole column matrix for the weight gradient.
 // - backward, weight: the column tiles are recomputed (never stored; the input padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
@@ -68,9 +68,9 @@ constexpr int64_t TILE_BYTES = 2 << 20;
 constexpr int64_t MIN_TILE_FLOP = 8 << 20;
 constexpr int64_t MIN_TILE = 64;
 constexpr int64_t MAX_TILE = 8192;
-// The weight gradient goes through oneDNN from this many output channels on (below it oneDNN's
-// reduction over a tile's pixels was slower than MKL's: 40 vs 69 GFLOP/s at 8 channels, even at
-// 16, 1.5-1.7x faster from 32 on).
+// With oneDNN asked for (use_dnn), the weight gradient goes through it from this many output
+// channels on (below it oneDNN's reduction over a tile's pixels was slower than MKL's: 40 vs 69
+// GFLOP/s at 8 channels, even at 16, 1.5-1.7x faster from 32 on; Zen 5).
 constexpr int64_t DNN_WEIGHT_MIN_COUT = 32;
 // The forward pass keeps its column matrix for the weight gradient when the input needs no
 // gradient (a first layer) and has at most this many channels (the matrix is then K*C <= 36
@@ -134,17 +134,22 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
 }
 
 // float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through
-// oneDNN, as a 1x1 convolution (at::mkldnn_convolution), or through the BLAS (at::mm, libtorch's
-// MKL), picked once per process (use_dnn): oneDNN on CPUs with AVX-512, where libtorch's MKL runs
-// its AVX2 code on AMD CPUs and, at the skinny shapes of few channels, reached 80-110 GFLOP/s
-// where oneDNN's JIT kernels (the ones conv2d uses) reached 140-240 (one thread, tile shapes of
-// 16-128 channels, AMD EPYC Zen 5); the BLAS on CPUs without (both then run AVX2 code, and
-// oneDNN's 1x1 convolution, made for many pixels, is slow with thousands of input columns and few
-// rows: one thread, AMD EPYC Zen 3, calibrated / conv2d forward and f+b with oneDNN -> the BLAS:
-// 1024->1024 at 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 /
-// 1.17x, 256->256 at 8x8 B8 1.09 / 1.44x -> 0.95 / 1.06x, 128->256 at 8x8 B8 1.08 / 1.69x ->
-// 0.81 / 1.03x, 512->1024 at 16x16 1.53 / 1.34x -> 1.17 / 1.11x). Float64 (which oneDNN does not
-// have) and grouped convolutions use at::mm. calibconv_native_gemm overrides the choice (A/B).
+// the BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
+// (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
+// timings). These are the layers of more than 128 outputs (more than 32 on CPUs without AVX-512),
+// and the weight gradient from DNN_WEIGHT_MIN_COUT outputs where no few-output-channel kernel
+// exists. oneDNN was the default on CPUs with AVX-512 while it also multiplied the few-channel
+// layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s where MKL's AVX2 code reached
+// 80-110); once those had their own kernels, the BLAS measured faster at the shapes left, on both
+// CPUs compared (one thread, interleaved, calibrated / conv2d forward and f+b, oneDNN -> the
+// BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x,
+// 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256 at 8x8 B8 1.09 / 1.44x -> 0.95 /
+// 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256 at 8x8 B8 2.08-2.15 /
+// 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x -> 1.42-1.48 /
+// 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 / 1.06-1.31x, and no
+// row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also reorders the weight
+// on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x with the BLAS
+// (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use at::mm.
 bool dnn_available() {
   static const bool ok = at::hasMKLDNN();
   return ok;
@@ -153,26 +158,9 @@ bool dnn_available() {
 enum class Gemm : int32_t { Auto = 0, OneDnn = 1, Blas = 2 };
 std::atomic<int32_t> gemm_override{static_cast<int32_t>(Gemm::Auto)};
 
-// Whether the float32 GEMMs of one group go through oneDNN (see above).
+// Whether the float32 GEMMs of one group go through oneDNN: only when asked for (see above).
 bool use_dnn() {
-  if (!dnn_available()) return false;
-  switch (static_cast<Gemm>(gemm_override.load())) {
-    case Gemm::OneDnn:
-      return true;
-    case Gemm::Blas:
-      return false;
-    case Gemm::Auto:
-      break;
-  }
-#if defined(__x86_64__) && defined(__GNUC__)
-  static const bool avx512 = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") != 0;
-  }();
-  return avx512;
-#else
-  return true;
-#endif
+  return dnn_available() && static_cast<Gemm>(gemm_override.load()) == Gemm::OneDnn;
 }
 
 // y = a @ w^T for a [m, kd] (any strides) and w [n, kd] (any strides), through a 1x1 oneDNN
@@ -1234,7 +1222,7 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
 void calibconv_free_error(char* message) { std::free(message); }
 
 // The library of the float32 GEMMs that the few-output-channel kernels do not take: sets it when
-// choice >= 0 (0 the CPU's default, 1 oneDNN, 2 the BLAS; oneDNN only where libtorch has it),
+// choice >= 0 (0 the default (the BLAS), 1 oneDNN, 2 the BLAS; oneDNN only where libtorch has it),
 // then returns the library in use (1 oneDNN, 2 the BLAS).
 int32_t calibconv_native_gemm(int32_t choice) {
   if (choice >= 0 && choice <= 2) gemm_override.store(choice);

@@ -37,7 +37,7 @@ extern "C" {
 }
 
 /// The library of the float32 GEMMs in use (see [`super::GemmLibrary`]); with `choice`, first
-/// sets it (`Some(None)`: the CPU's default).
+/// sets it (`Some(None)`: the default, the BLAS).
 pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super::GemmLibrary {
     use super::GemmLibrary as Gemm;
     let choice = match choice {
