@@ -30,10 +30,11 @@
 //!     contiguous channel vectors from the sample's top-left corner `t` and its neighbours
 //!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input; the gather is compiled for 1-4, 8,
 //!     16, 32 and 64 channels as whole-vector operations (3 channels as vectors of 4) and in
-//!     general, each for AVX-512 / AVX2 / baseline, picked at load time. Then one GEMM per group against the weight packed as
-//!     `[G, C_out/G, K, C/G]` through the BLAS (`at::mm`, libtorch's MKL; oneDNN's 1x1
-//!     convolution, `at::mkldnn_convolution`, when asked for: [`GemmLibrary`]); the result is written into the output (NCHW, or
-//!     channels-last for a channels-last input, as `conv2d`). Tiles run in parallel
+//!     general, each for AVX-512 / AVX2 / baseline, picked at load time. Then one GEMM per
+//!     group against the weight packed as `[G, C_out/G, K, C/G]`, through the BLAS (`at::mm`,
+//!     libtorch's MKL; oneDNN's 1x1 convolution, `at::mkldnn_convolution`, when asked for: see
+//!     [`GemmLibrary`]); the result is written into the output (NCHW, or channels-last for a
+//!     channels-last input, as `conv2d`). Tiles run in parallel
 //!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
 //!     except for a first layer in grad mode: an input without gradient and <= 4 channels (an
 //!     image) keeps its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which
@@ -61,7 +62,7 @@
 //!     overhead than in arithmetic (at 64 and 128 outputs these kernels beat oneDNN). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
-//!     without AVX2 use oneDNN. The forward and the column gradient walk the reduction in
+//!     without AVX2 use the GEMM library. The forward and the column gradient walk the reduction in
 //!     chunks whose slice of the weight stays in L1 over the whole block.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
@@ -190,7 +191,7 @@ pub fn native_available() -> bool {
 #[repr(i32)]
 pub enum SmallKernelIsa {
     /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers
-    /// go through oneDNN / the BLAS like any other.
+    /// go through the GEMM library like any other.
     None = 0,
     /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats; 8, 16 and 32 outputs (64 and 128 go
     /// through the GEMM library, faster at this level).
@@ -209,8 +210,7 @@ pub fn small_kernel_isa() -> SmallKernelIsa {
 
 /// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
 /// thread; both levels compute identical values, `None` sends those layers through the GEMM
-/// library);
-/// returns the level now in use. For tests and A/B timings.
+/// library); returns the level now in use. For tests and A/B timings.
 pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
     #[cfg(calibconv_native)]
     return native::small_kernel_isa(Some(cap));
