@@ -62,8 +62,8 @@
 //!     overhead than in arithmetic (at 64 and 128 outputs these kernels beat oneDNN). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
-//!     without AVX2 use the GEMM library. The forward and the column gradient walk the reduction in
-//!     chunks whose slice of the weight stays in L1 over the whole block.
+//!     without AVX2 use the GEMM library. The forward and the column gradient walk the
+//!     reduction in chunks whose slice of the weight stays in L1 over the whole block.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
 //! - **ATen composition** (any device; the CUDA path): one `embedding_bag` (weighted sum of the

@@ -11,8 +11,9 @@
 //   input (padded_input) with the plan's top-left corners and the bilinear weights of its
 //   fractions (ly, lx), then
 //   y[T, C_out] = cols @ WP^T + bias (one at::mm per group; oneDNN for float32 with one group
-//   when asked, see use_dnn), copied into the output (NCHW or channels-last, as the input). A first layer (input
-//   without gradient, <= 4 channels) keeps its whole column matrix for the weight gradient.
+//   when asked, see use_dnn), copied into the output (NCHW or channels-last, as the input). A
+//   first layer (input without gradient, <= 4 channels) keeps its whole column matrix for the
+//   weight gradient.
 // - backward, weight: the column tiles are recomputed (never stored; the input padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
