@@ -315,6 +315,49 @@ CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, c
          (ly * lx) * load<V>(a + down + NC);
 }
 
+// The samples [0, i) of a 3-channel float gather, four at a time, returned i (the rest, at least
+// one sample, goes one at a time: see gather_columns_body). Two samples share a vector of eight
+// floats (each in four lanes, as one sample's vector of four in the loop one at a time), so
+// every weight, product and sum is computed once for two samples; the bilinear weights of four
+// samples come from one load of their fractions, spread to the lanes by a shuffle. Each lane
+// computes the same expression of the same values as the loop one at a time (the same bits).
+// A pair's six values are packed and stored as eight: the last two land on the next sample's
+// first values, which this call stores later (hence i + 4 < count). Against the loop one at a
+// time (F195 plans, B8, one thread, Zen 4): the forward of 3->16 at 128x128 into an L1 block
+// 3.35-3.41 -> 3.09-3.22 ms (medians of 300 calls, page faults kept out); `calibconv bench
+// --first-layer`, calibrated / conv2d forward, 3 rounds: 3->16 at 128x128 1.71-1.79 ->
+// 1.56-1.74x, at 144x160 1.77-1.95 -> 1.67-1.76x (its columns, kept for the weight gradient,
+// are written to memory: the stores, not the arithmetic, bound it there).
+CALIBCONV_ALWAYS_INLINE inline int64_t gather3_quads(const float* xb, const int32_t* tl,
+                                                    const float* f, int64_t down, int64_t count,
+                                                    float* cols) {
+  using V8 = VecOf<float, 8>::type;
+  using V4 = VecOf<float, 4>::type;
+  using I8 = VecOf<int32_t, 8>::type;
+  constexpr int NC = 3;
+  int64_t i = 0;
+  for (; i + 4 < count; i += 4) {
+    const V8 fr = load<V8>(f + 2 * i);
+    for (int h = 0; h < 2; ++h) {
+      const int64_t s = i + 2 * h;
+      const V8 ly = h == 0 ? __builtin_shuffle(fr, I8{0, 0, 0, 0, 2, 2, 2, 2})
+                           : __builtin_shuffle(fr, I8{4, 4, 4, 4, 6, 6, 6, 6});
+      const V8 lx = h == 0 ? __builtin_shuffle(fr, I8{1, 1, 1, 1, 3, 3, 3, 3})
+                           : __builtin_shuffle(fr, I8{5, 5, 5, 5, 7, 7, 7, 7});
+      const V8 hy = 1 - ly, hx = 1 - lx;
+      const float* a0 = xb + int64_t{tl[s]} * NC;
+      const float* a1 = xb + int64_t{tl[s + 1]} * NC;
+      const auto both = [&](int64_t o) {
+        return __builtin_shufflevector(load<V4>(a0 + o), load<V4>(a1 + o), 0, 1, 2, 3, 4, 5, 6, 7);
+      };
+      const V8 v = (hy * hx) * both(0) + (hy * lx) * both(NC) + (ly * hx) * both(down) +
+                   (ly * lx) * both(down + NC);
+      store(cols + s * NC, __builtin_shuffle(v, I8{0, 1, 2, 4, 5, 6, 7, 7}));
+    }
+  }
+  return i;
+}
+
 template <typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
                                                         const int32_t* top_left, const T* frac,
@@ -336,9 +379,27 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
     const int64_t count = n * K;
     // (NC < L) the call's last sample stores its NC values alone, below.
     const int64_t whole = NC < L ? count - 1 : count;
-    for (int64_t i = 0; i < whole; ++i) {
-      for (int c0 = 0; c0 < L; c0 += CL) {
-        store(cols + i * NC + c0, gather_sample<V, T, NC>(xb, tl, f, down, i, c0));
+    int64_t first = 0;
+    if constexpr (NC == 3 && std::is_same_v<T, float>) {
+      first = gather3_quads(xb, tl, f, down, count, cols);
+    }
+    for (int64_t i = first; i < whole; ++i) {
+      if constexpr (L == CL) {
+        store(cols + i * NC, gather_sample<V, T, NC>(xb, tl, f, down, i, 0));
+      } else {
+        // Several chunks (16 to 64 channels): the weights once per sample. Written per chunk,
+        // GCC recomputed them for every chunk (seen in the disassembly of the AVX-512
+        // clone): against that, `calibconv bench` (one thread, Zen 4, 2 rounds) forward 32->16 at
+        // 128x128 1.18-1.19 -> 1.02-1.04x conv2d, 64->32 at 64x64 1.26-1.32 -> 1.11-1.18x, 32->32
+        // at 64x64 1.24 -> 1.11-1.13x; the same bits.
+        const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+        const T w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
+        const T* a = xb + int64_t{tl[i]} * NC;
+        for (int c0 = 0; c0 < L; c0 += CL) {
+          const T* ac = a + c0;
+          store(cols + i * NC + c0, w0 * load<V>(ac) + w1 * load<V>(ac + NC) +
+                                        w2 * load<V>(ac + down) + w3 * load<V>(ac + down + NC));
+        }
       }
     }
     if (whole < count && count > 0) {  // NC = 3: one chunk
