@@ -8,7 +8,10 @@ use tch::{Device, Kind, Tensor};
 use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
-use crate::ops::{deform_conv2d_planned, layer_plan, Border, ConvGeometry, SamplingPlan};
+use crate::ops::{
+    deform_conv2d_planned, deform_conv2d_planned_channels_last, layer_plan, Border, ConvGeometry,
+    SamplingPlan,
+};
 
 /// Geometry and bias of a convolution (pairs are `[y, x]`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -56,10 +59,11 @@ impl Conv2dConfig {
 
 /// A `k x k` deformable convolution with fixed, calibrated offsets.
 ///
-/// On the CPU it works channels-last: an NCHW input is converted once, and the output is
-/// channels-last (same values and shape), so that in a network of these layers the batch norm,
-/// ReLU and pooling after one and the next one's input stay channels-last and nothing converts
-/// per call. Code that needs NCHW memory (`view` on an activation) calls `contiguous()`.
+/// On the CPU it works channels-last: the output is channels-last (same values and shape) for
+/// any input layout, so that in a network of these layers the batch norm, ReLU and pooling after
+/// one and the next one's input stay channels-last and nothing converts per call. An NCHW image
+/// (at most 4 channels) is read as it is; a wider NCHW input is converted once. Code that needs
+/// NCHW memory (`view` on an activation) calls `contiguous()`.
 ///
 /// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
 /// The sampling plan is built once per (offsets, geometry, device) and shared (same tensor
@@ -151,13 +155,17 @@ impl CalibratedConv2d {
         }
         // On the CPU the layer works channels-last (its output, hence the batch norm and ReLU
         // after it and the next layer's input, stay channels-last): no layout conversion per
-        // call except at the network's input.
-        let xs = if xs.device() == Device::Cpu && xs.dim() == 4 {
-            channels_last(xs)
-        } else {
-            xs.shallow_clone()
-        };
-        deform_conv2d_planned(&xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
+        // call, the network's NCHW image included (see `deform_conv2d_planned_channels_last`).
+        if xs.device() == Device::Cpu && xs.dim() == 4 {
+            return deform_conv2d_planned_channels_last(
+                xs,
+                &self.plan,
+                &self.ws,
+                self.bs.as_ref(),
+                self.groups,
+            );
+        }
+        deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
     }
 
     /// Device of the sampling plan.
@@ -172,9 +180,4 @@ impl Module for CalibratedConv2d {
         self.f_forward(xs)
             .unwrap_or_else(|e| panic!("CalibratedConv2d: {e}"))
     }
-}
-
-/// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).
-fn channels_last(x: &Tensor) -> Tensor {
-    x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
 }

@@ -283,10 +283,39 @@ pub fn deform_conv2d_planned_with(
     check_call(input, plan, weight, bias, groups)?;
     #[cfg(calibconv_native)]
     if backend == Backend::Auto && input.device() == tch::Device::Cpu {
-        return native::deform_conv2d_cpu(input, plan, weight, bias, groups);
+        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, true);
     }
     let _ = backend;
     aten_deform_conv2d(input, plan, weight, bias, groups)
+}
+
+/// [`deform_conv2d_planned`] with a channels-last output for a CPU input of any layout, the
+/// calibrated layer's contract (`nn::CalibratedConv2d`: its output, hence the batch norm and ReLU
+/// after it and the next layer's input, stay channels-last). An NCHW input of at most 4 channels
+/// (a first layer's image) goes to the native kernels as it is: they read it into their padded
+/// channels-last copy directly and write the output channels-last, so no converted copy of the
+/// image is made per call. Wider NCHW inputs are converted first (the backward pass then reads
+/// and returns channels-last tensors), as is every input of the ATen composition.
+pub(crate) fn deform_conv2d_planned_channels_last(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<Tensor> {
+    let image = input.dim() == 4 && input.size()[1] <= 4;
+    #[cfg(calibconv_native)]
+    if input.device() == tch::Device::Cpu && image {
+        check_call(input, plan, weight, bias, groups)?;
+        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, true);
+    }
+    let _ = image;
+    deform_conv2d_planned(&channels_last(input), plan, weight, bias, groups)
+}
+
+/// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).
+fn channels_last(x: &Tensor) -> Tensor {
+    x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
 }
 
 /// Checks the arguments of a planned call: shapes, kinds, devices, groups.

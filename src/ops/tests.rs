@@ -447,6 +447,66 @@ fn float32_layout_conversions_are_exact() {
     }
 }
 
+/// The calibrated layer's entry point (`deform_conv2d_planned_channels_last`) returns a
+/// channels-last output for NCHW and channels-last inputs alike, with the values and gradients of
+/// the plain call: an NCHW image of at most 4 channels (read as it is, the output written
+/// channels-last by the kernels; a first layer without input gradient and one with), and wider
+/// NCHW inputs (converted first, the input gradient coming back NCHW through the conversion).
+#[test]
+fn channels_last_entry_point_matches_the_plain_call() {
+    tch::manual_seed(13);
+    for (b, ci, co, h, w, input_grad) in [
+        (2, 3, 8, 11, 9, false),
+        (2, 3, 16, 12, 10, true),
+        (1, 4, 8, 7, 9, false),
+        (2, 8, 16, 9, 7, true),
+    ] {
+        let p = random_problem([b, ci, co, h, w], 1.5);
+        for x in [p.x.shallow_clone(), channels_last(&p.x)] {
+            let what = format!(
+                "B{b} {ci}->{co} {h}x{w}, input grad {input_grad}, channels-last input {}",
+                is_channels_last(&x)
+            );
+            let run = |channels_last_out: bool| {
+                let x = x.detach().set_requires_grad(input_grad);
+                let (wt, bias) = (
+                    p.w.detach().set_requires_grad(true),
+                    p.bias.detach().set_requires_grad(true),
+                );
+                let out = if channels_last_out {
+                    deform_conv2d_planned_channels_last(&x, &p.plan, &wt, Some(&bias), 1)
+                } else {
+                    deform_conv2d_planned(&x, &p.plan, &wt, Some(&bias), 1)
+                }
+                .unwrap();
+                let loss = (&out * &p.probe).sum(Kind::Float);
+                let mut wrt = vec![&wt];
+                if input_grad {
+                    wrt.push(&x);
+                }
+                let g = Tensor::run_backward(&[loss], &wrt, false, false);
+                (out.detach(), g)
+            };
+            let ((plain, g_plain), (cl, g_cl)) = (run(false), run(true));
+            assert!(is_channels_last(&cl), "{what}: output not channels-last");
+            assert!(
+                max_rel(&plain, &cl) < F32_IMPL_TOL,
+                "{what}: outputs differ"
+            );
+            for (name, a, c) in [("weight", &g_plain[0], &g_cl[0])]
+                .into_iter()
+                .chain(input_grad.then(|| ("input", &g_plain[1], &g_cl[1])))
+            {
+                assert_eq!(a.size(), c.size(), "{what}: {name} gradient shape");
+                assert!(
+                    max_rel(a, c) < F32_IMPL_TOL,
+                    "{what}: {name} gradients differ"
+                );
+            }
+        }
+    }
+}
+
 /// Offsets that jump by many rows (up, down, alternating) force tall scatter bands and
 /// non-monotone row ranges; the input gradient must still be exact.
 #[test]

@@ -769,10 +769,20 @@ at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
         continue;
       }
       T* row = d + C;  // column 0
-      if (direct) {  // NCHW: row y of every channel plane
+      if (direct) {  // NCHW: row y of every channel plane, interleaved
         const T* s = src + b * C * g.HW + y * W;
-        for (int64_t x0 = 0; x0 < W; ++x0) {
-          for (int64_t c = 0; c < C; ++c) row[x0 * C + c] = s[c * g.HW + x0];
+        // (the channel count fixed at compile time: the loop over a row's pixels unrolls)
+        const auto interleave = [&](auto nc) {
+          constexpr int64_t NC = decltype(nc)::value;
+          for (int64_t x0 = 0; x0 < W; ++x0) {
+            for (int64_t c = 0; c < NC; ++c) row[x0 * NC + c] = s[c * g.HW + x0];
+          }
+        };
+        switch (C) {
+          case 1: interleave(std::integral_constant<int64_t, 1>{}); break;
+          case 2: interleave(std::integral_constant<int64_t, 2>{}); break;
+          case 3: interleave(std::integral_constant<int64_t, 3>{}); break;
+          default: interleave(std::integral_constant<int64_t, 4>{}); break;
         }
       } else {
         const T* s = src + (b * g.HW + y * W) * C;
@@ -816,11 +826,11 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
   return nchw<T>(gx);
 }
 
+// The output in layout fmt.
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
                         const at::Tensor& bias, const at::Tensor& top_left,
-                        const at::Tensor& frac, const at::Tensor& keep) {
-  const auto fmt = memory_format(input);
+                        const at::Tensor& frac, const at::Tensor& keep, at::MemoryFormat fmt) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   const at::Tensor x = padded_input<T>(input, g);
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
@@ -1173,7 +1183,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                             const at::Tensor& top_left,
                             const at::Tensor& frac, const at::Tensor& rows, int64_t ho,
                             int64_t wo, int64_t groups, bool per_item, bool wrap, bool has_bias,
-                            bool grad_mode) {
+                            bool grad_mode, bool out_cl) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
                            per_item, wrap);
     const at::Tensor wp = pack_weight(weight, g);
@@ -1203,8 +1213,10 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
+      // The output in the input's layout, or channels-last when asked (out_cl).
+      const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
       out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), top_left, frac,
-                                   keep);
+                                   keep, fmt);
     });
     return out;
   }
@@ -1243,7 +1255,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     }
     return {gx,           gw,           gb,           at::Tensor(), at::Tensor(),
             at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor(),
-            at::Tensor(), at::Tensor(), at::Tensor()};
+            at::Tensor(), at::Tensor(), at::Tensor(), at::Tensor()};
   }
 };
 
@@ -1265,13 +1277,15 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
                                   const at::Tensor* bias, const at::Tensor* top_left,
                                   const at::Tensor* frac,
                                   const at::Tensor* rows, int64_t ho, int64_t wo, int64_t groups,
-                                  int32_t per_item, int32_t wrap, at::Tensor** out) {
+                                  int32_t per_item, int32_t wrap, int32_t out_channels_last,
+                                  at::Tensor** out) {
   try {
     // autograd Functions take defined tensors: no bias is an empty tensor and a flag.
     const at::Tensor none = bias ? at::Tensor() : at::empty({0}, input->options());
     at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *top_left,
                                      *frac, *rows, ho, wo, groups, per_item != 0, wrap != 0,
-                                     bias != nullptr, at::GradMode::is_enabled());
+                                     bias != nullptr, at::GradMode::is_enabled(),
+                                     out_channels_last != 0);
     *out = new at::Tensor(std::move(y));
     return nullptr;
   } catch (const std::exception& e) {

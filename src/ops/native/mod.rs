@@ -26,6 +26,7 @@ extern "C" {
         groups: i64,
         per_item: i32,
         wrap: i32,
+        out_channels_last: i32,
         out: *mut *mut C_tensor,
     ) -> *mut c_char;
     fn calibconv_free_error(message: *mut c_char);
@@ -65,14 +66,16 @@ pub(super) fn small_kernel_isa(cap: Option<super::SmallKernelIsa>) -> super::Sma
     }
 }
 
-/// The deformable convolution of CPU tensors through the native kernels. The caller has checked
-/// shapes, kinds and devices (see `super::check_call`).
+/// The deformable convolution of CPU tensors through the native kernels, its output in the
+/// input's layout or, with `out_channels_last`, channels-last. The caller has checked shapes,
+/// kinds and devices (see `super::check_call`).
 pub(super) fn deform_conv2d_cpu(
     input: &Tensor,
     plan: &SamplingPlan,
     weight: &Tensor,
     bias: Option<&Tensor>,
     groups: i64,
+    out_channels_last: bool,
 ) -> Result<Tensor> {
     let kind = input.kind();
     let frac = plan.frac();
@@ -95,6 +98,7 @@ pub(super) fn deform_conv2d_cpu(
             groups,
             i32::from(plan.batch().is_some()),
             i32::from(plan.border() == super::plan::Border::WrapX),
+            i32::from(out_channels_last),
             &mut out,
         )
     };
