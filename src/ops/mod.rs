@@ -283,7 +283,7 @@ pub fn deform_conv2d_planned_with(
     check_call(input, plan, weight, bias, groups)?;
     #[cfg(calibconv_native)]
     if backend == Backend::Auto && input.device() == tch::Device::Cpu {
-        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, true);
+        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, false);
     }
     let _ = backend;
     aten_deform_conv2d(input, plan, weight, bias, groups)

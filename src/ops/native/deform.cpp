@@ -826,9 +826,32 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
   return nchw<T>(gx);
 }
 
-// The output in layout fmt.
+// The weight [C_out, C, kh, kw] of one group as the few-output-channel kernels multiply it:
+// [K*C, C_out], rows in the columns' (tap, channel) order. A contiguous weight is transposed in
+// one loop (TensorIterator's strided copy of the permuted view took 2.5x as long at 64 -> 64
+// channels); any other goes through that copy.
 template <typename T>
-at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
+at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
+  if (!weight.is_contiguous()) {
+    return weight.permute({2, 3, 1, 0}).contiguous().view({g.K * g.C, g.Cout});
+  }
+  at::Tensor wt = at::empty({g.K * g.C, g.Cout}, weight.options());
+  const T* w = weight.const_data_ptr<T>();
+  T* d = wt.mutable_data_ptr<T>();
+  const int64_t C = g.C, K = g.K, Cout = g.Cout;
+  for (int64_t k = 0; k < K; ++k) {
+    for (int64_t c = 0; c < C; ++c) {
+      T* row = d + (k * C + c) * Cout;
+      const T* src = w + c * K + k;
+      for (int64_t o = 0; o < Cout; ++o) row[o] = src[o * C * K];
+    }
+  }
+  return wt;
+}
+
+// The output in layout fmt; weight [C_out, C/G, kh, kw] as the caller has it.
+template <typename T>
+at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                         const at::Tensor& bias, const at::Tensor& top_left,
                         const at::Tensor& frac, const at::Tensor& keep, at::MemoryFormat fmt) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
@@ -837,7 +860,6 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
   const T* bp = bias.defined() ? bias_c.const_data_ptr<T>() : nullptr;
   const T* xp = x.const_data_ptr<T>();
-  const T* wpp = wp.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
@@ -852,8 +874,13 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const TileKernels<T> kern = tile_kernels<T>(g);
   const SmallKernels small = small_kernels<T>(g);
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
-  const at::Tensor w2 = wp.view({g.Cout, kcg});  // used with G = 1 only
-  const at::Tensor wt = small ? w2.t().contiguous() : at::Tensor();  // [K*C, C_out]
+  // The weight packed for the products: WP (pack_weight) for the library's GEMMs, or for the
+  // few-output-channel kernels weight_columns, straight from the weight (one copy, not WP and
+  // then its transpose: at 64 channels on 8x8 maps the two copies took 7% of the forward pass).
+  const at::Tensor wp = small ? at::Tensor() : pack_weight(weight, g);
+  const T* wpp = small ? nullptr : wp.const_data_ptr<T>();
+  const at::Tensor w2 = small ? at::Tensor() : wp.view({g.Cout, kcg});  // used with G = 1 only
+  const at::Tensor wt = small ? weight_columns<T>(weight, g) : at::Tensor();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, tile) : tile;
   auto init = [&] {
@@ -1186,7 +1213,6 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                             bool grad_mode, bool out_cl) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
                            per_item, wrap);
-    const at::Tensor wp = pack_weight(weight, g);
     // The weight (a parameter, alive anyway) rather than its packed copy: the backward pass
     // repacks it, so no weight-sized buffer lives from forward to backward.
     ctx->save_for_backward({input, weight});
@@ -1215,7 +1241,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
       // The output in the input's layout, or channels-last when asked (out_cl).
       const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
-      out = forward_impl<scalar_t>(g, input, wp, has_bias ? bias : at::Tensor(), top_left, frac,
+      out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left, frac,
                                    keep, fmt);
     });
     return out;
