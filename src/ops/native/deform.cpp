@@ -736,9 +736,26 @@ at::MemoryFormat memory_format(const at::Tensor& input) {
              : at::MemoryFormat::Contiguous;
 }
 
-// The weight packed as WP [G, C_out/G, K, C/G].
+// The weight packed as WP [G, C_out/G, K, C/G]: each output channel's [C/G, K] block
+// transposed, by a loop for a contiguous weight (as weight_columns), else by a strided copy.
 at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
-  return weight.reshape({g.G, g.Coutg, g.Cg, g.K}).transpose(2, 3).contiguous();
+  if (!weight.is_contiguous()) {
+    return weight.reshape({g.G, g.Coutg, g.Cg, g.K}).transpose(2, 3).contiguous();
+  }
+  at::Tensor wp = at::empty({g.G, g.Coutg, g.K, g.Cg}, weight.options());
+  AT_DISPATCH_FLOATING_TYPES(weight.scalar_type(), "calibconv_pack_weight", [&] {
+    const scalar_t* w = weight.const_data_ptr<scalar_t>();
+    scalar_t* d = wp.mutable_data_ptr<scalar_t>();
+    const int64_t Cg = g.Cg, K = g.K;
+    for (int64_t o = 0; o < g.Cout; ++o) {
+      const scalar_t* src = w + o * Cg * K;
+      scalar_t* dst = d + o * K * Cg;
+      for (int64_t k = 0; k < K; ++k) {
+        for (int64_t c = 0; c < Cg; ++c) dst[k * Cg + c] = src[c * K + k];
+      }
+    }
+  });
+  return wp;
 }
 
 // Values of slack after the padded input: the gather's vector-of-four loads of 3 channels read
