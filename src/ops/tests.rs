@@ -284,13 +284,13 @@ fn native_matches_aten_on_random_plans() {
         (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
         // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
         // items (B * P above a tile), scatter bands within an item (a tall map, small batch) and
-        // tasks of several whole items (small maps). (Their float32 products with 8-128 outputs
+        // tasks of several whole items (small maps). (Their float32 products with 8-512 outputs
         // run through the few-output-channel kernels; the GEMM library's: the 40- and 72-output
         // cases.)
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
-        // The few-output-channel kernels (float32, 8 to 128 outputs): blocks that do not
+        // The few-output-channel kernels (float32, 8 to 512 outputs): blocks that do not
         // divide the rows, and 4 channels (K*C = 36: the column gradient through the library).
         (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
@@ -298,7 +298,7 @@ fn native_matches_aten_on_random_plans() {
         // A 1x3 kernel: K*C = 24, below a chunk of the column gradient (its tail paths).
         (2, 8, 16, 9, 10, [1, 3], [1, 1], [0, 1], [1, 1], 1, false, 2.0),
         // 40 outputs: the GEMM library's forward, input and weight gradients (not one of the
-        // few-output counts, 8 to 128; tests/gemm_library.rs runs both libraries).
+        // few-output counts, 8 to 512; tests/gemm_library.rs runs both libraries).
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
@@ -862,11 +862,11 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 }
 
 /// The few-output-channel kernels are compiled per instruction-set level with different register
-/// blocking (AVX-512 for 8-128 outputs, AVX2 for 8-32): where both levels have kernels they give
+/// blocking (AVX-512 for 8-512 outputs, AVX2 for 8-32): where both levels have kernels they give
 /// bit-identical results (the same fused multiply-adds in the same order per element); every
-/// level's path (at AVX2, 64 and 128 outputs go through the GEMM library) matches the ATen
-/// composition, for 8, 16, 32, 64 and 128 outputs and row counts that leave partial blocks. On a
-/// CPU without AVX-512 the AVX2 path is still held to ATen.
+/// level's path (at AVX2, 64-512 outputs go through the GEMM library) matches the ATen
+/// composition, for 8, 16, 32, 64, 128, 256 and 512 outputs and row counts that leave partial
+/// blocks. On a CPU without AVX-512 the AVX2 path is still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -880,6 +880,8 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (2, 16, 32, 10, 9),
         (2, 32, 64, 7, 9),
         (1, 16, 128, 5, 6),
+        (1, 8, 256, 5, 4),
+        (1, 8, 512, 4, 3),
     ] {
         let Problem {
             plan,

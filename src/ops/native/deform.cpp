@@ -23,7 +23,8 @@
 //   rows that two bands of the same phase touch are disjoint: no atomics, no races, and the
 //   summation order does not depend on the number of threads.
 // - bias: a sum of the output gradient.
-// - few output channels (float32, one group, C_out 8 to 128; 8 to 32 with AVX2): the three
+// - few output channels (float32, one group, C_out 8 to 512 with a weight of at most 6 MiB; 8 to
+//   32 with AVX2): the three
 //   products run through register-blocked kernels on L1-sized blocks of pixels (gathered,
 //   multiplied, scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
 //   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
@@ -137,8 +138,8 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
 // float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through
 // the BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
 // (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
-// timings). These are the layers of more than 128 outputs (more than 32 on CPUs without AVX-512),
-// and the weight gradient from DNN_WEIGHT_MIN_COUT outputs where no few-output-channel kernel
+// timings). These are the layers of more than 512 outputs or a weight of more than 6 MiB (more
+// than 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT outputs where no few-output-channel kernel
 // exists. oneDNN was the default on CPUs with AVX-512 while it also multiplied the few-channel
 // layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s where MKL's AVX2 code reached
 // 80-110); once those had their own kernels, the BLAS measured faster at the shapes left, on both

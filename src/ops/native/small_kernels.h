@@ -1,5 +1,6 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
-// 8 to 128 with AVX-512, 8 to 32 with AVX2): register-blocked products on L1-sized blocks of
+// 8 to 512 with AVX-512, 8 to 32 with AVX2; weights up to SMALL_MAX_WEIGHT): register-blocked
+// products on L1-sized blocks of
 // gathered columns, compiled per instruction-set level and picked at run time. Included once, by
 // deform.cpp, which calls them through small_kernels_for.
 #pragma once
@@ -12,8 +13,9 @@
 
 namespace {
 
-// Few output channels (float32, one group, C_out 8, 16, 32, 64 or 128 with AVX-512; 8, 16 or 32
-// with AVX2, see below): the three products of
+// Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256 or 512 with AVX-512; 8,
+// 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the three products
+// of
 // a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
 // oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
 // than in arithmetic (with 64 and 128 outputs the AVX-512 kernels are faster than oneDNN even on
@@ -30,7 +32,7 @@ namespace {
 // which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
 // floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
 // accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
-// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 as passes of 64):
+// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 512 as passes of 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
 //                                        outputs at once; column gradient 4 rows x 4 vectors;
 //   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
@@ -242,14 +244,24 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
                                                     const float* gy, float* acc) {             \
     small_weight_gradient_body<CO, L, JB, OC>(cols, n, kc, gy, acc);                            \
   }
-// (Not 256: with 256 outputs and inputs, 64x64 B2, the forward was 1.6x conv2d against oneDNN's
-// 1.4x; up to 128 these kernels beat oneDNN at every shape measured: `calibconv bench
-// --small-kernels none` against the default, one thread, 2026-12-02.)
+// (256 and 512 outputs, as passes of 64, against the BLAS, on an AMD EPYC Zen 4, one thread, 2
+// rounds alternating, calibrated / conv2d forward and f+b, the BLAS -> these kernels: 128->256 at
+// 8x8 B8 1.39-1.56 / 1.27-1.30x -> 1.21 / 1.17-1.24x, 256->256 at 8x8 B8 1.34-1.42 / 1.35-1.43x
+// -> 1.31-1.32 / 1.26-1.28x, at 64x64 B2 1.13-1.24 / 1.20-1.27x -> 1.07-1.13 / 1.02-1.05x,
+// 128->256 at 64x64 B2 1.10-1.15 / 1.12-1.23x -> 1.05-1.06 / 0.96-0.98x, 512->256 at 64x64 B2
+// 1.29-1.33 / 1.24-1.55x -> 1.22-1.27 / 1.06-1.14x, 256->512 at 32x32 B2 1.25-1.34 / 1.25-1.26x ->
+// 1.11-1.12 / 1.12-1.13x; but 512->512 at 32x32 B2 1.25-1.28 / 1.27-1.33x -> 1.40-1.54 /
+// 1.25-1.72x and 1024->512 1.29-1.31 / 1.21-1.38x -> 1.92-1.94 / 1.98-2.13x: each block of rows
+// reads the whole weight, and 9 MiB and more of it no longer stay in the caches, hence
+// SMALL_MAX_WEIGHT. An earlier session had found 256 outputs slower than oneDNN, 1.6x against
+// 1.4x at 256->256, 64x64 B2, on the Zen 5 while oneDNN was the library.)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 8, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 32, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
@@ -290,9 +302,16 @@ struct SmallKernels {
   explicit operator bool() const { return forward != nullptr; }
 };
 
+// The largest weight (K*C x C_out values) the kernels take: 1.5 Mi values, 6 MiB, between the
+// largest that ran faster through them than through the BLAS (4.5 MiB: 512->256 and 256->512) and
+// the smallest that ran slower (9 MiB: 512->512); see the 256- and 512-output kernels above. No
+// layer of 128 outputs or fewer in the presets comes near it (the largest, 256->128, is 1.1 MiB).
+constexpr int64_t SMALL_MAX_WEIGHT = 3 << 19;
+
 // The kernels for C_out outputs and K*C = kc columns (float32, one group) at the level in use.
 SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   SmallKernels s;
+  if (kc * cout > SMALL_MAX_WEIGHT) return s;
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
   const SmallIsa isa = small_isa();
 #define CALIBCONV_SMALL_PICK(CO, SUFFIX)                       \
@@ -308,6 +327,8 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
       CALIBCONV_SMALL_PICK(32, v4)
       CALIBCONV_SMALL_PICK(64, v4)
       CALIBCONV_SMALL_PICK(128, v4)
+      CALIBCONV_SMALL_PICK(256, v4)
+      CALIBCONV_SMALL_PICK(512, v4)
       default:
         return s;
     }
