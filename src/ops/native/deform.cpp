@@ -24,10 +24,10 @@
 //   summation order does not depend on the number of threads.
 // - bias: a sum of the output gradient.
 // - few output channels (float32, one group, C_out 8 to 512 with a weight of at most 6 MiB; 8 to
-//   32 with AVX2): the three
-//   products run through register-blocked kernels on L1-sized blocks of pixels (gathered,
-//   multiplied, scattered block by block) instead of a oneDNN / BLAS call per tile, compiled per
-//   instruction-set level (AVX-512, AVX2) and picked at run time; see "Few output channels".
+//   32 with AVX2): the three products run through register-blocked kernels on L1-sized blocks
+//   of pixels (gathered, multiplied, scattered block by block) instead of a oneDNN / BLAS call
+//   per tile, compiled per instruction-set level (AVX-512, AVX2) and picked at run time; see
+//   "Few output channels".
 //
 // The instruction-set helpers are in simd.h, the few-output-channel kernels in small_kernels.h.
 // Tiles run in parallel with at::parallel_for. The entry point catches every C++ exception and
@@ -135,23 +135,23 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
   }
 }
 
-// float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through
-// the BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
+// float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through the
+// BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
 // (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
-// timings). These are the layers of more than 512 outputs or a weight of more than 6 MiB (more
-// than 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT outputs where no few-output-channel kernel
-// exists. oneDNN was the default on CPUs with AVX-512 while it also multiplied the few-channel
-// layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s where MKL's AVX2 code reached
-// 80-110); once those had their own kernels, the BLAS measured faster at the shapes left, on both
-// CPUs compared (one thread, interleaved, calibrated / conv2d forward and f+b, oneDNN -> the
-// BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x,
-// 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256 at 8x8 B8 1.09 / 1.44x -> 0.95 /
-// 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256 at 8x8 B8 2.08-2.15 /
-// 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x -> 1.42-1.48 /
-// 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 / 1.06-1.31x, and no
-// row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also reorders the weight
-// on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x with the BLAS
-// (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use at::mm.
+// timings). These are the layers of more than 512 outputs or a weight of more than 6 MiB (more than
+// 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT outputs
+// where no few-output-channel kernel exists. oneDNN was the default on CPUs with AVX-512 while it
+// also multiplied the few-channel layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s
+// where MKL's AVX2 code reached 80-110); once those had their own kernels, the BLAS measured faster
+// at the shapes left, on both CPUs compared (one thread, interleaved, calibrated / conv2d forward
+// and f+b, oneDNN -> the BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at 16x16 B2 2.87 /
+// 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256 at 8x8 B8 1.09 /
+// 1.44x -> 0.95 / 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256 at 8x8 B8
+// 2.08-2.15 / 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x ->
+// 1.42-1.48 / 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 / 1.06-1.31x,
+// and no row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also reorders the
+// weight on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x with the
+// BLAS (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use at::mm.
 bool dnn_available() {
   static const bool ok = at::hasMKLDNN();
   return ok;
@@ -846,8 +846,8 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
 
 // The weight [C_out, C, kh, kw] of one group as the few-output-channel kernels multiply it:
 // [K*C, C_out], rows in the columns' (tap, channel) order. A contiguous weight is transposed in
-// one loop (TensorIterator's strided copy of the permuted view took 2.5x as long at 64 -> 64
-// channels); any other goes through that copy.
+// one loop (at 64 -> 64 channels on 8x8 maps 4.2% of the forward pass, against 5.9% for
+// TensorIterator's strided copy of the permuted view); any other goes through that copy.
 template <typename T>
 at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
   if (!weight.is_contiguous()) {
@@ -1259,8 +1259,8 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
       // The output in the input's layout, or channels-last when asked (out_cl).
       const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
-      out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left, frac,
-                                   keep, fmt);
+      out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left,
+                                   frac, keep, fmt);
     });
     return out;
   }
