@@ -309,14 +309,14 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Cap the native few-output-channel kernels (AVX-512: 8 to 512 outputs, weights up to 6 MiB;
+    /// Cap the native few-output-channel kernels (AVX-512: 8 to 1024 outputs, weights up to 36 MiB;
     /// AVX2: 8 to 32) at
     /// this instruction-set level (`none`: such layers use the GEMM library like the others);
     /// default: the CPU's level. For A/B timings of the kernels on one machine.
     #[arg(long, value_enum)]
     pub small_kernels: Option<SmallKernelLevel>,
     /// The library of the float32 products the few-output-channel kernels do not take (layers
-    /// of other output counts or larger weights: more than 512 outputs or a weight over 6 MiB, and
+    /// of other output counts or larger weights: more than 1024 outputs or a weight over 36 MiB, and
     /// more than 32 outputs on CPUs without AVX-512;
     /// `auto`: the default, the BLAS). For A/B timings on one machine.
     #[arg(long, value_enum)]

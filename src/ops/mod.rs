@@ -55,8 +55,8 @@
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
 //!   - *Bias gradient*: a sum of the output gradient.
-//!   - *Few output channels* (float32, one group, 8, 16, 32, 64, 128, 256 or 512 outputs and a
-//!     weight of at most 6 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
+//!   - *Few output channels* (float32, one group, 8, 16, 32, 64, 128, 256, 512 or 1024 outputs
+//!     and a weight of at most 36 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
 //!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per
 //!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered,
 //!     multiplied and scattered block by block): at these shapes a GEMM call costs more in
@@ -224,7 +224,7 @@ pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
 }
 
 /// The library of the float32 products of one group that the few-output-channel kernels do not
-/// take (more than 512 or other output counts, weights over 6 MiB; the weight gradient from 32
+/// take (more than 1024 or other output counts, weights over 36 MiB; the weight gradient from 32
 /// outputs on where those kernels are absent). Both give the same values up to rounding.
 /// (The discriminants are the native code's.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

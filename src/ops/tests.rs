@@ -284,13 +284,13 @@ fn native_matches_aten_on_random_plans() {
         (1, 2, 2, 5, 8, [3, 3], [2, 2], [1, 1], [1, 1], 1, true, 2.0),
         // The vectorised gathers and scatters (8, 16, 32 channels), column tiles that span batch
         // items (B * P above a tile), scatter bands within an item (a tall map, small batch) and
-        // tasks of several whole items (small maps). (Their float32 products with 8-512 outputs
+        // tasks of several whole items (small maps). (Their float32 products with 8-1024 outputs
         // run through the few-output-channel kernels; the GEMM library's: the 40- and 72-output
         // cases.)
         (3, 16, 32, 24, 20, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 8, 8, 40, 36, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 3.0),
         (5, 32, 16, 12, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 1.5),
-        // The few-output-channel kernels (float32, 8 to 512 outputs): blocks that do not
+        // The few-output-channel kernels (float32, 8 to 1024 outputs): blocks that do not
         // divide the rows, and 4 channels (K*C = 36: the column gradient through the library).
         (2, 8, 16, 33, 17, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 4, 8, 21, 19, [3, 3], [1, 1], [1, 1], [1, 1], 1, true, 2.0),
@@ -298,11 +298,12 @@ fn native_matches_aten_on_random_plans() {
         // A 1x3 kernel: K*C = 24, below a chunk of the column gradient (its tail paths).
         (2, 8, 16, 9, 10, [1, 3], [1, 1], [0, 1], [1, 1], 1, false, 2.0),
         // 40 outputs: the GEMM library's forward, input and weight gradients (not one of the
-        // few-output counts, 8 to 512; tests/gemm_library.rs runs both libraries).
+        // few-output counts, 8 to 1024; tests/gemm_library.rs runs both libraries).
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
-        // outputs through the GEMM library, 64 through the few-output-channel kernels).
+        // outputs through the GEMM library); 64 through the few-output-channel kernels, whose
+        // tiles are shared out among the threads instead.
         (2, 64, 72, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 32, 48, 4, 3, [3, 3], [1, 1], [1, 1], [1, 1], 2, true, 2.0),
@@ -862,11 +863,12 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 }
 
 /// The few-output-channel kernels are compiled per instruction-set level with different register
-/// blocking (AVX-512 for 8-512 outputs, AVX2 for 8-32): where both levels have kernels they give
-/// bit-identical results (the same fused multiply-adds in the same order per element); every
-/// level's path (at AVX2, 64-512 outputs go through the GEMM library) matches the ATen
-/// composition, for 8, 16, 32, 64, 128, 256 and 512 outputs and row counts that leave partial
-/// blocks. On a CPU without AVX-512 the AVX2 path is still held to ATen.
+/// blocking (AVX-512 for 8-1024 outputs, AVX2 for 8-32): where both levels have kernels they
+/// give bit-identical results (the same fused multiply-adds in the same order per element); every
+/// level's path (at AVX2, 64-1024 outputs go through the GEMM library) matches the ATen
+/// composition, for 8, 16, 32, 64, 128, 256, 512 and 1024 outputs and row counts that leave
+/// partial blocks, and for weights above SMALL_LARGE_WEIGHT (blocks of 128 rows, slabs of 512
+/// columns: 64->512 has K*C = 576, a slab and a part). On a CPU without AVX-512 the AVX2 path is still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -882,6 +884,8 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (1, 16, 128, 5, 6),
         (1, 8, 256, 5, 4),
         (1, 8, 512, 4, 3),
+        (1, 64, 512, 12, 13),
+        (1, 32, 1024, 5, 6),
     ] {
         let Problem {
             plan,

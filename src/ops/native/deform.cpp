@@ -23,8 +23,8 @@
 //   rows that two bands of the same phase touch are disjoint: no atomics, no races, and the
 //   summation order does not depend on the number of threads.
 // - bias: a sum of the output gradient.
-// - few output channels (float32, one group, C_out 8 to 512 with a weight of at most 6 MiB; 8 to
-//   32 with AVX2): the three products run through register-blocked kernels on L1-sized blocks
+// - few output channels (float32, one group, C_out 8 to 1024 with a weight of at most 36 MiB; 8
+//   to 32 with AVX2): the three products run through register-blocked kernels on L1-sized blocks
 //   of pixels (gathered, multiplied, scattered block by block) instead of a oneDNN / BLAS call
 //   per tile, compiled per instruction-set level (AVX-512, AVX2) and picked at run time; see
 //   "Few output channels".
@@ -99,7 +99,8 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
 // matrix (the deep layers of a wide network on small maps, few pixels and a weight of megabytes),
 // every per-thread GEMM would pack the whole weight for a handful of rows. The gather and scatter
 // then run on one thread: their cost is proportional to the column matrix, the GEMM's to the
-// column matrix times C_out. One thread: always false (nothing to share).
+// column matrix times C_out. One thread: always false (nothing to share). Never with the
+// few-output-channel kernels, which are single-threaded: their tiles are shared out instead.
 bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
   return at::get_num_threads() > 1 && weight_elems >= total * row_elems;
 }
@@ -138,7 +139,7 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
 // float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through the
 // BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
 // (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
-// timings). These are the layers of more than 512 outputs or a weight of more than 6 MiB (more than
+// timings). These are the layers of more than 1024 outputs or a weight of more than 36 MiB (more than
 // 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT outputs
 // where no few-output-channel kernel exists. oneDNN was the default on CPUs with AVX-512 while it
 // also multiplied the few-channel layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s
@@ -845,23 +846,28 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
 }
 
 // The weight [C_out, C, kh, kw] of one group as the few-output-channel kernels multiply it:
-// [K*C, C_out], rows in the columns' (tap, channel) order. A contiguous weight is transposed in
-// one loop (at 64 -> 64 channels on 8x8 maps 4.2% of the forward pass, against 5.9% for
-// TensorIterator's strided copy of the permuted view); any other goes through that copy.
+// [K*C, C_out], rows in the columns' (tap, channel) order, stored as panels of P =
+// small_panel(C_out) outputs ([C_out / P, K*C, P]). Transposed in one loop (at 64 -> 64 channels
+// on 8x8 maps 4.2% of the forward pass, against 5.9% for TensorIterator's strided copy of the
+// permuted view).
 template <typename T>
 at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
-  if (!weight.is_contiguous()) {
-    return weight.permute({2, 3, 1, 0}).contiguous().view({g.K * g.C, g.Cout});
-  }
-  at::Tensor wt = at::empty({g.K * g.C, g.Cout}, weight.options());
-  const T* w = weight.const_data_ptr<T>();
+  const at::Tensor wc = weight.contiguous();
+  const int64_t C = g.C, K = g.K, Cout = g.Cout, P = small_panel(Cout), kc = K * C;
+  at::Tensor wt = at::empty({Cout / P, kc, P}, weight.options());
+  const T* w = wc.const_data_ptr<T>();
   T* d = wt.mutable_data_ptr<T>();
-  const int64_t C = g.C, K = g.K, Cout = g.Cout;
-  for (int64_t k = 0; k < K; ++k) {
+  // (8 outputs at a time: 8 rows of the weight read in step, which share one of L1's sets when
+  // C * K is a multiple of 1024 floats; more would not stay there)
+  const int64_t OB = std::min<int64_t>(P, 8);
+  for (int64_t o0 = 0; o0 < Cout; o0 += OB) {
+    T* panel = d + (o0 / P) * P * kc + o0 % P;
+    const T* src = w + o0 * C * K;
     for (int64_t c = 0; c < C; ++c) {
-      T* row = d + (k * C + c) * Cout;
-      const T* src = w + c * K + k;
-      for (int64_t o = 0; o < Cout; ++o) row[o] = src[o * C * K];
+      for (int64_t k = 0; k < K; ++k) {
+        T* row = panel + (k * C + c) * P;
+        for (int64_t o = 0; o < OB; ++o) row[o] = src[o * C * K + c * K + k];
+      }
     }
   }
   return wt;
@@ -885,12 +891,12 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // Tiles of flattened rows q = b * P + p; per-item plans keep their tiles within one item only
   // in the sense that the gather takes each piece's own samples (for_items).
   const int64_t total = g.B * g.P;
-  const bool whole = whole_rows(total, kc, g.Cout * kcg);
+  const SmallKernels small = small_kernels<T>(g);
+  const bool whole = !small && whole_rows(total, kc, g.Cout * kcg);
   const int64_t tile =
       whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (total + tile - 1) / tile;
   const TileKernels<T> kern = tile_kernels<T>(g);
-  const SmallKernels small = small_kernels<T>(g);
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
   // The weight packed for the products: WP (pack_weight) for the library's GEMMs, or for the
   // few-output-channel kernels weight_columns, straight from the weight (one copy, not WP and
@@ -900,7 +906,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const at::Tensor w2 = small ? at::Tensor() : wp.view({g.Cout, kcg});  // used with G = 1 only
   const at::Tensor wt = small ? weight_columns<T>(weight, g) : at::Tensor();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? small_block_rows(kc, tile) : tile;
+  const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
   auto init = [&] {
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
@@ -969,7 +975,8 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const at::Tensor x = kp ? input : padded_input<T>(input, g);
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
-  const bool whole = whole_rows(total, kc, g.Cout * kcg);
+  const auto small = small_kernels<T>(g).weight_gradient;
+  const bool whole = !small && whole_rows(total, kc, g.Cout * kcg);
   const int64_t tile =
       whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tasks = (total + tile - 1) / tile;
@@ -979,8 +986,12 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       whole ? 1 : std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), tasks));
   // Chunk 0 accumulates into the tensor that becomes the result, the others into a buffer freed
   // on return: the peak is `chunks` weights, not `chunks + 1`.
-  at::Tensor gw = at::zeros({g.G, g.Coutg, g.K, g.Cg}, gy.options());
-  at::Tensor rest = at::zeros({chunks - 1, g.G, g.Coutg, g.K, g.Cg}, gy.options());
+  // (with the few-output-channel kernels every chunk's accumulator is assigned, not added to)
+  const auto alloc = [&](at::IntArrayRef size) {
+    return small ? at::empty(size, gy.options()) : at::zeros(size, gy.options());
+  };
+  at::Tensor gw = alloc({g.G, g.Coutg, g.K, g.Cg});
+  at::Tensor rest = alloc({chunks - 1, g.G, g.Coutg, g.K, g.Cg});
   T* const gwp = gw.mutable_data_ptr<T>();
   T* const rp = rest.mutable_data_ptr<T>();
   const int64_t wsize = g.G * g.Coutg * kcg;
@@ -990,19 +1001,18 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   const TileKernels<T> kern = tile_kernels<T>(g);
-  const auto small = small_kernels<T>(g).weight_gradient;
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 &&
                    g.Cout >= DNN_WEIGHT_MIN_COUT && use_dnn();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? small_block_rows(kc, tile) : tile;
+  const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
   const auto body = [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
-    // Few output channels: the chunk's sum transposed, [K*C, C_out], added to its accumulator
-    // at the end of the chunk.
+    // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
+    // added to its accumulator at the end of the chunk.
     std::vector<T> acc_t(small ? kc * g.Cout : 0);
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
-      std::fill(acc_t.begin(), acc_t.end(), T(0));
+      if (chunk > c0) std::fill(acc_t.begin(), acc_t.end(), T(0));  // (c0's: a new vector)
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t q0 = task * tile, n = std::min(tile, total - q0);
         const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
@@ -1035,9 +1045,18 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           gemm<T>(y.t(), c, a, true);
         }
       }
-      if (small) {  // the chunk's transposed sum into its accumulator
-        for (int64_t j = 0; j < kc; ++j) {
-          for (int64_t o = 0; o < g.Cout; ++o) accp[o * kc + j] += acc_t[j * g.Cout + o];
+      if (small) {  // the chunk's sum, transposed, is its accumulator
+        // (16 columns at a time: a line of the accumulator's row written whole)
+        const int64_t P = small_panel(g.Cout);
+        for (int64_t o0 = 0; o0 < g.Cout; o0 += P) {
+          const T* panel = acc_t.data() + o0 * kc;
+          for (int64_t j0 = 0; j0 < kc; j0 += 16) {
+            const int64_t j1 = std::min(kc, j0 + 16);
+            for (int64_t o = 0; o < P; ++o) {
+              T* dst = accp + (o0 + o) * kc;
+              for (int64_t j = j0; j < j1; ++j) dst[j] = panel[j * P + o];
+            }
+          }
         }
       }
     }
@@ -1143,7 +1162,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
   const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
   // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
-  const int64_t block = small ? small_block_rows(kc, tile) : tile;
+  const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
   auto init = [&] {
     return Scratch<T>{std::vector<T>(block * kc), std::vector<T>(cl_y ? 0 : tile * g.Cout)};
   };
@@ -1188,7 +1207,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     });
   };
   const int64_t total = g.B * g.P;
-  if (whole_rows(total, kc, g.Cout * kcg) && total > 0) {
+  if (!small && whole_rows(total, kc, g.Cout * kcg) && total > 0) {
     // One GEMM for the column gradient of every row (parallel inside the BLAS / oneDNN), then
     // the scatter on this thread, task by task in the banded order below (the same summation
     // order as the parallel path).

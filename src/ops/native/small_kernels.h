@@ -1,7 +1,6 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
-// 8 to 512 with AVX-512, 8 to 32 with AVX2; weights up to SMALL_MAX_WEIGHT): register-blocked
-// products on L1-sized blocks of
-// gathered columns, compiled per instruction-set level and picked at run time. Included once, by
+// 8 to 1024 with AVX-512, 8 to 32 with AVX2; weights up to SMALL_MAX_WEIGHT): register-blocked
+// products on L1-sized blocks of gathered columns (larger blocks, in slabs, for large weights), compiled per instruction-set level and picked at run time. Included once, by
 // deform.cpp, which calls them through small_kernels_for.
 #pragma once
 
@@ -13,10 +12,9 @@
 
 namespace {
 
-// Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256 or 512 with AVX-512; 8,
-// 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the three products
-// of
-// a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
+// Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256, 512 or 1024 with
+// AVX-512; 8, 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the
+// three products of a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
 // oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
 // than in arithmetic (with 64 and 128 outputs the AVX-512 kernels are faster than oneDNN even on
 // large maps), and its column tile (megabytes, so that the call is worth it) makes a
@@ -32,7 +30,7 @@ namespace {
 // which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
 // floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
 // accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
-// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 512 as passes of 64):
+// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 1024 as passes of 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
 //                                        outputs at once; column gradient 4 rows x 4 vectors;
 //   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
@@ -44,16 +42,38 @@ namespace {
 
 constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
 
+// Outputs of a panel of the weight (and of its gradient) as the forward and weight-gradient
+// kernels read it: [K*C, C_out] is stored as C_out / P panels [K*C, P], one after the other, P =
+// small_panel(C_out), the outputs of one pass. A chunk of the weight that a pass multiplies
+// (KCB rows of P values) is then 16 contiguous KiB. In the plain [K*C, C_out] layout it was KCB
+// pieces of 256 bytes at a stride of C_out * 4 bytes, which (with 256 and 512 outputs) fell on
+// few of L1's sets and did not stay there.
+constexpr int64_t SMALL_PANEL = 64;
+constexpr int64_t small_panel(int64_t cout) { return std::min(cout, SMALL_PANEL); }
+
 // Rows of a block at least: with many input channels a block of SMALL_BLOCK_BYTES would be a few
 // rows, and every block reads the whole weight (from L2 once it outgrows L1); 24 rows keep the
 // reads of the weight below those of the columns (one row of 64 channels is 2.3 KiB of columns).
 constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
 
-// Rows of a block of `kc` columns each, within a tile of `tile` rows: a multiple of 8 that fits
-// SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS, at most the tile.
-int64_t small_block_rows(int64_t kc, int64_t tile) {
+// A weight of more than SMALL_LARGE_WEIGHT values (1 MiB) no longer stays in L2 from one block to
+// the next: every block reads it from L3 (the forward and the column gradient) or reads and
+// writes its gradient there (the weight gradient). Blocks of such layers have
+// SMALL_LARGE_BLOCK_ROWS rows, so the weight is read once per 128 rows instead of 24, and the
+// forward and weight gradient run through the columns in slabs of SMALL_SLAB reduction steps
+// (a slab of a block's columns, 256 KiB, stays in L2 while every pass multiplies it).
+constexpr int64_t SMALL_LARGE_WEIGHT = 1 << 18;
+constexpr int64_t SMALL_LARGE_BLOCK_ROWS = 128;
+constexpr int64_t SMALL_SLAB = 512;
+
+// Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
+// multiple of 8 that fits SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS (or
+// SMALL_LARGE_BLOCK_ROWS for a large weight), at most the tile.
+int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
-  return std::min(tile, std::max<int64_t>(SMALL_BLOCK_MIN_ROWS, rows - rows % 8));
+  const int64_t least =
+      kc * cout > SMALL_LARGE_WEIGHT ? SMALL_LARGE_BLOCK_ROWS : SMALL_BLOCK_MIN_ROWS;
+  return std::min(tile, std::max<int64_t>(least, rows - rows % 8));
 }
 
 // The register tile of every product below: acc[r][v] += sum over k in [k0, k1) of
@@ -121,36 +141,42 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
       for (int v = 0; v < NV; ++v) acc[r][v] = bias ? load<V>(bias + v * L) : V{};
     }
   }
-  tile_product<R, NV, L>(acc, cols + t * kc, kc, 1, wt, CS, j0, j1);
+  tile_product<R, NV, L>(acc, cols + t * kc, kc, 1, wt, NV * L, j0, j1);
   tile_store<R, NV, L>(acc, y + t * CS, CS);
 }
 
 // y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
-// stride kc), wt [kc, CO] (the packed weight, transposed, row stride CS), y [n, CO] (row stride
-// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
+// stride kc), wt [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO]
+// (row stride CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
 // over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
 // the block; y holds the partial sums between chunks).
 template <int CS, int CO, int L, int R>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
                                                         const float* wt, const float* bias,
-                                                        float* y) {
+                                                        float* y, int64_t s0, int64_t s1) {
   constexpr int NV = CO / L;
   constexpr int64_t KCB = 4096 / CO;
-  for (int64_t j0 = 0; j0 < kc; j0 += KCB) {
-    const int64_t j1 = std::min(kc, j0 + KCB);
+  static_assert(SMALL_SLAB % KCB == 0, "a slab is whole chunks");
+  for (int64_t j0 = s0; j0 < s1; j0 += KCB) {
+    const int64_t j1 = std::min(s1, j0 + KCB);
     int64_t t = 0;
     for (; t + R <= n; t += R) small_forward_rows<CS, NV, L, R>(cols, kc, wt, bias, y, t, j0, j1);
     for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, kc, wt, bias, y, t, j0, j1);
   }
 }
 
-// The forward of all CO outputs, OC at a time (fewer accumulators than a row of CO needs).
+// The forward of all CO outputs, OC at a time (fewer accumulators than a row of CO needs): wt
+// holds CO / OC panels [kc, OC], one after the other (small_panel).
 template <int CO, int L, int R, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
                                                        const float* wt, const float* bias,
                                                        float* y) {
-  for (int o0 = 0; o0 < CO; o0 += OC) {
-    small_forward_chunk<CO, OC, L, R>(cols, n, kc, wt + o0, bias ? bias + o0 : nullptr, y + o0);
+  for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
+    const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+    for (int o0 = 0; o0 < CO; o0 += OC) {
+      small_forward_chunk<CO, OC, L, R>(cols, n, kc, wt + o0 * kc, bias ? bias + o0 : nullptr,
+                                        y + o0, s0, s1);
+    }
   }
 }
 
@@ -189,35 +215,39 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, 
 }
 
 // acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
-// (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (the weight gradient, transposed,
-// row stride CS). JB columns at a time (then one), their CO / L accumulators each in registers
+// (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (a panel of the weight gradient,
+// transposed, rows of CO values). JB columns at a time (then one), their CO / L accumulators each in registers
 // over all n rows.
 template <int CS, int NV, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n, int64_t kc,
                                                          const float* gy, float* acc, int64_t j0) {
   typename VecOf<float, L>::type a[JB][NV];
-  tile_load<JB, NV, L>(a, acc + j0 * CS, CS);
+  tile_load<JB, NV, L>(a, acc + j0 * NV * L, NV * L);
   tile_product<JB, NV, L>(a, cols + j0, 1, kc, gy, CS, 0, n);
-  tile_store<JB, NV, L>(a, acc + j0 * CS, CS);
+  tile_store<JB, NV, L>(a, acc + j0 * NV * L, NV * L);
 }
 
 template <int CS, int CO, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* cols, int64_t n,
                                                                 int64_t kc, const float* gy,
-                                                                float* acc) {
+                                                                float* acc, int64_t s0,
+                                                                int64_t s1) {
   constexpr int NV = CO / L;
-  int64_t j0 = 0;
-  for (; j0 + JB <= kc; j0 += JB) small_weight_columns<CS, NV, L, JB>(cols, n, kc, gy, acc, j0);
-  for (; j0 < kc; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, kc, gy, acc, j0);
+  int64_t j0 = s0;
+  for (; j0 + JB <= s1; j0 += JB) small_weight_columns<CS, NV, L, JB>(cols, n, kc, gy, acc, j0);
+  for (; j0 < s1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, kc, gy, acc, j0);
 }
 
-// The weight gradient of all CO outputs, OC at a time.
+// The weight gradient of all CO outputs, OC at a time, into CO / OC panels [kc, OC] (as wt).
 template <int CO, int L, int JB, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
                                                                int64_t kc, const float* gy,
                                                                float* acc) {
-  for (int o0 = 0; o0 < CO; o0 += OC) {
-    small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, kc, gy + o0, acc + o0);
+  for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
+    const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+    for (int o0 = 0; o0 < CO; o0 += OC) {
+      small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, kc, gy + o0, acc + o0 * kc, s0, s1);
+    }
   }
 }
 
@@ -232,6 +262,7 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 // One level's kernels for CO outputs in vectors of L floats: forward rows R and weight-gradient
 // columns JB, both OC outputs at a time; column gradient CR rows x CJ vectors of CL floats.
 #define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
+  static_assert(OC == small_panel(CO), "a pass is one panel of the weight");                  \
   TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,          \
                                             const float* wt, const float* bias, float* y) {    \
     small_forward_body<CO, L, R, OC>(cols, n, kc, wt, bias, y);                                \
@@ -262,6 +293,7 @@ CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 4, 4, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
@@ -302,11 +334,12 @@ struct SmallKernels {
   explicit operator bool() const { return forward != nullptr; }
 };
 
-// The largest weight (K*C x C_out values) the kernels take: 1.5 Mi values, 6 MiB, between the
-// largest that ran faster through them than through the BLAS (4.5 MiB: 512->256 and 256->512) and
-// the smallest that ran slower (9 MiB: 512->512); see the 256- and 512-output kernels above. No
-// layer of 128 outputs or fewer in the presets comes near it (the largest, 256->128, is 1.1 MiB).
-constexpr int64_t SMALL_MAX_WEIGHT = 3 << 19;
+// The largest weight (K*C x C_out values) the kernels take: 9 Mi values, 36 MiB, the largest
+// measured (1024->1024, 3x3), faster through them than through the BLAS; see the 256- to
+// 1024-output kernels above. (Before the weight's panels and the large-weight blocks, 9 MiB
+// weights had run slower than the BLAS and the limit was 6 MiB.) Larger weights go through the
+// BLAS, untimed.
+constexpr int64_t SMALL_MAX_WEIGHT = 9 << 20;
 
 // The kernels for C_out outputs and K*C = kc columns (float32, one group) at the level in use.
 SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
@@ -329,6 +362,7 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
       CALIBCONV_SMALL_PICK(128, v4)
       CALIBCONV_SMALL_PICK(256, v4)
       CALIBCONV_SMALL_PICK(512, v4)
+      CALIBCONV_SMALL_PICK(1024, v4)
       default:
         return s;
     }
