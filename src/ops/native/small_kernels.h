@@ -59,11 +59,14 @@ constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
 // A weight of more than SMALL_LARGE_WEIGHT values (1 MiB) no longer stays in L2 from one block to
 // the next: every block reads it from L3 (the forward and the column gradient) or reads and
 // writes its gradient there (the weight gradient). Blocks of such layers have
-// SMALL_LARGE_BLOCK_ROWS rows, so the weight is read once per 128 rows instead of 24, and the
+// SMALL_LARGE_BLOCK_ROWS rows, so the weight is read once per 256 rows instead of 24, and the
 // forward and weight gradient run through the columns in slabs of SMALL_SLAB reduction steps
-// (a slab of a block's columns, 256 KiB, stays in L2 while every pass multiplies it).
+// (a slab of a block's columns, 512 KiB, stays in L2 while every pass multiplies it). (Blocks
+// of 128 rows: 512->1024 at 16x16 B2 1.19-1.20 / 1.21-1.22x conv2d forward / f+b, 512->512 at
+// 32x32 1.14-1.19 / 1.11-1.15x; of 256: 1.15-1.17 / 1.12-1.17x and 1.12-1.13 / 1.08-1.10x, 2
+// rounds alternating, one thread, Zen 4.)
 constexpr int64_t SMALL_LARGE_WEIGHT = 1 << 18;
-constexpr int64_t SMALL_LARGE_BLOCK_ROWS = 128;
+constexpr int64_t SMALL_LARGE_BLOCK_ROWS = 256;
 constexpr int64_t SMALL_SLAB = 512;
 
 // Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
