@@ -302,8 +302,8 @@ fn native_matches_aten_on_random_plans() {
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
-        // outputs through the GEMM library); 64 through the few-output-channel kernels, whose
-        // tiles are shared out among the threads instead.
+        // and 64 outputs through the GEMM library, the few-output-channel kernels being
+        // single-threaded; 64 through those kernels with one thread).
         (2, 64, 72, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 32, 48, 4, 3, [3, 3], [1, 1], [1, 1], [1, 1], 2, true, 2.0),
@@ -868,7 +868,7 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 /// level's path (at AVX2, 64-1024 outputs go through the GEMM library) matches the ATen
 /// composition, for 8, 16, 32, 64, 128, 256, 512 and 1024 outputs and row counts that leave
 /// partial blocks, and for weights above SMALL_LARGE_WEIGHT (blocks of 256 rows, slabs of 512
-/// columns: 64->512 on 272 pixels is a block and a part, K*C = 576 a slab and a part). On a CPU without AVX-512 the AVX2 path is still held to ATen.
+/// columns: 64->512 on 552 pixels is two blocks and a part, K*C = 576 a slab and a part). On a CPU without AVX-512 the AVX2 path is still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -881,11 +881,13 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (3, 16, 16, 9, 7),
         (2, 16, 32, 10, 9),
         (2, 32, 64, 7, 9),
-        (1, 16, 128, 5, 6),
-        (1, 8, 256, 5, 4),
-        (1, 8, 512, 4, 3),
-        (1, 64, 512, 17, 16),
-        (1, 32, 1024, 5, 6),
+        // (more pixels than outputs from here on: with fewer, and more than one thread, the
+        // pass would be one GEMM through the library, see `whole_rows`)
+        (1, 16, 128, 12, 13),
+        (1, 8, 256, 17, 16),
+        (1, 8, 512, 24, 23),
+        (1, 64, 512, 24, 23),
+        (1, 32, 1024, 33, 32),
     ] {
         let Problem {
             plan,

@@ -99,8 +99,8 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
 // matrix (the deep layers of a wide network on small maps, few pixels and a weight of megabytes),
 // every per-thread GEMM would pack the whole weight for a handful of rows. The gather and scatter
 // then run on one thread: their cost is proportional to the column matrix, the GEMM's to the
-// column matrix times C_out. One thread: always false (nothing to share). Never with the
-// few-output-channel kernels, which are single-threaded: their tiles are shared out instead.
+// column matrix times C_out. One thread: always false (nothing to share). Such passes do not use
+// the few-output-channel kernels (small_kernels).
 bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
   return at::get_num_threads() > 1 && weight_elems >= total * row_elems;
 }
@@ -565,10 +565,15 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
-// The few-output-channel kernels (small_kernels.h) of a pass, or all null.
+// The few-output-channel kernels (small_kernels.h) of a pass, or all null. Not for a pass of
+// whole_rows (a weight larger than the column matrix, with more than one thread): the kernels
+// are single-threaded, and one tile per thread would give each its own weight-sized gradient
+// accumulator (at 1024->1024 on 16x16 maps, B2, two threads, f+b 1.41-1.49x conv2d against
+// 1.26-1.29x through the BLAS's multithreaded products).
 template <typename T>
 SmallKernels small_kernels(const Geo& g) {
   if (!std::is_same_v<T, float> || g.G != 1) return {};
+  if (whole_rows(g.B * g.P, g.K * g.C, g.Cout * g.K * g.C)) return {};
   return small_kernels_for(g.Cout, g.K * g.C);
 }
 
@@ -892,7 +897,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // in the sense that the gather takes each piece's own samples (for_items).
   const int64_t total = g.B * g.P;
   const SmallKernels small = small_kernels<T>(g);
-  const bool whole = !small && whole_rows(total, kc, g.Cout * kcg);
+  const bool whole = whole_rows(total, kc, g.Cout * kcg);
   const int64_t tile =
       whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tiles = (total + tile - 1) / tile;
@@ -976,7 +981,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
   const auto small = small_kernels<T>(g).weight_gradient;
-  const bool whole = !small && whole_rows(total, kc, g.Cout * kcg);
+  const bool whole = whole_rows(total, kc, g.Cout * kcg);
   const int64_t tile =
       whole ? std::max<int64_t>(total, 1) : tile_rows(total, kc, g.Cout * kcg, sizeof(T));
   const int64_t tasks = (total + tile - 1) / tile;
@@ -1207,7 +1212,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     });
   };
   const int64_t total = g.B * g.P;
-  if (!small && whole_rows(total, kc, g.Cout * kcg) && total > 0) {
+  if (whole_rows(total, kc, g.Cout * kcg) && total > 0) {
     // One GEMM for the column gradient of every row (parallel inside the BLAS / oneDNN), then
     // the scatter on this thread, task by task in the banded order below (the same summation
     // order as the parallel path).
