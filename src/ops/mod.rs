@@ -58,10 +58,11 @@
 //!   - *Few output channels* (float32, one group, 8, 16, 32, 64, 128, 256, 512 or 1024 outputs
 //!     and a weight of at most 36 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
 //!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per
-//!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; gathered,
-//!     multiplied and scattered block by block): at these shapes a GEMM call costs more in
-//!     overhead than in arithmetic (at 64-512 outputs these kernels beat oneDNN or the BLAS,
-//!     as long as the weight stays in the caches). Their
+//!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; 256 for a weight
+//!     over 1 MiB, walked in slabs of 512 columns; gathered, multiplied and scattered block by
+//!     block): at these shapes a GEMM call costs more in overhead than in arithmetic (at
+//!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread; with more threads a
+//!     weight larger than the column matrix goes through the library). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
 //!     without AVX2 use the GEMM library. The forward and the column gradient walk the

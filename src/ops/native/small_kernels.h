@@ -286,9 +286,15 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 // 1.29-1.33 / 1.24-1.55x -> 1.22-1.27 / 1.06-1.14x, 256->512 at 32x32 B2 1.25-1.34 / 1.25-1.26x ->
 // 1.11-1.12 / 1.12-1.13x; but 512->512 at 32x32 B2 1.25-1.28 / 1.27-1.33x -> 1.40-1.54 /
 // 1.25-1.72x and 1024->512 1.29-1.31 / 1.21-1.38x -> 1.92-1.94 / 1.98-2.13x: each block of rows
-// reads the whole weight, and 9 MiB and more of it no longer stay in the caches, hence
-// SMALL_MAX_WEIGHT. An earlier session had found 256 outputs slower than oneDNN, 1.6x against
-// 1.4x at 256->256, 64x64 B2, on the Zen 5 while oneDNN was the library.)
+// reads the whole weight, and 9 MiB and more of it no longer stay in the caches; the limit was
+// then 6 MiB. With the weight in panels and the large-weight blocks and slabs (SMALL_PANEL,
+// SMALL_LARGE_WEIGHT), against the BLAS (256->256: against these kernels before them; same A/B,
+// docs/bench/large-weight-ab.txt): 512->512 1.33-1.38 / 1.24-1.36x -> 1.17 /
+// 1.12-1.18x, 1024->512 1.26-1.42 / 1.25-1.27x -> 1.15-1.16 / 1.14x, 1024->1024 at 16x16 B2
+// 1.19-1.20 / 1.09-1.17x -> 1.16-1.18 / 1.10-1.11x, 256->256 at 8x8 B8 1.26-1.30 / 1.34-1.38x ->
+// 1.11-1.13 / 1.22-1.24x; hence the 1024-output kernels and SMALL_MAX_WEIGHT. An earlier session
+// had found 256 outputs slower than oneDNN, 1.6x against 1.4x at 256->256, 64x64 B2, on the
+// Zen 5 while oneDNN was the library.)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 8, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 32, 16, 4, 4)
