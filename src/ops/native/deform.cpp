@@ -623,6 +623,27 @@ CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, in
 #endif
 }
 
+// dst[j * 8 + i] = src[i * n + j] for i < 8, j < n: 8 rows of n transposed into n rows of 8
+// (float: whole 8x8 blocks through transpose8x8).
+CALIBCONV_CLONES void transpose_rows8_float(const float* __restrict src, int64_t n,
+                                            float* __restrict dst) {
+  int64_t j = 0;
+  for (; j + 8 <= n; j += 8) transpose8x8(src + j, n, dst + j * 8, 8);
+  for (; j < n; ++j) {
+    for (int64_t i = 0; i < 8; ++i) dst[j * 8 + i] = src[i * n + j];
+  }
+}
+template <typename T>
+void transpose_rows8(const T* src, int64_t n, T* dst) {
+  if constexpr (std::is_same_v<T, float>) {
+    transpose_rows8_float(src, n, dst);
+  } else {
+    for (int64_t j = 0; j < n; ++j) {
+      for (int64_t i = 0; i < 8; ++i) dst[j * 8 + i] = src[i * n + j];
+    }
+  }
+}
+
 // convert_pixels for float: whole 8x8 blocks through transpose8x8 (copied element by element,
 // the compiler left these loops scalar), the edges element by element.
 CALIBCONV_CLONES void convert_pixels_float(const float* __restrict src, float* __restrict dst,
@@ -862,16 +883,16 @@ at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
   at::Tensor wt = at::empty({Cout / P, kc, P}, weight.options());
   const T* w = wc.const_data_ptr<T>();
   T* d = wt.mutable_data_ptr<T>();
-  // (8 outputs at a time: 8 rows of the weight read in step, which share one of L1's sets when
-  // C * K is a multiple of 1024 floats; more would not stay there)
-  const int64_t OB = std::min<int64_t>(P, 8);
-  for (int64_t o0 = 0; o0 < Cout; o0 += OB) {
+  // 8 outputs at a time (P and C_out are multiples of 8): their 8 rows of the weight transposed
+  // into tmp [K*C, 8] in the weight's (channel, tap) order (8x8 register transposes for float),
+  // then each row of 8 values to its (tap, channel) row of the panel.
+  std::vector<T> tmp(kc * 8);
+  for (int64_t o0 = 0; o0 < Cout; o0 += 8) {
+    transpose_rows8<T>(w + o0 * kc, kc, tmp.data());
     T* panel = d + (o0 / P) * P * kc + o0 % P;
-    const T* src = w + o0 * C * K;
     for (int64_t c = 0; c < C; ++c) {
       for (int64_t k = 0; k < K; ++k) {
-        T* row = panel + (k * C + c) * P;
-        for (int64_t o = 0; o < OB; ++o) row[o] = src[o * C * K + c * K + k];
+        std::copy_n(tmp.data() + (c * K + k) * 8, 8, panel + (k * C + c) * P);
       }
     }
   }
