@@ -644,6 +644,16 @@ void transpose_rows8(const T* src, int64_t n, T* dst) {
   }
 }
 
+// The inverse, for float: dst[i * n + j] = src[j * 8 + i] for i < 8, j < n.
+CALIBCONV_CLONES void untranspose_rows8_float(const float* __restrict src, int64_t n,
+                                              float* __restrict dst) {
+  int64_t j = 0;
+  for (; j + 8 <= n; j += 8) transpose8x8(src + j * 8, 8, dst + j, n);
+  for (; j < n; ++j) {
+    for (int64_t i = 0; i < 8; ++i) dst[i * n + j] = src[j * 8 + i];
+  }
+}
+
 // convert_pixels for float: whole 8x8 blocks through transpose8x8 (copied element by element,
 // the compiler left these loops scalar), the edges element by element.
 CALIBCONV_CLONES void convert_pixels_float(const float* __restrict src, float* __restrict dst,
@@ -1034,8 +1044,9 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const auto body = [&](int64_t c0, int64_t c1) {
     std::vector<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
-    // added to its accumulator at the end of the chunk.
-    std::vector<T> acc_t(small ? kc * g.Cout : 0);
+    // written to its accumulator at the end of the chunk in the final order, [C_out, C, K],
+    // through tmp (8 outputs' values in (channel, tap) order).
+    std::vector<T> acc_t(small ? kc * g.Cout : 0), tmp(small ? kc * 8 : 0);
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
       if (chunk > c0) std::fill(acc_t.begin(), acc_t.end(), T(0));  // (c0's: a new vector)
@@ -1071,17 +1082,17 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           gemm<T>(y.t(), c, a, true);
         }
       }
-      if (small) {  // the chunk's sum, transposed, is its accumulator
-        // (16 columns at a time: a line of the accumulator's row written whole)
-        const int64_t P = small_panel(g.Cout);
-        for (int64_t o0 = 0; o0 < g.Cout; o0 += P) {
-          const T* panel = acc_t.data() + o0 * kc;
-          for (int64_t j0 = 0; j0 < kc; j0 += 16) {
-            const int64_t j1 = std::min(kc, j0 + 16);
-            for (int64_t o = 0; o < P; ++o) {
-              T* dst = accp + (o0 + o) * kc;
-              for (int64_t j = j0; j < j1; ++j) dst[j] = panel[j * P + o];
+      if constexpr (std::is_same_v<T, float>) {
+        if (small) {  // the chunk's sum, [C_out, C, K], is its accumulator
+          const int64_t P = small_panel(g.Cout);
+          for (int64_t o0 = 0; o0 < g.Cout; o0 += 8) {
+            const float* panel = acc_t.data() + (o0 / P) * P * kc + o0 % P;
+            for (int64_t c = 0; c < g.C; ++c) {
+              for (int64_t k = 0; k < g.K; ++k) {
+                std::copy_n(panel + (k * g.C + c) * P, 8, tmp.data() + (c * g.K + k) * 8);
+              }
             }
+            untranspose_rows8_float(tmp.data(), kc, accp + o0 * kc);
           }
         }
       }
@@ -1092,8 +1103,10 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   } else {
     at::parallel_for(0, chunks, 1, body);
   }
-  // Sum the chunks into chunk 0 and swap (tap, channel) -> (channel, tap) in place, one output
-  // channel (a row of K * C/G) at a time: [C_out, C/G, K].
+  // Sum the chunks into chunk 0 and (but for the few-output-channel kernels' accumulators, in
+  // that order already) swap (tap, channel) -> (channel, tap) in place, one output channel (a
+  // row of K * C/G) at a time: [C_out, C/G, K].
+  if (small && chunks == 1) return gw.view({g.Cout, g.Cg, g.K});
   at::parallel_for(0, g.Cout, 1, [&](int64_t o0, int64_t o1) {
     std::vector<T> row(kcg);
     for (int64_t o = o0; o < o1; ++o) {
@@ -1102,6 +1115,10 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
         T sum = r0[i];
         for (int64_t chunk = 1; chunk < chunks; ++chunk) sum += acc(chunk)[o * kcg + i];
         row[i] = sum;
+      }
+      if (small) {
+        std::copy(row.begin(), row.end(), r0);
+        continue;
       }
       for (int64_t k = 0; k < g.K; ++k) {
         for (int64_t c = 0; c < g.Cg; ++c) r0[c * g.K + k] = row[k * g.Cg + c];
