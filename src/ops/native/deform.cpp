@@ -139,20 +139,21 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
 // float32 GEMMs of one group (G = 1) that the few-output-channel kernels do not take go through the
 // BLAS (at::mm, libtorch's MKL) by default, or through oneDNN as a 1x1 convolution
 // (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
-// timings). These are the layers of more than 1024 outputs or a weight of more than 36 MiB (more than
-// 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT outputs
-// where no few-output-channel kernel exists. oneDNN was the default on CPUs with AVX-512 while it
-// also multiplied the few-channel layers (there, on an AMD EPYC Zen 5, it reached 140-240 GFLOP/s
-// where MKL's AVX2 code reached 80-110); once those had their own kernels, the BLAS measured faster
-// at the shapes left, on both CPUs compared (one thread, interleaved, calibrated / conv2d forward
-// and f+b, oneDNN -> the BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at 16x16 B2 2.87 /
-// 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256 at 8x8 B8 1.09 /
-// 1.44x -> 0.95 / 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256 at 8x8 B8
-// 2.08-2.15 / 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x ->
-// 1.42-1.48 / 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 / 1.06-1.31x,
-// and no row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also reorders the
-// weight on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x with the
-// BLAS (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use at::mm.
+// timings). These are the layers of more than 1024 outputs or a weight of more than 36 MiB (more
+// than 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT
+// outputs where no few-output-channel kernel exists. oneDNN was the default on CPUs with AVX-512
+// while it also multiplied the few-channel layers (there, on an AMD EPYC Zen 5, it reached 140-240
+// GFLOP/s where MKL's AVX2 code reached 80-110); once those had their own kernels, the BLAS
+// measured faster at the shapes left, on both CPUs compared (one thread, interleaved, calibrated /
+// conv2d forward and f+b, oneDNN -> the BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at
+// 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256
+// at 8x8 B8 1.09 / 1.44x -> 0.95 / 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256
+// at 8x8 B8 2.08-2.15 / 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x
+// -> 1.42-1.48 / 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 /
+// 1.06-1.31x, and no row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also
+// reorders the weight on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x
+// with the BLAS (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use
+// at::mm.
 bool dnn_available() {
   static const bool ok = at::hasMKLDNN();
   return ok;
@@ -633,17 +634,6 @@ CALIBCONV_CLONES void transpose_rows8_float(const float* __restrict src, int64_t
     for (int64_t i = 0; i < 8; ++i) dst[j * 8 + i] = src[i * n + j];
   }
 }
-template <typename T>
-void transpose_rows8(const T* src, int64_t n, T* dst) {
-  if constexpr (std::is_same_v<T, float>) {
-    transpose_rows8_float(src, n, dst);
-  } else {
-    for (int64_t j = 0; j < n; ++j) {
-      for (int64_t i = 0; i < 8; ++i) dst[j * 8 + i] = src[i * n + j];
-    }
-  }
-}
-
 // The inverse, for float: dst[i * n + j] = src[j * 8 + i] for i < 8, j < n.
 CALIBCONV_CLONES void untranspose_rows8_float(const float* __restrict src, int64_t n,
                                               float* __restrict dst) {
@@ -881,25 +871,25 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
   return nchw<T>(gx);
 }
 
-// The weight [C_out, C, kh, kw] of one group as the few-output-channel kernels multiply it:
-// [K*C, C_out], rows in the columns' (tap, channel) order, stored as panels of P =
-// small_panel(C_out) outputs ([C_out / P, K*C, P]). Transposed in one loop (at 64 -> 64 channels
-// on 8x8 maps 4.2% of the forward pass, against 5.9% for TensorIterator's strided copy of the
-// permuted view).
-template <typename T>
+// The float32 weight [C_out, C, kh, kw] of one group as the few-output-channel kernels (float32
+// only) multiply it: [K*C, C_out], rows in the columns' (tap, channel) order, stored as panels of
+// P = small_panel(C_out) outputs ([C_out / P, K*C, P]). One pass over the weight, not a strided
+// copy of a permuted view (TensorIterator's took 5.9% of the forward pass at 64 -> 64 channels on
+// 8x8 maps, a plain loop 4.2%; the 8x8 transposes below, at 256 -> 256, 3-4% of the forward
+// kernel's time against 11% for the loop).
 at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
   const at::Tensor wc = weight.contiguous();
   const int64_t C = g.C, K = g.K, Cout = g.Cout, P = small_panel(Cout), kc = K * C;
   at::Tensor wt = at::empty({Cout / P, kc, P}, weight.options());
-  const T* w = wc.const_data_ptr<T>();
-  T* d = wt.mutable_data_ptr<T>();
+  const float* w = wc.const_data_ptr<float>();
+  float* d = wt.mutable_data_ptr<float>();
   // 8 outputs at a time (P and C_out are multiples of 8): their 8 rows of the weight transposed
-  // into tmp [K*C, 8] in the weight's (channel, tap) order (8x8 register transposes for float),
-  // then each row of 8 values to its (tap, channel) row of the panel.
-  std::vector<T> tmp(kc * 8);
+  // into tmp [K*C, 8] in the weight's (channel, tap) order (8x8 register transposes), then
+  // each row of 8 values to its (tap, channel) row of the panel.
+  std::vector<float> tmp(kc * 8);
   for (int64_t o0 = 0; o0 < Cout; o0 += 8) {
-    transpose_rows8<T>(w + o0 * kc, kc, tmp.data());
-    T* panel = d + (o0 / P) * P * kc + o0 % P;
+    transpose_rows8_float(w + o0 * kc, kc, tmp.data());
+    float* panel = d + (o0 / P) * P * kc + o0 % P;
     for (int64_t c = 0; c < C; ++c) {
       for (int64_t k = 0; k < K; ++k) {
         std::copy_n(tmp.data() + (c * K + k) * 8, 8, panel + (k * C + c) * P);
@@ -940,7 +930,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const at::Tensor wp = small ? at::Tensor() : pack_weight(weight, g);
   const T* wpp = small ? nullptr : wp.const_data_ptr<T>();
   const at::Tensor w2 = small ? at::Tensor() : wp.view({g.Cout, kcg});  // used with G = 1 only
-  const at::Tensor wt = small ? weight_columns<T>(weight, g) : at::Tensor();
+  const at::Tensor wt = small ? weight_columns(weight, g) : at::Tensor();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
   auto init = [&] {

@@ -1,7 +1,8 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
 // 8 to 1024 with AVX-512, 8 to 32 with AVX2; weights up to SMALL_MAX_WEIGHT): register-blocked
-// products on L1-sized blocks of gathered columns (larger blocks, in slabs, for large weights), compiled per instruction-set level and picked at run time. Included once, by
-// deform.cpp, which calls them through small_kernels_for.
+// products on L1-sized blocks of gathered columns (larger blocks, in slabs, for large weights),
+// compiled per instruction-set level and picked at run time. Included once, by deform.cpp, which
+// calls them through small_kernels_for.
 #pragma once
 
 #include <algorithm>
@@ -12,13 +13,13 @@
 
 namespace {
 
-// Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256, 512 or 1024 with
-// AVX-512; 8, 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the
-// three products of a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns instead of a
-// oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and overhead
-// than in arithmetic (with 64 and 128 outputs the AVX-512 kernels are faster than oneDNN even on
-// large maps), and its column tile (megabytes, so that the call is worth it) makes a
-// round trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
+// Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256, 512 or 1024 with AVX-512;
+// 8, 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the three
+// products of a pass through register-blocked kernels on blocks of SMALL_BLOCK_BYTES of columns
+// instead of a oneDNN / BLAS call per tile. At these shapes a GEMM call costs more in packing and
+// overhead than in arithmetic (with 64 and 128 outputs the AVX-512 kernels are faster than oneDNN
+// even on large maps), and its column tile (megabytes, so that the call is worth it) makes a round
+// trip through the caches; here a block of pixels is gathered into an L1-sized buffer and
 // multiplied at once, its columns still in L1. The accumulators of a block of pixels stay in
 // registers over the whole reduction.
 //
@@ -148,9 +149,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
   tile_store<R, NV, L>(acc, y + t * CS, CS);
 }
 
-// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row
-// stride kc), wt [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO]
-// (row stride CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
+// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row stride
+// kc), wt [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO] (row stride
+// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
 // over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
 // the block; y holds the partial sums between chunks).
 template <int CS, int CO, int L, int R>
@@ -219,8 +220,8 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, 
 
 // acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
 // (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (a panel of the weight gradient,
-// transposed, rows of CO values). JB columns at a time (then one), their CO / L accumulators each in registers
-// over all n rows.
+// transposed, rows of CO values). JB columns at a time (then one), their CO / L accumulators
+// each in registers over all n rows.
 template <int CS, int NV, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n, int64_t kc,
                                                          const float* gy, float* acc, int64_t j0) {
