@@ -7,6 +7,14 @@ const F32_TOL: f64 = 1e-5;
 /// Central differences in f64 with step 1e-6 on O(1) values: truncation + rounding ~1e-8.
 const FD_TOL: f64 = 1e-6;
 
+/// Fills the native kernels' uninitialised scratch buffers with NaN from here on (the whole
+/// process: the tests run in threads of one), so that a test holding them to ATen also fails
+/// when a pass reads a value it never wrote (fresh pages are zero and would hide that).
+fn poison_native_scratch() {
+    #[cfg(calibconv_native)]
+    super::native::poison_scratch();
+}
+
 fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
     let diff = (a - b).abs().max().double_value(&[]);
     let scale = b.abs().max().double_value(&[]).max(1e-12);
@@ -269,6 +277,7 @@ fn is_channels_last(x: &Tensor) -> bool {
 
 #[test]
 fn native_matches_aten_on_random_plans() {
+    poison_native_scratch();
     tch::manual_seed(2);
     // (batch, c_in, c_out, h, w, kernel, stride, padding, dilation, groups, per-item offsets,
     // offset scale in pixels: large scales put many samples partly or wholly outside).
@@ -606,6 +615,7 @@ fn float32_plan_serves_a_float64_input() {
 /// including a 1-wide input whose two horizontal corners are the same pixel.
 #[test]
 fn native_matches_aten_with_wrap_around() {
+    poison_native_scratch();
     tch::manual_seed(7);
     // The gather reads a padded input whose side columns hold the other side's pixels: 3
     // channels (vectors of four), 8 (whole vectors) and 5 (the scalar loop), shared and per-item
@@ -755,6 +765,7 @@ fn native_kernels_are_built() {
 /// that span batch items.
 #[test]
 fn first_layer_without_input_gradient_matches_aten() {
+    poison_native_scratch();
     tch::manual_seed(5);
     for (kind, tol) in [(Kind::Double, F64_IMPL_TOL), (Kind::Float, F32_IMPL_TOL)] {
         // 8 and 16 output channels (the few-output-channel kernels), and 40 (the weight
@@ -875,6 +886,7 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
         return; // native_kernels_are_built fails instead
     }
+    poison_native_scratch();
     let top = small_kernel_isa();
     tch::manual_seed(8);
     for (b, ci, co, h, w) in [

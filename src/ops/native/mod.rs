@@ -35,6 +35,20 @@ extern "C" {
     /// See `deform.cpp`: sets the GEMM library when `choice >= 0` (0 the CPU's default, 1
     /// oneDNN, 2 the BLAS), returns the one in use (1 oneDNN, 2 the BLAS).
     fn calibconv_native_gemm(choice: i32) -> i32;
+    /// See `deform.cpp`: poisons (1) or stops poisoning (0) the scratch buffers that every
+    /// pass must write before it reads them; returns whether they are poisoned.
+    #[cfg(test)]
+    fn calibconv_native_poison_scratch(on: i32) -> i32;
+}
+
+/// Fills the native kernels' uninitialised scratch buffers with NaN from now on, for the whole
+/// process (the tests that hold the kernels to ATen: a value read before it was written then
+/// shows, where fresh zero pages would hide it).
+#[cfg(test)]
+pub(super) fn poison_scratch() {
+    // SAFETY: a plain function of an integer; it only writes an atomic.
+    let on = unsafe { calibconv_native_poison_scratch(1) };
+    assert_eq!(on, 1, "scratch poisoning must take effect");
 }
 
 /// The library of the float32 GEMMs in use (see [`super::GemmLibrary`]); with `choice`, first
