@@ -190,6 +190,7 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
         input_grad: t.input_grad,
         reps,
         conv2d_peak_mib: None,
+        goal: Goal::of(layer.net, c_in, c_out, &calibrated),
         calibrated,
         aten,
     })
@@ -397,12 +398,13 @@ fn bench_one_unet(camera: &Camera, spec: UnetSpec, quick: bool) -> Result<UnetRe
     };
     println!(
         "\nU-Net ({label}) B{batch} 3x{}x{}, base {base}, depth {depth}: training step conv2d \
-         {:.1} ms, calibrated {:.1} ms ({:.2}x; CPU time {}x)",
+         {:.1} ms, calibrated {:.1} ms ({:.2}x, 95% ci {}; CPU time {}x)",
         input[0],
         input[1],
         r.step.reference_ms,
         r.step.candidate_ms,
         r.step.ratio,
+        fmt_ci(r.step.ratio_ci),
         fmt_opt(r.step.cpu_ratio, 2),
     );
     Ok(r)
@@ -454,10 +456,12 @@ pub(super) fn bench_functional(camera: &Camera, args: &Options) -> Result<Paired
         .expect("one candidate");
     println!(
         "\nfunctional ops::deform_conv2d, one offsets tensor, B{b} {c}->{c} {h}x{w}: \
-         forward+backward conv2d {:.1} ms, deform_conv2d {:.1} ms ({:.2}x; CPU time {}x)",
+         forward+backward conv2d {:.1} ms, deform_conv2d {:.1} ms ({:.2}x, 95% ci {}; CPU time \
+         {}x)",
         p.reference_ms,
         p.candidate_ms,
         p.ratio,
+        fmt_ci(p.ratio_ci),
         fmt_opt(p.cpu_ratio, 2)
     );
     Ok(p)

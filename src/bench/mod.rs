@@ -4,7 +4,10 @@
 //! Timings on a shared machine drift with the load, so every measurement is paired: within one
 //! repetition the reference (`conv2d`, same weights) and the candidate run back to back (the
 //! order alternates between repetitions), and the reported ratio is the median of the
-//! per-repetition ratios. Times are medians too. The system load (`/proc/loadavg`) before and
+//! per-repetition ratios, with a distribution-free 95% confidence interval of that median (order
+//! statistics, [`median_ci`]). Times are medians too. `--presets` rows also carry the layer's
+//! performance goal ([`goal_limit`]) and whether it holds, is contradicted or is inconclusive,
+//! computed from the interval ([`Outcome`]), counted after the table. The system load (`/proc/loadavg`) before and
 //! after the timings is reported with them. Nothing here is asserted anywhere: these are numbers
 //! for people.
 //!
@@ -199,11 +202,76 @@ struct Paired {
     reference_ms: f64,
     candidate_ms: f64,
     ratio: f64,
+    /// A distribution-free confidence interval (at least 95%) of the median per-repetition
+    /// wall-time ratio ([`median_ci`]; none below 6 repetitions).
+    ratio_ci: Option<[f64; 2]>,
     /// The same from the process's CPU time (all threads, user + system) instead of wall time:
     /// on a machine loaded beyond its cores a run longer than a scheduler time slice is
     /// preempted more often than a short one, which inflates wall-time ratios; with one thread
     /// the CPU-time ratio is the work ratio (with more, it counts OpenMP's spinning too).
     cpu_ratio: Option<f64>,
+}
+
+/// The performance goals of the calibrated layers (README, "Performance"): every 3x3 layer of
+/// the `tiny` and `small` presets at most 1.3x `conv2d`, forward and forward+backward, and at
+/// most 1.15x where input and output both have 64 channels or more (in every preset: `classic`'s
+/// wider layers). `None`: the layer has no goal (explicit shapes, `classic`'s narrow layers).
+fn goal_limit(net: &str, c_in: i64, c_out: i64) -> Option<f64> {
+    let wide = c_in >= 64 && c_out >= 64;
+    match net {
+        "tiny" | "small" => Some(if wide { 1.15 } else { 1.3 }),
+        "classic" if wide => Some(1.15),
+        _ => None,
+    }
+}
+
+/// Whether a goal holds, computed from the ratio's interval: `Holds` when the whole interval is
+/// at or below the limit, `Contradicted` when it is wholly above, else (or without an interval)
+/// `Inconclusive`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+enum Outcome {
+    Holds,
+    Contradicted,
+    Inconclusive,
+}
+
+impl Outcome {
+    fn of(ci: Option<[f64; 2]>, limit: f64) -> Self {
+        match ci {
+            Some([_, hi]) if hi <= limit => Outcome::Holds,
+            Some([lo, _]) if lo > limit => Outcome::Contradicted,
+            _ => Outcome::Inconclusive,
+        }
+    }
+
+    /// The short form of the table's last column.
+    fn mark(self) -> &'static str {
+        match self {
+            Outcome::Holds => "ok",
+            Outcome::Contradicted => "OVER",
+            Outcome::Inconclusive => "?",
+        }
+    }
+}
+
+/// A layer's goal ([`goal_limit`]) and its outcome for the forward and the forward+backward pass.
+#[derive(Debug, Serialize)]
+struct Goal {
+    limit: f64,
+    forward: Outcome,
+    forward_backward: Outcome,
+}
+
+impl Goal {
+    fn of(net: &str, c_in: i64, c_out: i64, calibrated: &Impl) -> Option<Self> {
+        let limit = goal_limit(net, c_in, c_out)?;
+        Some(Goal {
+            limit,
+            forward: Outcome::of(calibrated.forward.ratio_ci, limit),
+            forward_backward: Outcome::of(calibrated.forward_backward.ratio_ci, limit),
+        })
+    }
 }
 
 #[derive(Debug, Serialize)]
@@ -234,6 +302,8 @@ struct ShapeResult {
     calibrated: Impl,
     /// The ATen composition (`--aten`), the CUDA path and the pre-native CPU path.
     aten: Option<Impl>,
+    /// The layer's performance goal and its outcomes (presets only).
+    goal: Option<Goal>,
 }
 
 #[derive(Debug, Serialize)]
@@ -349,6 +419,7 @@ pub fn run(
         print_row(&r);
         results.push(r);
     }
+    print_goals(&results);
     // The full-resolution pyramid takes seconds: not part of --quick unless asked for.
     let pyramid = if run_part(Part::Pyramid) && !(args.quick && args.only.is_empty()) {
         Some(bench_pyramid(camera)?)
@@ -457,7 +528,7 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
 
 fn print_header(aten: bool) {
     println!(
-        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} {:>5} | {:>8} {:>8} {:>5} {:>5}{}",
+        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} {:>11} {:>5} | {:>8} {:>8} {:>5} {:>11} {:>5} | {:>4} {:>4} {:>4}{}",
         "net",
         "n",
         "B",
@@ -467,20 +538,40 @@ fn print_header(aten: bool) {
         "conv fwd",
         "cal fwd",
         "x",
+        "95% ci",
         "cpu x",
         "conv f+b",
         "cal f+b",
         "x",
+        "95% ci",
         "cpu x",
+        "goal",
+        "fwd",
+        "f+b",
         if aten { " | aten fwd x  f+b x" } else { "" }
     );
 }
 
+/// An interval as the table prints it.
+fn fmt_ci(ci: Option<[f64; 2]>) -> String {
+    ci.map_or("-".to_string(), |[lo, hi]| format!("[{lo:.2},{hi:.2}]"))
+}
+
 fn print_row(r: &ShapeResult) {
     let c = &r.calibrated;
-    let mut line =
-        format!(
-        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>5}",
+    let goal = r
+        .goal
+        .as_ref()
+        .map_or(format!("{:>4} {:>4} {:>4}", "-", "", ""), |g| {
+            format!(
+                "{:>4.2} {:>4} {:>4}",
+                g.limit,
+                g.forward.mark(),
+                g.forward_backward.mark()
+            )
+        });
+    let mut line = format!(
+        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {goal}",
         r.net,
         r.count,
         r.batch,
@@ -490,10 +581,12 @@ fn print_row(r: &ShapeResult) {
         c.forward.reference_ms,
         c.forward.candidate_ms,
         c.forward.ratio,
+        fmt_ci(c.forward.ratio_ci),
         fmt_opt(c.forward.cpu_ratio, 2),
         c.forward_backward.reference_ms,
         c.forward_backward.candidate_ms,
         c.forward_backward.ratio,
+        fmt_ci(c.forward_backward.ratio_ci),
         fmt_opt(c.forward_backward.cpu_ratio, 2),
     );
     if let Some(a) = &r.aten {
@@ -503,6 +596,52 @@ fn print_row(r: &ShapeResult) {
         ));
     }
     println!("{line}");
+}
+
+/// The outcomes of the rows' goals, counted per pass, and the rows where one does not hold.
+fn print_goals(results: &[ShapeResult]) {
+    let goals: Vec<(&ShapeResult, &Goal)> = results
+        .iter()
+        .filter_map(|r| r.goal.as_ref().map(|g| (r, g)))
+        .collect();
+    if goals.is_empty() {
+        return;
+    }
+    println!(
+        "\ngoals (README, Performance: <= 1.3x conv2d for tiny and small, <= 1.15x from 64 \
+         channels in and out), from each ratio's 95% interval (ok: within, OVER: above, ?: \
+         inconclusive):"
+    );
+    for (pass, get) in [
+        ("forward", (|g: &Goal| g.forward) as fn(&Goal) -> Outcome),
+        ("forward+backward", |g: &Goal| g.forward_backward),
+    ] {
+        let count = |o: Outcome| goals.iter().filter(|(_, g)| get(g) == o).count();
+        let missed: Vec<String> = goals
+            .iter()
+            .filter(|(_, g)| get(g) != Outcome::Holds)
+            .map(|(r, g)| {
+                format!(
+                    "{} {}->{} {}x{} ({})",
+                    r.net,
+                    r.c_in,
+                    r.c_out,
+                    r.height,
+                    r.width,
+                    get(g).mark()
+                )
+            })
+            .collect();
+        println!(
+            "  {pass}: {} of {} hold, {} contradicted, {} inconclusive{}{}",
+            count(Outcome::Holds),
+            goals.len(),
+            count(Outcome::Contradicted),
+            count(Outcome::Inconclusive),
+            if missed.is_empty() { "" } else { ": " },
+            missed.join(", ")
+        );
+    }
 }
 
 /// Wall time of `f` in milliseconds.
@@ -518,6 +657,26 @@ fn time_both_ms(f: &mut dyn FnMut()) -> (f64, Option<f64>) {
     let wall = time_ms(f);
     let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| (b - a) * 1e3);
     (wall, cpu)
+}
+
+/// A distribution-free confidence interval of the median of `sorted` (ascending), with
+/// coverage at least 95%: the order statistics `x(j)` and `x(n + 1 - j)` (1-based), `j` the
+/// largest with `P(Binomial(n, 1/2) <= j - 1) <= 0.025` (the number of values below the median
+/// is binomial when they are exchangeable). `None` below 6 values (no such `j`). For 15
+/// repetitions (`MAX_REPS`): `x(4)` and `x(12)`, coverage 96.5%.
+fn median_ci(sorted: &[f64]) -> Option<[f64; 2]> {
+    let n = sorted.len();
+    let total = 2f64.powi(i32::try_from(n).ok()?);
+    let (mut cdf, mut choose, mut j) = (0.0, 1.0, 0);
+    for k in 0..n {
+        cdf += choose / total; // P(X <= k)
+        if cdf > 0.025 {
+            break;
+        }
+        j = k + 1;
+        choose *= (n - k) as f64 / (k + 1) as f64;
+    }
+    (j >= 1).then(|| [sorted[j - 1], sorted[n - j]])
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -567,10 +726,13 @@ fn paired(
                 .zip(&times[0])
                 .map(|(c, r)| Some(c.1? / r.1?.max(1e-6)))
                 .collect();
+            let mut ratios: Vec<f64> = c.iter().zip(&ref_wall).map(|(c, r)| c.0 / r).collect();
+            ratios.sort_by(|a, b| a.total_cmp(b));
             Paired {
                 reference_ms: median(ref_wall.clone()),
                 candidate_ms: median(wall(c)),
-                ratio: median(c.iter().zip(&ref_wall).map(|(c, r)| c.0 / r).collect()),
+                ratio_ci: median_ci(&ratios),
+                ratio: median(ratios),
                 cpu_ratio: cpu.map(median),
             }
         })
@@ -580,6 +742,65 @@ fn paired(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `P(Binomial(n, 1/2) <= k)` from exact integer counts (an oracle independent of the
+    /// running product in `median_ci`).
+    fn binomial_cdf(n: u32, k: u32) -> f64 {
+        let choose =
+            |n: u32, r: u32| (0..r).fold(1u128, |c, i| c * u128::from(n - i) / u128::from(i + 1));
+        let below: u128 = (0..=k).map(|r| choose(n, r)).sum();
+        below as f64 / 2f64.powi(n as i32)
+    }
+
+    /// The interval of the median is the widest symmetric pair of order statistics whose
+    /// binomial tails are each at most 2.5% (coverage >= 95%), the next narrower pair not;
+    /// none below 6 values.
+    #[test]
+    fn median_interval_is_the_binomial_order_statistic_pair() {
+        for n in 1..=60usize {
+            let sorted: Vec<f64> = (1..=n).map(|i| i as f64).collect();
+            let ci = median_ci(&sorted);
+            if n < 6 {
+                assert_eq!(ci, None, "n = {n}");
+                continue;
+            }
+            let [lo, hi] = ci.unwrap_or_else(|| panic!("n = {n}: no interval"));
+            let j = lo as usize; // x(j) = j here
+            assert_eq!(hi as usize, n + 1 - j, "n = {n}: symmetric");
+            let tail = binomial_cdf(n as u32, j as u32 - 1);
+            assert!(tail <= 0.025, "n = {n}, j = {j}: tail {tail}");
+            assert!(1.0 - 2.0 * tail >= 0.95, "n = {n}: coverage");
+            assert!(
+                binomial_cdf(n as u32, j as u32) > 0.025,
+                "n = {n}: j = {j} is not the largest"
+            );
+        }
+        // 15 repetitions (MAX_REPS): x(4) and x(12).
+        let fifteen: Vec<f64> = (1..=15).map(f64::from).collect();
+        assert_eq!(median_ci(&fifteen), Some([4.0, 12.0]));
+    }
+
+    #[test]
+    fn goals_follow_the_presets_and_channel_counts() {
+        assert_eq!(goal_limit("tiny", 3, 8), Some(1.3));
+        assert_eq!(goal_limit("small", 64, 32), Some(1.3));
+        assert_eq!(goal_limit("small", 64, 128), Some(1.15));
+        assert_eq!(goal_limit("classic", 64, 64), Some(1.15));
+        assert_eq!(goal_limit("classic", 3, 64), None);
+        assert_eq!(goal_limit("classic", 128, 32), None);
+        assert_eq!(goal_limit("", 256, 256), None);
+    }
+
+    /// A goal holds only when the whole interval is within it, is contradicted only when the
+    /// whole interval is above it, and is inconclusive without an interval.
+    #[test]
+    fn goal_outcomes_come_from_the_interval() {
+        assert_eq!(Outcome::of(Some([1.1, 1.3]), 1.3), Outcome::Holds);
+        assert_eq!(Outcome::of(Some([1.1, 1.31]), 1.3), Outcome::Inconclusive);
+        assert_eq!(Outcome::of(Some([1.3, 1.4]), 1.3), Outcome::Inconclusive);
+        assert_eq!(Outcome::of(Some([1.31, 1.4]), 1.3), Outcome::Contradicted);
+        assert_eq!(Outcome::of(None, 1.3), Outcome::Inconclusive);
+    }
 
     /// `--shape` layers need the input gradient unless `--first-layer` says they read the image;
     /// the presets mark their first layers themselves.
