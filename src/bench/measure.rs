@@ -137,7 +137,7 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
     let reps = if args.quick {
         MIN_REPS
     } else {
-        ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(MIN_REPS, MAX_REPS)
+        ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS)
     };
     let (fwd_pairs, step_pairs) = if args.aten {
         (
@@ -364,7 +364,7 @@ fn bench_one_unet(camera: &Camera, spec: UnetSpec, quick: bool) -> Result<UnetRe
     let reps = if quick {
         MIN_REPS
     } else {
-        ((2.0 * BUDGET_S * 1e3 / t_ref).round() as usize).clamp(MIN_REPS, MAX_REPS)
+        ((2.0 * BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS)
     };
     let nets = std::cell::RefCell::new(nets);
     let pairs = paired(

@@ -184,7 +184,11 @@ const DEFAULT: &[Shape] = &[
 ];
 /// Seconds of reference (`conv2d` training steps) spent per shape, which sets the repetitions.
 const BUDGET_S: f64 = 1.5;
+/// Repetitions of `--quick`.
 const MIN_REPS: usize = 3;
+/// Repetitions at least otherwise: the fewest that give the ratio an interval ([`median_ci`]),
+/// so that a goal can hold or be contradicted.
+const CI_REPS: usize = 6;
 const MAX_REPS: usize = 15;
 
 /// `--full`: every U-Net level at batch 1, 4 and 8.
@@ -559,17 +563,14 @@ fn fmt_ci(ci: Option<[f64; 2]>) -> String {
 
 fn print_row(r: &ShapeResult) {
     let c = &r.calibrated;
-    let goal = r
-        .goal
-        .as_ref()
-        .map_or(format!("{:>4} {:>4} {:>4}", "-", "", ""), |g| {
-            format!(
-                "{:>4.2} {:>4} {:>4}",
-                g.limit,
-                g.forward.mark(),
-                g.forward_backward.mark()
-            )
-        });
+    let goal = r.goal.as_ref().map_or("-".to_string(), |g| {
+        format!(
+            "{:>4.2} {:>4} {:>4}",
+            g.limit,
+            g.forward.mark(),
+            g.forward_backward.mark()
+        )
+    });
     let mut line = format!(
         "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {goal}",
         r.net,
