@@ -7,7 +7,8 @@
 //! per-repetition ratios, with a distribution-free 95% confidence interval of that median (order
 //! statistics, [`median_ci`]). Times are medians too. `--presets` rows also carry the layer's
 //! performance goal ([`goal_limit`]) and whether it holds, is contradicted or is inconclusive,
-//! computed from the interval ([`Outcome`]), counted after the table. The system load (`/proc/loadavg`) before and
+//! computed from the interval ([`Outcome`]), counted after the table. The system load
+//! (`/proc/loadavg`) before and
 //! after the timings is reported with them. Nothing here is asserted anywhere: these are numbers
 //! for people.
 //!
