@@ -878,9 +878,10 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 /// give bit-identical results (the same fused multiply-adds in the same order per element); every
 /// level's path (at AVX2, 64-1024 outputs go through the GEMM library) matches the ATen
 /// composition, for 8, 16, 32, 64, 128, 256, 512 and 1024 outputs and row counts that leave
-/// partial blocks, and for weights above SMALL_LARGE_WEIGHT (blocks of 256 rows, slabs of 512
-/// columns: 64->512 on 552 pixels is two blocks and a part, K*C = 576 a slab and a part). On a
-/// CPU without AVX-512 the AVX2 path is still held to ATen.
+/// partial blocks, and for weights above SMALL_LARGE_WEIGHT (blocks of 256 rows, gathered and
+/// multiplied in slabs of 512 columns: 64->512 on 552 pixels is two blocks and a part, K*C = 576
+/// a slab and a part; at 96->512 the first slab ends inside tap 5's channels). On a CPU without
+/// AVX-512 the AVX2 path is still held to ATen.
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -900,6 +901,7 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (1, 8, 256, 17, 16),
         (1, 8, 512, 24, 23),
         (1, 64, 512, 24, 23),
+        (1, 96, 512, 24, 23),
         (1, 32, 1024, 33, 32),
     ] {
         let Problem {

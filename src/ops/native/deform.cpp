@@ -464,6 +464,41 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   }
 }
 
+// The columns [s0, s1) of the rows of output pixels [p0, p0 + n) of batch item b (one group),
+// into cols [n, s1 - s0] at row stride ldc: for the few-output-channel kernels' large weights,
+// whose forward gathers and multiplies a block's columns one slab at a time (forward_impl). Each
+// value is gather_columns_body's expression (the same bits).
+CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const int32_t* top_left,
+                                         const float* frac, int64_t b, int64_t p0, int64_t n,
+                                         int64_t s0, int64_t s1, float* cols, int64_t ldc) {
+  const int64_t item = g.item(b);
+  const int64_t frame = g.Hp * g.Wp;
+  const int64_t shift = item * frame;  // per-item plans index the stacked padded items
+  const int64_t C = g.C, K = g.K, down = g.Wp * C;
+  const float* xb = xp + (b * frame - shift) * C;
+  const int64_t s_begin = (item * g.P + p0) * K;
+  const int32_t* __restrict tl = top_left + s_begin;
+  const float* __restrict f = frac + 2 * s_begin;
+  const int64_t k0 = s0 / C, k1 = (s1 + C - 1) / C;  // the taps the range covers
+  for (int64_t t = 0; t < n; ++t) {
+    for (int64_t k = k0; k < k1; ++k) {
+      const int64_t i = t * K + k;
+      const float ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+      const float w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
+      const float* __restrict a0 = xb + int64_t{tl[i]} * C;
+      const float* __restrict a1 = a0 + C;
+      const float* __restrict a2 = a0 + down;
+      const float* __restrict a3 = a2 + C;
+      float* __restrict dst = cols + t * ldc + (k * C - s0);  // channel c at dst[c]
+      const int64_t c0 = std::max<int64_t>(s0 - k * C, 0), c1 = std::min<int64_t>(s1 - k * C, C);
+      CALIBCONV_IVDEP
+      for (int64_t c = c0; c < c1; ++c) {
+        dst[c] = w0 * a0[c] + w1 * a1[c] + w2 * a2[c] + w3 * a3[c];
+      }
+    }
+  }
+}
+
 // Adds the column-gradient tile gcols [n, K*C] (layout as the columns) of output pixels
 // [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last buffer
 // gxp (as padded_input; unpadded_gradient folds it back). Corners off the input add into the
@@ -613,20 +648,29 @@ void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* xp, const in
   });
 }
 
+// gather_rows for the columns [s0, s1) (gather_range_float), into cols at row stride ldc.
+void gather_range_rows(const Geo& g, const float* xp, const int32_t* top_left,
+                       const float* frac, int64_t q0, int64_t n, int64_t s0, int64_t s1,
+                       float* cols, int64_t ldc) {
+  for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
+    gather_range_float(g, xp, top_left, frac, b, p0, len, s0, s1, cols + off * ldc, ldc);
+  });
+}
+
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
-// Transposes the 8x8 block of floats at src (row i at src + i * ss) into dst (row j at
-// dst + j * ds): three rounds of shuffles (pairs, quads, halves) on eight 8-float vectors, the
-// register transpose of the AVX instruction set, written with GCC's generic shuffles so that
-// every clone gets its own instructions.
-CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, int64_t ss,
-                                                 float* __restrict dst, int64_t ds) {
+// Transposes the 8x8 block of floats with row i at src[i] into the rows dst[j] (each row its own
+// pointer): three rounds of shuffles (pairs, quads, halves) on eight 8-float vectors, the register
+// transpose of the AVX instruction set, written with GCC's generic shuffles so that every clone
+// gets its own instructions.
+CALIBCONV_ALWAYS_INLINE inline void transpose8x8_rows(const float* const (&src)[8],
+                                                      float* const (&dst)[8]) {
 #if defined(__GNUC__) && !defined(__clang__)
   using V = VecOf<float, 8>::type;
   typedef int32_t M __attribute__((vector_size(32)));
   V r[8], t[8], u[8];
-  for (int i = 0; i < 8; ++i) r[i] = load<V>(src + i * ss);
+  for (int i = 0; i < 8; ++i) r[i] = load<V>(src[i]);
   for (int i = 0; i < 8; i += 2) {
     t[i] = __builtin_shuffle(r[i], r[i + 1], M{0, 8, 1, 9, 4, 12, 5, 13});
     t[i + 1] = __builtin_shuffle(r[i], r[i + 1], M{2, 10, 3, 11, 6, 14, 7, 15});
@@ -639,33 +683,23 @@ CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, in
     }
   }
   for (int j = 0; j < 4; ++j) {
-    store(dst + j * ds, __builtin_shuffle(u[j], u[j + 4], M{0, 1, 2, 3, 8, 9, 10, 11}));
-    store(dst + (j + 4) * ds, __builtin_shuffle(u[j], u[j + 4], M{4, 5, 6, 7, 12, 13, 14, 15}));
+    store(dst[j], __builtin_shuffle(u[j], u[j + 4], M{0, 1, 2, 3, 8, 9, 10, 11}));
+    store(dst[j + 4], __builtin_shuffle(u[j], u[j + 4], M{4, 5, 6, 7, 12, 13, 14, 15}));
   }
 #else
   for (int i = 0; i < 8; ++i)
-    for (int j = 0; j < 8; ++j) dst[j * ds + i] = src[i * ss + j];
+    for (int j = 0; j < 8; ++j) dst[j][i] = src[i][j];
 #endif
 }
 
-// dst[j * 8 + i] = src[i * n + j] for i < 8, j < n: 8 rows of n transposed into n rows of 8
-// (float: whole 8x8 blocks through transpose8x8).
-CALIBCONV_CLONES void transpose_rows8_float(const float* __restrict src, int64_t n,
-                                            float* __restrict dst) {
-  int64_t j = 0;
-  for (; j + 8 <= n; j += 8) transpose8x8(src + j, n, dst + j * 8, 8);
-  for (; j < n; ++j) {
-    for (int64_t i = 0; i < 8; ++i) dst[j * 8 + i] = src[i * n + j];
-  }
-}
-// The inverse, for float: dst[i * n + j] = src[j * 8 + i] for i < 8, j < n.
-CALIBCONV_CLONES void untranspose_rows8_float(const float* __restrict src, int64_t n,
-                                              float* __restrict dst) {
-  int64_t j = 0;
-  for (; j + 8 <= n; j += 8) transpose8x8(src + j * 8, 8, dst + j, n);
-  for (; j < n; ++j) {
-    for (int64_t i = 0; i < 8; ++i) dst[i * n + j] = src[j * 8 + i];
-  }
+// The same with row i at src + i * ss and row j at dst + j * ds.
+CALIBCONV_ALWAYS_INLINE inline void transpose8x8(const float* __restrict src, int64_t ss,
+                                                 float* __restrict dst, int64_t ds) {
+  const float* const s[8] = {src,          src + ss,     src + 2 * ss, src + 3 * ss,
+                             src + 4 * ss, src + 5 * ss, src + 6 * ss, src + 7 * ss};
+  float* const d[8] = {dst,          dst + ds,     dst + 2 * ds, dst + 3 * ds,
+                       dst + 4 * ds, dst + 5 * ds, dst + 6 * ds, dst + 7 * ds};
+  transpose8x8_rows(s, d);
 }
 
 // convert_pixels for float: whole 8x8 blocks through transpose8x8 (copied element by element,
@@ -893,37 +927,84 @@ at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryF
   return nchw<T>(gx);
 }
 
-// Copies 8 floats (one vector: std::copy_n of 8 values was a call to memmove, 1.5% of a forward +
-// backward at 256 -> 256 channels on 8x8 maps, in weight_columns).
-CALIBCONV_ALWAYS_INLINE inline void copy8(const float* src, float* dst) {
-  store(dst, load<VecOf<float, 8>::type>(src));
+// Between a float32 weight [C_out, C, K] of one group and its panels [C_out / P, K*C, P] (P =
+// small_panel(C_out); rows in the columns' (tap, channel) order, see weight_columns), either way:
+// 8x8 register transposes of 8 outputs by 8 consecutive (channel, tap) values of their rows, each
+// of the 8 values' panel rows its own pointer. Per panel the blocks go along the weight's rows
+// with the panel's P / 8 output groups innermost, so that a panel row is written (or read) whole,
+// P contiguous values, at once. (Before: 8 outputs' rows transposed into a [K*C, 8] buffer, then
+// copied row by row into the panels, 32 bytes of a 256-byte row each time: at 256 -> 256
+// channels on 8x8 maps B8, 6.3% of the forward's perf samples, 5.0-5.3% now. Through an L1
+// buffer of 8 channels' rows, copied out to the panels 8 rows a tap: 7.4-7.7%, its copies calls
+// to memmove.) C_out is a multiple of 8.
+template <bool TO_PANELS>
+CALIBCONV_ALWAYS_INLINE inline void weight_panels_body(const float* __restrict src,
+                                                       float* __restrict dst, int64_t Cout,
+                                                       int64_t C, int64_t K) {
+  const int64_t P = small_panel(Cout), kc = K * C;
+  for (int64_t p0 = 0; p0 < Cout; p0 += P) {
+    const int64_t base = p0 * kc;  // the panel's offset, and its first output's row
+    int64_t c = 0, k = 0;          // (channel, tap) of the weight's value j
+    int64_t j = 0;
+    for (; j + 8 <= kc; j += 8) {
+      int64_t row[8];  // the panel rows of values j .. j + 7
+      for (int i = 0; i < 8; ++i) {
+        row[i] = base + (k * C + c) * P;
+        if (++k == K) k = 0, ++c;
+      }
+      for (int64_t o = 0; o < P; o += 8) {
+        const int64_t w0 = base + o * kc + j;  // output p0 + o, value j
+        if constexpr (TO_PANELS) {
+          const float* const s[8] = {src + w0,          src + w0 + kc,     src + w0 + 2 * kc,
+                                     src + w0 + 3 * kc, src + w0 + 4 * kc, src + w0 + 5 * kc,
+                                     src + w0 + 6 * kc, src + w0 + 7 * kc};
+          float* const d[8] = {dst + row[0] + o, dst + row[1] + o, dst + row[2] + o,
+                               dst + row[3] + o, dst + row[4] + o, dst + row[5] + o,
+                               dst + row[6] + o, dst + row[7] + o};
+          transpose8x8_rows(s, d);
+        } else {
+          const float* const s[8] = {src + row[0] + o, src + row[1] + o, src + row[2] + o,
+                                     src + row[3] + o, src + row[4] + o, src + row[5] + o,
+                                     src + row[6] + o, src + row[7] + o};
+          float* const d[8] = {dst + w0,          dst + w0 + kc,     dst + w0 + 2 * kc,
+                               dst + w0 + 3 * kc, dst + w0 + 4 * kc, dst + w0 + 5 * kc,
+                               dst + w0 + 6 * kc, dst + w0 + 7 * kc};
+          transpose8x8_rows(s, d);
+        }
+      }
+    }
+    for (; j < kc; ++j) {  // the last kc % 8 values, one at a time
+      const int64_t r = base + (k * C + c) * P;
+      for (int64_t o = 0; o < P; ++o) {
+        if constexpr (TO_PANELS) {
+          dst[r + o] = src[base + o * kc + j];
+        } else {
+          dst[base + o * kc + j] = src[r + o];
+        }
+      }
+      if (++k == K) k = 0, ++c;
+    }
+  }
+}
+CALIBCONV_CLONES void weight_to_panels(const float* __restrict w, float* __restrict panels,
+                                       int64_t Cout, int64_t C, int64_t K) {
+  weight_panels_body<true>(w, panels, Cout, C, K);
+}
+CALIBCONV_CLONES void panels_to_weight(const float* __restrict panels, float* __restrict w,
+                                       int64_t Cout, int64_t C, int64_t K) {
+  weight_panels_body<false>(panels, w, Cout, C, K);
 }
 
 // The float32 weight [C_out, C, kh, kw] of one group as the few-output-channel kernels (float32
 // only) multiply it: [K*C, C_out], rows in the columns' (tap, channel) order, stored as panels of
-// P = small_panel(C_out) outputs ([C_out / P, K*C, P]). One pass over the weight, not a strided
-// copy of a permuted view (TensorIterator's took 5.9% of the forward pass at 64 -> 64 channels on
-// 8x8 maps, a plain loop 4.2%; the 8x8 transposes below, at 256 -> 256, 3-4% of the forward
-// kernel's time against 11% for the loop).
+// P = small_panel(C_out) outputs ([C_out / P, K*C, P]), through weight_to_panels. One pass over
+// the weight, not a strided copy of a permuted view (TensorIterator's took 5.9% of the forward
+// pass at 64 -> 64 channels on 8x8 maps, a plain loop 4.2%).
 at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
   const at::Tensor wc = weight.contiguous();
-  const int64_t C = g.C, K = g.K, Cout = g.Cout, P = small_panel(Cout), kc = K * C;
-  at::Tensor wt = at::empty({Cout / P, kc, P}, weight.options());
-  const float* w = wc.const_data_ptr<float>();
-  float* d = wt.mutable_data_ptr<float>();
-  // 8 outputs at a time (P and C_out are multiples of 8): their 8 rows of the weight transposed
-  // into tmp [K*C, 8] in the weight's (channel, tap) order (8x8 register transposes), then
-  // each row of 8 values to its (tap, channel) row of the panel.
-  std::vector<float> tmp(kc * 8);
-  for (int64_t o0 = 0; o0 < Cout; o0 += 8) {
-    transpose_rows8_float(w + o0 * kc, kc, tmp.data());
-    float* panel = d + (o0 / P) * P * kc + o0 % P;
-    for (int64_t k = 0; k < K; ++k) {  // (the panel's rows in order)
-      for (int64_t c = 0; c < C; ++c) {
-        copy8(tmp.data() + (c * K + k) * 8, panel + (k * C + c) * P);
-      }
-    }
-  }
+  at::Tensor wt = at::empty({g.Cout / small_panel(g.Cout), g.K * g.C, small_panel(g.Cout)},
+                            weight.options());
+  weight_to_panels(wc.const_data_ptr<float>(), wt.mutable_data_ptr<float>(), g.Cout, g.C, g.K);
   return wt;
 }
 
@@ -961,15 +1042,21 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const at::Tensor wt = small ? weight_columns(weight, g) : at::Tensor();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
+  // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
+  // weight gradient.
+  T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
+  // Few output channels with a large weight (blocks of SMALL_LARGE_BLOCK_ROWS rows): a block's
+  // columns are gathered and multiplied one slab of SMALL_SLAB at a time, the slab in L2, instead
+  // of the block's whole rows at once (at 256 -> 256 on 8x8 maps B8, 2.3 MiB a block, written out
+  // to L3 and read back slab by slab).
+  const bool slabs = small && small_large_weight(kc, g.Cout) && !kp;
+  const int64_t width = slabs ? std::min(kc, SMALL_SLAB) : kc;  // columns of the tile's rows
   auto init = [&] {
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
     const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
-    return Scratch<T>{Uninit<T>(block * kc), Uninit<T>(y_rows * g.Cout)};
+    return Scratch<T>{Uninit<T>(block * width), Uninit<T>(y_rows * g.Cout)};
   };
-  // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
-  // weight gradient.
-  T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
   const auto body = [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
     if constexpr (std::is_same_v<T, float>) {
@@ -978,9 +1065,17 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
         float* yp = cl ? op + q0 * g.Cout : s.y.data();
         for (int64_t t0 = 0; t0 < n; t0 += block) {
           const int64_t m = std::min(block, n - t0);
+          if (slabs) {
+            for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
+              const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+              gather_range_rows(g, xp, tp_left, fp, q0 + t0, m, s0, s1, s.tile.data(), width);
+              small.forward(s.tile.data(), m, width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
+            }
+            continue;
+          }
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
           gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cb);
-          small.forward(cb, m, kc, wtp, bp, yp + t0 * g.Cout);
+          small.forward(cb, m, kc, kc, 0, kc, wtp, bp, yp + t0 * g.Cout);
         }
         if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
         return;
@@ -1062,9 +1157,9 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   const auto body = [&](int64_t c0, int64_t c1) {
     const Uninit<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
-    // written to its accumulator at the end of the chunk in the final order, [C_out, C, K],
-    // through tmp (8 outputs' values in (channel, tap) order).
-    std::vector<T> acc_t(small ? kc * g.Cout : 0), tmp(small ? kc * 8 : 0);
+    // written to its accumulator at the end of the chunk in the final order, [C_out, C, K]
+    // (panels_to_weight).
+    std::vector<T> acc_t(small ? kc * g.Cout : 0);
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
       if (chunk > c0) std::fill(acc_t.begin(), acc_t.end(), T(0));  // (c0's: a new vector)
@@ -1101,18 +1196,8 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
         }
       }
       if constexpr (std::is_same_v<T, float>) {
-        if (small) {  // the chunk's sum, [C_out, C, K], is its accumulator
-          const int64_t P = small_panel(g.Cout);
-          for (int64_t o0 = 0; o0 < g.Cout; o0 += 8) {
-            const float* panel = acc_t.data() + (o0 / P) * P * kc + o0 % P;
-            for (int64_t k = 0; k < g.K; ++k) {  // (the panel's rows in order)
-              for (int64_t c = 0; c < g.C; ++c) {
-                copy8(panel + (k * g.C + c) * P, tmp.data() + (c * g.K + k) * 8);
-              }
-            }
-            untranspose_rows8_float(tmp.data(), kc, accp + o0 * kc);
-          }
-        }
+        // the chunk's sum, [C_out, C, K], is its accumulator
+        if (small) panels_to_weight(acc_t.data(), accp, g.Cout, g.C, g.K);
       }
     }
   };

@@ -69,6 +69,9 @@ constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
 constexpr int64_t SMALL_LARGE_WEIGHT = 1 << 18;
 constexpr int64_t SMALL_LARGE_BLOCK_ROWS = 256;
 constexpr int64_t SMALL_SLAB = 512;
+constexpr bool small_large_weight(int64_t kc, int64_t cout) {
+  return kc * cout > SMALL_LARGE_WEIGHT;
+}
 
 // Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
 // multiple of 8 that fits SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS (or
@@ -76,7 +79,7 @@ constexpr int64_t SMALL_SLAB = 512;
 int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
   const int64_t least =
-      kc * cout > SMALL_LARGE_WEIGHT ? SMALL_LARGE_BLOCK_ROWS : SMALL_BLOCK_MIN_ROWS;
+      small_large_weight(kc, cout) ? SMALL_LARGE_BLOCK_ROWS : SMALL_BLOCK_MIN_ROWS;
   return std::min(tile, std::max<int64_t>(least, rows - rows % 8));
 }
 
@@ -127,13 +130,14 @@ CALIBCONV_ALWAYS_INLINE inline void tile_store(const typename VecOf<float, L>::t
 }
 
 // Rows [t, t + R) of the forward over the reduction chunk [j0, j1), from the bias (j0 = 0) or
-// the partial sums in y. (Helpers are always-inlined functions, not lambdas: a lambda would not
-// take the instruction set of the function it is written in.)
+// the partial sums in y; cols holds the columns from s0 on, rows ldc apart. (Helpers are
+// always-inlined functions, not lambdas: a lambda would not take the instruction set of the
+// function it is written in.)
 template <int CS, int NV, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_t kc,
-                                                       const float* wt, const float* bias,
-                                                       float* y, int64_t t, int64_t j0,
-                                                       int64_t j1) {
+CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_t ldc,
+                                                       int64_t s0, const float* wt,
+                                                       const float* bias, float* y, int64_t t,
+                                                       int64_t j0, int64_t j1) {
   using V = typename VecOf<float, L>::type;
   V acc[R][NV];
   if (j0 > 0) {
@@ -145,41 +149,52 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
       for (int v = 0; v < NV; ++v) acc[r][v] = bias ? load<V>(bias + v * L) : V{};
     }
   }
-  tile_product<R, NV, L>(acc, cols + t * kc, kc, 1, wt, NV * L, j0, j1);
+  tile_product<R, NV, L>(acc, cols + t * ldc + (j0 - s0), ldc, 1, wt + j0 * NV * L, NV * L, 0,
+                         j1 - j0);
   tile_store<R, NV, L>(acc, y + t * CS, CS);
 }
 
-// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs: cols [n, kc] (row stride
-// kc), wt [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO] (row stride
-// CS); bias may be null. R rows at a time (then one), each with CO / L accumulators of L floats,
-// over chunks of KCB reduction steps (a chunk of the weight, 16 KiB, stays in L1 for all rows of
-// the block; y holds the partial sums between chunks).
+// y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs, over the reduction
+// range [r0, r1) within the columns cols holds, [s0, ...) at row stride ldc: wt [kc, CO] (a
+// panel of the weight, transposed, rows of CO values), y [n, CO] (row stride CS) with the
+// partial sums of [0, r0) unless r0 = 0; bias may be null. R rows at a time (then one), each
+// with CO / L accumulators of L floats, over chunks of KCB reduction steps (a chunk of the
+// weight, 16 KiB, stays in L1 for all rows of the block; y holds the partial sums between
+// chunks).
 template <int CS, int CO, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t kc,
-                                                        const float* wt, const float* bias,
-                                                        float* y, int64_t s0, int64_t s1) {
+CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t ldc,
+                                                        int64_t s0, const float* wt,
+                                                        const float* bias, float* y, int64_t r0,
+                                                        int64_t r1) {
   constexpr int NV = CO / L;
   constexpr int64_t KCB = 4096 / CO;
   static_assert(SMALL_SLAB % KCB == 0, "a slab is whole chunks");
-  for (int64_t j0 = s0; j0 < s1; j0 += KCB) {
-    const int64_t j1 = std::min(s1, j0 + KCB);
+  for (int64_t j0 = r0; j0 < r1; j0 += KCB) {
+    const int64_t j1 = std::min(r1, j0 + KCB);
     int64_t t = 0;
-    for (; t + R <= n; t += R) small_forward_rows<CS, NV, L, R>(cols, kc, wt, bias, y, t, j0, j1);
-    for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, kc, wt, bias, y, t, j0, j1);
+    for (; t + R <= n; t += R) {
+      small_forward_rows<CS, NV, L, R>(cols, ldc, s0, wt, bias, y, t, j0, j1);
+    }
+    for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, ldc, s0, wt, bias, y, t, j0, j1);
   }
 }
 
-// The forward of all CO outputs, OC at a time (fewer accumulators than a row of CO needs): wt
-// holds CO / OC panels [kc, OC], one after the other (small_panel).
+// The forward of all CO outputs over the reduction range [s0, s1) (the columns cols holds, at
+// row stride ldc; y holds the partial sums of [0, s0)), OC outputs at a time (fewer accumulators
+// than a row of CO needs): wt holds CO / OC panels [kc, OC], one after the other (small_panel).
+// In slabs of SMALL_SLAB steps counted from 0, so that a call per slab-aligned range runs the
+// same chunks as one call over all (and every element adds its products in the order of k
+// either way).
 template <int CO, int L, int R, int OC>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t kc,
+CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t ldc,
+                                                       int64_t kc, int64_t s0, int64_t s1,
                                                        const float* wt, const float* bias,
                                                        float* y) {
-  for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
-    const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+  for (int64_t a = s0; a < s1; a = (a / SMALL_SLAB + 1) * SMALL_SLAB) {
+    const int64_t b = std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
     for (int o0 = 0; o0 < CO; o0 += OC) {
-      small_forward_chunk<CO, OC, L, R>(cols, n, kc, wt + o0 * kc, bias ? bias + o0 : nullptr,
-                                        y + o0, s0, s1);
+      small_forward_chunk<CO, OC, L, R>(cols, n, ldc, s0, wt + o0 * kc,
+                                        bias ? bias + o0 : nullptr, y + o0, a, b);
     }
   }
 }
@@ -267,9 +282,10 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 // columns JB, both OC outputs at a time; column gradient CR rows x CJ vectors of CL floats.
 #define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
   static_assert(OC == small_panel(CO), "a pass is one panel of the weight");                  \
-  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,          \
+  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc,         \
+                                            int64_t kc, int64_t s0, int64_t s1,                \
                                             const float* wt, const float* bias, float* y) {    \
-    small_forward_body<CO, L, R, OC>(cols, n, kc, wt, bias, y);                                \
+    small_forward_body<CO, L, R, OC>(cols, n, ldc, kc, s0, s1, wt, bias, y);                   \
   }                                                                                            \
   TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
                                                     const float* w, float* g) {                \
@@ -338,7 +354,10 @@ SmallIsa small_isa() {
 // The few-output-channel kernels of a pass, or all null where they do not apply (another channel
 // count, a CPU without AVX2). column_gradient also needs kc % 8 == 0.
 struct SmallKernels {
-  void (*forward)(const float*, int64_t, int64_t, const float*, const float*, float*) = nullptr;
+  // forward(cols, n, ldc, kc, s0, s1, wt, bias, y): the reduction range [s0, s1) of kc, whose
+  // columns cols holds at row stride ldc (see small_forward_body).
+  void (*forward)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
+                  const float*, float*) = nullptr;
   void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
   void (*weight_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
   explicit operator bool() const { return forward != nullptr; }
