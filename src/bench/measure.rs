@@ -131,18 +131,25 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
     let reference = |x: &Tensor| t.reference(x);
     let native = |x: &Tensor| t.native(x);
     let aten = |x: &Tensor| t.aten(x);
-    // Repetitions from the reference step time.
+    // Repetitions from the reference step time, calls per repetition from the reference's
+    // forward and step times.
     t.step(&reference, false);
     let t_ref = time_ms(&mut || t.step(&reference, false));
-    let reps = if args.quick {
-        MIN_REPS
+    let t_fwd = time_ms(&mut || t.forward(&reference, false));
+    let (reps, calls) = if args.quick {
+        (MIN_REPS, [1, 1])
     } else {
-        ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS)
+        let reps = ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS);
+        (
+            reps,
+            [calls_per_rep(t_fwd, reps), calls_per_rep(t_ref, reps)],
+        )
     };
     let (fwd_pairs, step_pairs) = if args.aten {
         (
             paired(
                 reps,
+                calls[0],
                 &mut || t.forward(&reference, false),
                 &mut [&mut || t.forward(&native, true), &mut || {
                     t.forward(&aten, true)
@@ -150,6 +157,7 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
             ),
             paired(
                 reps,
+                calls[1],
                 &mut || t.step(&reference, false),
                 &mut [&mut || t.step(&native, true), &mut || t.step(&aten, true)],
             ),
@@ -158,11 +166,13 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
         (
             paired(
                 reps,
+                calls[0],
                 &mut || t.forward(&reference, false),
                 &mut [&mut || t.forward(&native, true)],
             ),
             paired(
                 reps,
+                calls[1],
                 &mut || t.step(&reference, false),
                 &mut [&mut || t.step(&native, true)],
             ),
@@ -189,6 +199,7 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
         width: w,
         input_grad: t.input_grad,
         reps,
+        calls,
         conv2d_peak_mib: None,
         goal: Goal::of(layer.net, c_in, c_out, &calibrated),
         calibrated,
@@ -369,6 +380,7 @@ fn bench_one_unet(camera: &Camera, spec: UnetSpec, quick: bool) -> Result<UnetRe
     let nets = std::cell::RefCell::new(nets);
     let pairs = paired(
         reps,
+        1,
         &mut || nets.borrow_mut().step(0),
         &mut [&mut || nets.borrow_mut().step(1)],
     );
@@ -451,7 +463,7 @@ pub(super) fn bench_functional(camera: &Camera, args: &Options) -> Result<Paired
         ))
     };
     let reps = if args.quick { MIN_REPS } else { MAX_REPS };
-    let p = paired(reps, &mut || reference(), &mut [&mut || functional()])
+    let p = paired(reps, 1, &mut || reference(), &mut [&mut || functional()])
         .pop()
         .expect("one candidate");
     println!(
