@@ -1154,8 +1154,12 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
                    g.Cout >= DNN_WEIGHT_MIN_COUT && use_dnn();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
+  // Few output channels with a large weight: each block's columns gathered and multiplied one
+  // slab at a time, as in the forward pass.
+  const bool slabs = small && small_large_weight(kc, g.Cout) && !kp;
+  const int64_t width = slabs ? std::min(kc, SMALL_SLAB) : kc;  // columns of the tile's rows
   const auto body = [&](int64_t c0, int64_t c1) {
-    const Uninit<T> cols(kp ? 0 : block * kc), ybuf(cl ? 0 : tile * g.Cout);
+    const Uninit<T> cols(kp ? 0 : block * width), ybuf(cl ? 0 : tile * g.Cout);
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
     // written to its accumulator at the end of the chunk in the final order, [C_out, C, K]
     // (panels_to_weight).
@@ -1170,9 +1174,17 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           if (small) {
             for (int64_t t0 = 0; t0 < n; t0 += block) {
               const int64_t m = std::min(block, n - t0);
+              if (slabs) {  // as in the forward pass
+                for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
+                  const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+                  gather_range_rows(g, xp, tp_left, fp, q0 + t0, m, s0, s1, cols.data(), width);
+                  small(cols.data(), m, width, kc, s0, s1, yt + t0 * g.Cout, acc_t.data());
+                }
+                continue;
+              }
               const float* cb = kp ? kp + (q0 + t0) * kc : cols.data();
               if (!kp) gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cols.data());
-              small(cb, m, kc, yt + t0 * g.Cout, acc_t.data());
+              small(cb, m, kc, kc, 0, kc, yt + t0 * g.Cout, acc_t.data());
             }
             continue;
           }

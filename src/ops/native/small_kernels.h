@@ -233,39 +233,47 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_gradient_body(const float* gy, 
   }
 }
 
-// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols [n, kc]
-// (row stride kc), gy [n, CO] (row stride CS), acc [kc, CO] (a panel of the weight gradient,
-// transposed, rows of CO values). JB columns at a time (then one), their CO / L accumulators
-// each in registers over all n rows.
+// acc[j, :] += sum over t in [0, n) of cols[t, j] * gy[t, :] for CO of the outputs: cols holds
+// the columns from s0 on at row stride ldc, gy [n, CO] (row stride CS), acc [kc, CO] (a panel of
+// the weight gradient, transposed, rows of CO values). JB columns at a time (then one), their
+// CO / L accumulators each in registers over all n rows.
 template <int CS, int NV, int L, int JB>
-CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n, int64_t kc,
-                                                         const float* gy, float* acc, int64_t j0) {
+CALIBCONV_ALWAYS_INLINE inline void small_weight_columns(const float* cols, int64_t n,
+                                                         int64_t ldc, int64_t s0,
+                                                         const float* gy, float* acc,
+                                                         int64_t j0) {
   typename VecOf<float, L>::type a[JB][NV];
   tile_load<JB, NV, L>(a, acc + j0 * NV * L, NV * L);
-  tile_product<JB, NV, L>(a, cols + j0, 1, kc, gy, CS, 0, n);
+  tile_product<JB, NV, L>(a, cols + (j0 - s0), 1, ldc, gy, CS, 0, n);
   tile_store<JB, NV, L>(a, acc + j0 * NV * L, NV * L);
 }
 
 template <int CS, int CO, int L, int JB>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* cols, int64_t n,
-                                                                int64_t kc, const float* gy,
-                                                                float* acc, int64_t s0,
-                                                                int64_t s1) {
+                                                                int64_t ldc, int64_t s0,
+                                                                const float* gy, float* acc,
+                                                                int64_t r0, int64_t r1) {
   constexpr int NV = CO / L;
-  int64_t j0 = s0;
-  for (; j0 + JB <= s1; j0 += JB) small_weight_columns<CS, NV, L, JB>(cols, n, kc, gy, acc, j0);
-  for (; j0 < s1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, kc, gy, acc, j0);
+  int64_t j0 = r0;
+  for (; j0 + JB <= r1; j0 += JB) {
+    small_weight_columns<CS, NV, L, JB>(cols, n, ldc, s0, gy, acc, j0);
+  }
+  for (; j0 < r1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, ldc, s0, gy, acc, j0);
 }
 
-// The weight gradient of all CO outputs, OC at a time, into CO / OC panels [kc, OC] (as wt).
+// The weight gradient of all CO outputs over the columns [s0, s1) (which cols holds at row
+// stride ldc), OC outputs at a time, into CO / OC panels [kc, OC] (as wt); in slabs of
+// SMALL_SLAB columns counted from 0, as small_forward_body. Each element of acc sums over the
+// rows in their order, whatever the range.
 template <int CO, int L, int JB, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
-                                                               int64_t kc, const float* gy,
-                                                               float* acc) {
-  for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
-    const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+                                                               int64_t ldc, int64_t kc,
+                                                               int64_t s0, int64_t s1,
+                                                               const float* gy, float* acc) {
+  for (int64_t a = s0; a < s1; a = (a / SMALL_SLAB + 1) * SMALL_SLAB) {
+    const int64_t b = std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
     for (int o0 = 0; o0 < CO; o0 += OC) {
-      small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, kc, gy + o0, acc + o0 * kc, s0, s1);
+      small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, ldc, s0, gy + o0, acc + o0 * kc, a, b);
     }
   }
 }
@@ -291,9 +299,10 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
                                                     const float* w, float* g) {                \
     small_column_gradient_body<CO, CL, CR, CJ>(gy, n, kc, w, g);                               \
   }                                                                                            \
-  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t kc,  \
+  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc, \
+                                                    int64_t kc, int64_t s0, int64_t s1,        \
                                                     const float* gy, float* acc) {             \
-    small_weight_gradient_body<CO, L, JB, OC>(cols, n, kc, gy, acc);                            \
+    small_weight_gradient_body<CO, L, JB, OC>(cols, n, ldc, kc, s0, s1, gy, acc);              \
   }
 // (256 and 512 outputs, as passes of 64, against the BLAS, on an AMD EPYC Zen 4, one thread, 2
 // rounds alternating, calibrated / conv2d forward and f+b, the BLAS -> these kernels: 128->256 at
@@ -359,7 +368,9 @@ struct SmallKernels {
   void (*forward)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
                   const float*, float*) = nullptr;
   void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
-  void (*weight_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
+  // weight_gradient(cols, n, ldc, kc, s0, s1, gy, acc): the columns [s0, s1) of kc, as forward.
+  void (*weight_gradient)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
+                          float*) = nullptr;
   explicit operator bool() const { return forward != nullptr; }
 };
 
