@@ -131,25 +131,18 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
     let reference = |x: &Tensor| t.reference(x);
     let native = |x: &Tensor| t.native(x);
     let aten = |x: &Tensor| t.aten(x);
-    // Repetitions from the reference step time, calls per repetition from the reference's
-    // forward and step times.
+    // Repetitions from the reference step time.
     t.step(&reference, false);
     let t_ref = time_ms(&mut || t.step(&reference, false));
-    let t_fwd = time_ms(&mut || t.forward(&reference, false));
-    let (reps, calls) = if args.quick {
-        (MIN_REPS, [1, 1])
+    let reps = if args.quick {
+        MIN_REPS
     } else {
-        let reps = ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS);
-        (
-            reps,
-            [calls_per_rep(t_fwd, reps), calls_per_rep(t_ref, reps)],
-        )
+        ((BUDGET_S * 1e3 / t_ref).round() as usize).clamp(CI_REPS, MAX_REPS)
     };
     let (fwd_pairs, step_pairs) = if args.aten {
         (
             paired(
                 reps,
-                calls[0],
                 &mut || t.forward(&reference, false),
                 &mut [&mut || t.forward(&native, true), &mut || {
                     t.forward(&aten, true)
@@ -157,7 +150,6 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
             ),
             paired(
                 reps,
-                calls[1],
                 &mut || t.step(&reference, false),
                 &mut [&mut || t.step(&native, true), &mut || t.step(&aten, true)],
             ),
@@ -166,13 +158,11 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
         (
             paired(
                 reps,
-                calls[0],
                 &mut || t.forward(&reference, false),
                 &mut [&mut || t.forward(&native, true)],
             ),
             paired(
                 reps,
-                calls[1],
                 &mut || t.step(&reference, false),
                 &mut [&mut || t.step(&native, true)],
             ),
@@ -199,7 +189,6 @@ pub(super) fn bench_shape(camera: &Camera, layer: &Layer, args: &Options) -> Res
         width: w,
         input_grad: t.input_grad,
         reps,
-        calls,
         conv2d_peak_mib: None,
         goal: Goal::of(layer.net, c_in, c_out, &calibrated),
         calibrated,
@@ -380,7 +369,6 @@ fn bench_one_unet(camera: &Camera, spec: UnetSpec, quick: bool) -> Result<UnetRe
     let nets = std::cell::RefCell::new(nets);
     let pairs = paired(
         reps,
-        1,
         &mut || nets.borrow_mut().step(0),
         &mut [&mut || nets.borrow_mut().step(1)],
     );
@@ -463,7 +451,7 @@ pub(super) fn bench_functional(camera: &Camera, args: &Options) -> Result<Paired
         ))
     };
     let reps = if args.quick { MIN_REPS } else { MAX_REPS };
-    let p = paired(reps, 1, &mut || reference(), &mut [&mut || functional()])
+    let p = paired(reps, &mut || reference(), &mut [&mut || functional()])
         .pop()
         .expect("one candidate");
     println!(

@@ -5,10 +5,7 @@
 //! repetition the reference (`conv2d`, same weights) and the candidate run back to back (the
 //! order alternates between repetitions), and the reported ratio is the median of the
 //! per-repetition ratios, with a distribution-free 95% confidence interval of that median (order
-//! statistics, [`median_ci`]). Times are medians too. A layer's repetition times as many calls
-//! back to back as fill its budget ([`calls_per_rep`], up to 50) and counts their mean: one
-//! call of a millisecond layer is at the mercy of the timer and of a page fault's burst, and
-//! the intervals of single calls were wide (e.g. [1.21, 1.39] at 32->16 on 128x128 maps). `--presets` rows also carry the layer's
+//! statistics, [`median_ci`]). Times are medians too. `--presets` rows also carry the layer's
 //! performance goal ([`goal_limit`]) and whether it holds, is contradicted or is inconclusive,
 //! computed from the interval ([`Outcome`]), counted after the table. The system load
 //! (`/proc/loadavg`) before and
@@ -194,8 +191,6 @@ const MIN_REPS: usize = 3;
 /// so that a goal can hold or be contradicted.
 const CI_REPS: usize = 6;
 const MAX_REPS: usize = 15;
-/// Calls per repetition at most ([`calls_per_rep`]).
-const MAX_CALLS: usize = 50;
 
 /// `--full`: every U-Net level at batch 1, 4 and 8.
 fn full_shapes() -> Vec<Shape> {
@@ -307,8 +302,6 @@ struct ShapeResult {
     /// Whether forward+backward computes the input gradient (not for a first layer).
     input_grad: bool,
     reps: usize,
-    /// Calls per repetition, forward and forward+backward ([`calls_per_rep`]).
-    calls: [usize; 2],
     conv2d_peak_mib: Option<f64>,
     /// The default implementation (native kernels on the CPU).
     calibrated: Impl,
@@ -418,8 +411,7 @@ pub fn run(
     println!(
         "calibconv bench: {threads} libtorch threads, camera {}, load {}, few-output-channel \
          kernels {small_kernels}, other products {gemm}; ratios are calibrated / conv2d (medians \
-         of paired, interleaved repetitions; a layer's repetition is the mean of 1-{MAX_CALLS} \
-         calls, `calls` in the JSON)",
+         of paired, interleaved runs)",
         args.camera.display(),
         fmt_load(load_before)
     );
@@ -701,21 +693,10 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-/// Calls of a layer per repetition (outside `--quick`): as many as fill the shape's budget
-/// (`BUDGET_S` over `reps` repetitions) at `t_ms` a call, at least 1 and at most `MAX_CALLS`.
-/// A repetition of a millisecond layer is then the mean of tens of calls, not one call's timer
-/// and page-fault noise; layers of a tenth of a second and more keep one call.
-fn calls_per_rep(t_ms: f64, reps: usize) -> usize {
-    let fit = BUDGET_S * 1e3 / (reps.max(1) as f64 * t_ms.max(1e-3));
-    (fit.floor() as usize).clamp(1, MAX_CALLS)
-}
-
 /// Runs `reference` and every candidate `reps` times, interleaved (the order rotates each
-/// repetition), after one warm-up call each; a repetition times `calls` calls back to back and
-/// counts their mean. Returns one [`Paired`] per candidate.
+/// repetition), after one warm-up call each; returns one [`Paired`] per candidate.
 fn paired(
     reps: usize,
-    calls: usize,
     reference: &mut dyn FnMut(),
     candidates: &mut [&mut dyn FnMut()],
 ) -> Vec<Paired> {
@@ -729,14 +710,12 @@ fn paired(
         // Rotate who goes first.
         for k in 0..=n {
             let slot = (k + rep) % (n + 1);
-            let f: &mut dyn FnMut() = if slot == 0 {
-                reference
+            let t = if slot == 0 {
+                time_both_ms(reference)
             } else {
-                candidates[slot - 1]
+                time_both_ms(candidates[slot - 1])
             };
-            let (wall, cpu) = time_both_ms(&mut || (0..calls).for_each(|_| f()));
-            let per = calls as f64;
-            times[slot].push((wall / per, cpu.map(|c| c / per)));
+            times[slot].push(t);
         }
     }
     let wall = |v: &[(f64, Option<f64>)]| v.iter().map(|t| t.0).collect::<Vec<_>>();
@@ -801,25 +780,6 @@ mod tests {
         // 15 repetitions (MAX_REPS): x(4) and x(12).
         let fifteen: Vec<f64> = (1..=15).map(f64::from).collect();
         assert_eq!(median_ci(&fifteen), Some([4.0, 12.0]));
-    }
-
-    /// A repetition makes as many calls as fill the shape's budget, at least one, at most
-    /// MAX_CALLS; a paired repetition counts the mean of its calls.
-    #[test]
-    fn repetitions_average_their_calls() {
-        assert_eq!(calls_per_rep(20.0, 15), 5); // 1500 ms / 15 / 20 ms
-        assert_eq!(calls_per_rep(1.0, 15), MAX_CALLS);
-        assert_eq!(calls_per_rep(0.0, 15), MAX_CALLS);
-        assert_eq!(calls_per_rep(400.0, 6), 1);
-        let (mut r, mut c) = (0, 0);
-        let p = paired(7, 3, &mut || r += 1, &mut [&mut || c += 1]);
-        assert_eq!(
-            (r, c),
-            (1 + 7 * 3, 1 + 7 * 3),
-            "a warm-up call, then 3 a repetition"
-        );
-        assert_eq!(p.len(), 1);
-        assert!(p[0].ratio_ci.is_some(), "7 repetitions give an interval");
     }
 
     #[test]
