@@ -450,7 +450,11 @@ pub(super) fn bench_functional(camera: &Camera, args: &Options) -> Result<Paired
             1,
         ))
     };
-    let reps = if args.quick { MIN_REPS } else { MAX_REPS };
+    let reps = if args.quick {
+        MIN_REPS
+    } else {
+        FUNCTIONAL_REPS
+    };
     let p = paired(reps, &mut || reference(), &mut [&mut || functional()])
         .pop()
         .expect("one candidate");

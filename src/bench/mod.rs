@@ -190,7 +190,16 @@ const MIN_REPS: usize = 3;
 /// Repetitions at least otherwise: the fewest that give the ratio an interval ([`median_ci`]),
 /// so that a goal can hold or be contradicted.
 const CI_REPS: usize = 6;
-const MAX_REPS: usize = 15;
+/// Repetitions at most (a layer or U-Net step that fits `BUDGET_S` this many times gets them).
+/// Each repetition is one call of each, alternating, as layers alternate in a training step;
+/// millisecond layers need many to narrow the interval of their median ratio: at 15, the
+/// earlier cap, single calls' page-fault bursts left intervals such as [1.21, 1.39] (32->16 at
+/// 128x128 f+b). 101 gives about `x(41)`, `x(61)`. (Timing 10-50 calls back to back per
+/// repetition instead narrowed them too, but moved medians: a layer called over and over keeps
+/// its caches and allocator state, which it does not in a training step.)
+const MAX_REPS: usize = 101;
+/// Repetitions of the functional op's timing (each a forward+backward at B4, 128x128).
+const FUNCTIONAL_REPS: usize = 15;
 
 /// `--full`: every U-Net level at batch 1, 4 and 8.
 fn full_shapes() -> Vec<Shape> {
@@ -665,7 +674,7 @@ fn time_both_ms(f: &mut dyn FnMut()) -> (f64, Option<f64>) {
 /// coverage at least 95%: the order statistics `x(j)` and `x(n + 1 - j)` (1-based), `j` the
 /// largest with `P(Binomial(n, 1/2) <= j - 1) <= 0.025` (the number of values below the median
 /// is binomial when they are exchangeable). `None` below 6 values (no such `j`). For 15
-/// repetitions (`MAX_REPS`): `x(4)` and `x(12)`, coverage 96.5%.
+/// repetitions: `x(4)` and `x(12)`, coverage 96.5%; for 101 (`MAX_REPS`): `x(41)`, `x(61)`.
 fn median_ci(sorted: &[f64]) -> Option<[f64; 2]> {
     let n = sorted.len();
     let total = 2f64.powi(i32::try_from(n).ok()?);
@@ -777,9 +786,13 @@ mod tests {
                 "n = {n}: j = {j} is not the largest"
             );
         }
-        // 15 repetitions (MAX_REPS): x(4) and x(12).
+        // 15 repetitions: x(4) and x(12).
         let fifteen: Vec<f64> = (1..=15).map(f64::from).collect();
         assert_eq!(median_ci(&fifteen), Some([4.0, 12.0]));
+        // MAX_REPS (101): the tails stay exact that far (2^101 and its binomial coefficients
+        // are within f64's range), x(41) and x(61).
+        let most: Vec<f64> = (1..=MAX_REPS).map(|i| i as f64).collect();
+        assert_eq!(median_ci(&most), Some([41.0, 61.0]));
     }
 
     #[test]
