@@ -45,10 +45,10 @@ constexpr int64_t SMALL_BLOCK_BYTES = 16 << 10;
 
 // Outputs of a panel of the weight (and of its gradient) as the forward and weight-gradient
 // kernels read it: [K*C, C_out] is stored as C_out / P panels [K*C, P], one after the other, P =
-// small_panel(C_out), the outputs of one pass. A chunk of the weight that a pass multiplies
-// (KCB rows of P values) is then 16 contiguous KiB. In the plain [K*C, C_out] layout it was KCB
-// pieces of 256 bytes at a stride of C_out * 4 bytes, which (with 256 and 512 outputs) fell on
-// few of L1's sets and did not stay there.
+// small_panel(C_out), the outputs of one pass. The rows of the weight that a pass multiplies
+// (a slab's, or before that a 16 KiB chunk's, rows of P values) are then contiguous. In the
+// plain [K*C, C_out] layout they were pieces of 256 bytes at a stride of C_out * 4 bytes, which
+// (with 256 and 512 outputs) fell on few of L1's sets and did not stay there.
 constexpr int64_t SMALL_PANEL = 64;
 constexpr int64_t small_panel(int64_t cout) { return std::min(cout, SMALL_PANEL); }
 
@@ -155,36 +155,34 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
 }
 
 // y[t, :] = bias + cols[t, :] @ wt for t in [0, n) and CO of the outputs, over the reduction
-// range [r0, r1) within the columns cols holds, [s0, ...) at row stride ldc: wt [kc, CO] (a
-// panel of the weight, transposed, rows of CO values), y [n, CO] (row stride CS) with the
-// partial sums of [0, r0) unless r0 = 0; bias may be null. R rows at a time (then one), each
-// with CO / L accumulators of L floats, over chunks of KCB reduction steps (a chunk of the
-// weight, 16 KiB, stays in L1 for all rows of the block; y holds the partial sums between
-// chunks).
+// range [r0, r1) (at most a slab) within the columns cols holds, [s0, ...) at row stride ldc: wt
+// [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO] (row stride CS) with
+// the partial sums of [0, r0) unless r0 = 0; bias may be null. R rows at a time (then one), each
+// with CO / L accumulators of L floats, in registers over the whole range: the range's rows of
+// the panel (up to 128 KiB) are read in order, from L2, once per R rows. (They were read in
+// chunks of 4096 / CO steps, 16 KiB that stay in L1 for all rows of the block, the partial sums
+// stored to y and loaded back between chunks: against that, calibconv bench, one thread, 2
+// rounds alternating, forward 256->256 at 8x8 B8 1.18 / 1.21x -> 1.15 / 1.15x conv2d, 128->256
+// 1.13 / 1.15x -> 1.12 / 1.11x, 128->64 at 32x32 1.14 / 1.11x -> 1.08 / 1.09x, 256->256 at 64x64
+// B2 1.12 / 1.09x -> 1.02 / 1.04x; docs/bench/eleventh-session-ab.txt.)
 template <int CS, int CO, int L, int R>
-CALIBCONV_ALWAYS_INLINE inline void small_forward_chunk(const float* cols, int64_t n, int64_t ldc,
+CALIBCONV_ALWAYS_INLINE inline void small_forward_range(const float* cols, int64_t n, int64_t ldc,
                                                         int64_t s0, const float* wt,
                                                         const float* bias, float* y, int64_t r0,
                                                         int64_t r1) {
   constexpr int NV = CO / L;
-  constexpr int64_t KCB = 4096 / CO;
-  static_assert(SMALL_SLAB % KCB == 0, "a slab is whole chunks");
-  for (int64_t j0 = r0; j0 < r1; j0 += KCB) {
-    const int64_t j1 = std::min(r1, j0 + KCB);
-    int64_t t = 0;
-    for (; t + R <= n; t += R) {
-      small_forward_rows<CS, NV, L, R>(cols, ldc, s0, wt, bias, y, t, j0, j1);
-    }
-    for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, ldc, s0, wt, bias, y, t, j0, j1);
+  int64_t t = 0;
+  for (; t + R <= n; t += R) {
+    small_forward_rows<CS, NV, L, R>(cols, ldc, s0, wt, bias, y, t, r0, r1);
   }
+  for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, ldc, s0, wt, bias, y, t, r0, r1);
 }
 
 // The forward of all CO outputs over the reduction range [s0, s1) (the columns cols holds, at
 // row stride ldc; y holds the partial sums of [0, s0)), OC outputs at a time (fewer accumulators
 // than a row of CO needs): wt holds CO / OC panels [kc, OC], one after the other (small_panel).
-// In slabs of SMALL_SLAB steps counted from 0, so that a call per slab-aligned range runs the
-// same chunks as one call over all (and every element adds its products in the order of k
-// either way).
+// In slabs of SMALL_SLAB steps counted from 0 (a block's slab of columns stays in L2 while every
+// pass multiplies it). Every element adds its products in the order of k, whatever the slabs.
 template <int CO, int L, int R, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_t n, int64_t ldc,
                                                        int64_t kc, int64_t s0, int64_t s1,
@@ -193,7 +191,7 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_
   for (int64_t a = s0; a < s1; a = (a / SMALL_SLAB + 1) * SMALL_SLAB) {
     const int64_t b = std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
     for (int o0 = 0; o0 < CO; o0 += OC) {
-      small_forward_chunk<CO, OC, L, R>(cols, n, ldc, s0, wt + o0 * kc,
+      small_forward_range<CO, OC, L, R>(cols, n, ldc, s0, wt + o0 * kc,
                                         bias ? bias + o0 : nullptr, y + o0, a, b);
     }
   }
