@@ -385,6 +385,33 @@ CALIBCONV_ALWAYS_INLINE inline int64_t gather3_quads(const float* xb, const int3
   return i;
 }
 
+// A sample's bilinear weights and its four corners (from its top-left corner tl[i], C values a
+// pixel, `down` values a padded row), and its values of n channels from channel o on: the
+// expression of every gather of one channel at a time (the vectorised paths compute the same
+// expression on vectors).
+template <typename T>
+struct Sample {
+  T w0, w1, w2, w3;
+  const T *a0, *a1, *a2, *a3;
+};
+template <typename T>
+CALIBCONV_ALWAYS_INLINE inline Sample<T> sample_at(const T* xb, const int32_t* tl, const T* f,
+                                                   int64_t i, int64_t C, int64_t down) {
+  const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+  const T* a0 = xb + int64_t{tl[i]} * C;
+  return {hy * hx, hy * lx, ly * hx, ly * lx, a0, a0 + C, a0 + down, a0 + down + C};
+}
+template <typename T>
+CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t o, int64_t n,
+                                                    T* __restrict dst) {
+  const T *__restrict a0 = s.a0 + o, *__restrict a1 = s.a1 + o, *__restrict a2 = s.a2 + o,
+                     *__restrict a3 = s.a3 + o;
+  CALIBCONV_IVDEP
+  for (int64_t c = 0; c < n; ++c) {
+    dst[c] = s.w0 * a0[c] + s.w1 * a1[c] + s.w2 * a2[c] + s.w3 * a3[c];
+  }
+}
+
 template <typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
                                                         const int32_t* top_left, const T* frac,
@@ -438,27 +465,12 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const int64_t row = K * C;
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
-      const int64_t i = t * K + k;
-      const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-      const T w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
-      const T* __restrict a0 = xb + int64_t{tl[i]} * C;
-      const T* __restrict a1 = a0 + C;
-      const T* __restrict a2 = a0 + down;
-      const T* __restrict a3 = a2 + C;
-      T* __restrict dst = cols + t * row + k * Cg;
+      const Sample<T> sm = sample_at(xb, tl, f, t * K + k, C, down);
+      T* dst = cols + t * row + k * Cg;
       if constexpr (NC > 0) {
-        for (int c = 0; c < NC; ++c) {
-          dst[c] = w0 * a0[c] + w1 * a1[c] + w2 * a2[c] + w3 * a3[c];
-        }
+        sample_channels(sm, 0, NC, dst);
       } else {
-        for (int64_t gi = 0; gi < G; ++gi) {
-          const int64_t o = gi * Cg;
-          T* __restrict d = dst + gi * K * Cg;
-          CALIBCONV_IVDEP
-          for (int64_t c = 0; c < Cg; ++c) {
-            d[c] = w0 * a0[o + c] + w1 * a1[o + c] + w2 * a2[o + c] + w3 * a3[o + c];
-          }
-        }
+        for (int64_t gi = 0; gi < G; ++gi) sample_channels(sm, gi * Cg, Cg, dst + gi * K * Cg);
       }
     }
   }
@@ -482,19 +494,10 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
   const int64_t k0 = s0 / C, k1 = (s1 + C - 1) / C;  // the taps the range covers
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = k0; k < k1; ++k) {
-      const int64_t i = t * K + k;
-      const float ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-      const float w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
-      const float* __restrict a0 = xb + int64_t{tl[i]} * C;
-      const float* __restrict a1 = a0 + C;
-      const float* __restrict a2 = a0 + down;
-      const float* __restrict a3 = a2 + C;
-      float* __restrict dst = cols + t * ldc + (k * C - s0);  // channel c at dst[c]
+      const Sample<float> sm = sample_at(xb, tl, f, t * K + k, C, down);
+      // (the channels [c0, c1) of tap k; channel c of the tap is column k * C + c)
       const int64_t c0 = std::max<int64_t>(s0 - k * C, 0), c1 = std::min<int64_t>(s1 - k * C, C);
-      CALIBCONV_IVDEP
-      for (int64_t c = c0; c < c1; ++c) {
-        dst[c] = w0 * a0[c] + w1 * a1[c] + w2 * a2[c] + w3 * a3[c];
-      }
+      sample_channels(sm, c0, c1 - c0, cols + t * ldc + (k * C + c0 - s0));
     }
   }
 }
