@@ -59,14 +59,17 @@
 //!     and a weight of at most 36 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
 //!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per
 //!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; 256 for a weight
-//!     over 1 MiB, walked in slabs of 512 columns; gathered, multiplied and scattered block by
-//!     block): at these shapes a GEMM call costs more in overhead than in arithmetic (at
+//!     over 1 MiB, whose forward and weight gradient gather and multiply a block's columns one
+//!     slab of 512 at a time; gathered, multiplied and scattered block by block): at these
+//!     shapes a GEMM call costs more in overhead than in arithmetic (at
 //!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread; with more threads a
 //!     weight larger than the column matrix goes through the library). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
-//!     without AVX2 use the GEMM library. The forward and the column gradient walk the
-//!     reduction in chunks whose slice of the weight stays in L1 over the whole block.
+//!     without AVX2 use the GEMM library. The forward keeps a row group's accumulators in
+//!     registers over a slab of 512 reduction steps (the weight's rows in order from L2); the
+//!     column gradient walks the columns in chunks whose slice of the weight is read once per
+//!     block.
 //!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
 //!     come back as [`Error::Torch`], never across the FFI boundary.
 //! - **ATen composition** (any device; the CUDA path): one `embedding_bag` (weighted sum of the
