@@ -789,8 +789,9 @@ mod tests {
         // 15 repetitions: x(4) and x(12).
         let fifteen: Vec<f64> = (1..=15).map(f64::from).collect();
         assert_eq!(median_ci(&fifteen), Some([4.0, 12.0]));
-        // MAX_REPS (101): the tails stay exact that far (2^101 and its binomial coefficients
-        // are within f64's range), x(41) and x(61).
+        // MAX_REPS (101): x(41) and x(61). (median_ci's running product rounds there, the
+        // binomial coefficients being beyond f64's exact integers, but P(X <= 40) = 2.30% and
+        // P(X <= 41) = 3.64% lie far from the 2.5% boundary.)
         let most: Vec<f64> = (1..=MAX_REPS).map(|i| i as f64).collect();
         assert_eq!(median_ci(&most), Some([41.0, 61.0]));
     }

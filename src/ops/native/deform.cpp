@@ -660,6 +660,34 @@ void gather_range_rows(const Geo& g, const float* xp, const int32_t* top_left,
   });
 }
 
+// Few output channels with a large weight (blocks of SMALL_LARGE_BLOCK_ROWS rows): the forward
+// and the weight gradient gather and multiply a block's columns one slab of SMALL_SLAB at a time,
+// the slab in L2, instead of the block's whole rows at once (at 256 -> 256 on 8x8 maps B8, 2.3
+// MiB a block, written out to L3 and read back slab by slab). Not with kept columns (a first
+// layer's whole column matrix). width: the columns a gathered row holds.
+struct ColumnSlabs {
+  bool on;
+  int64_t width;
+};
+ColumnSlabs column_slabs(const Geo& g, bool small, bool kept) {
+  const int64_t kc = g.K * g.C;
+  const bool on = small && small_large_weight(kc, g.Cout) && !kept;
+  return {on, on ? std::min(kc, SMALL_SLAB) : kc};
+}
+
+// For column_slabs layers: gathers the slabs of the rows [q0, q0 + m) one after the other into
+// cols (rows `width` apart) and calls multiply(s0, s1) on each, the columns [s0, s1).
+template <typename F>
+void by_slabs(const Geo& g, const float* xp, const int32_t* top_left, const float* frac,
+              int64_t q0, int64_t m, float* cols, int64_t width, const F& multiply) {
+  const int64_t kc = g.K * g.C;
+  for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
+    const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
+    gather_range_rows(g, xp, top_left, frac, q0, m, s0, s1, cols, width);
+    multiply(s0, s1);
+  }
+}
+
 // Layout conversions between NCHW and channels-last, blocked for the caches (ATen's strided
 // copy for a permutation is several times slower) and parallel over batch items and pixels.
 
@@ -956,34 +984,23 @@ CALIBCONV_ALWAYS_INLINE inline void weight_panels_body(const float* __restrict s
         if (++k == K) k = 0, ++c;
       }
       for (int64_t o = 0; o < P; o += 8) {
-        const int64_t w0 = base + o * kc + j;  // output p0 + o, value j
-        if constexpr (TO_PANELS) {
-          const float* const s[8] = {src + w0,          src + w0 + kc,     src + w0 + 2 * kc,
-                                     src + w0 + 3 * kc, src + w0 + 4 * kc, src + w0 + 5 * kc,
-                                     src + w0 + 6 * kc, src + w0 + 7 * kc};
-          float* const d[8] = {dst + row[0] + o, dst + row[1] + o, dst + row[2] + o,
-                               dst + row[3] + o, dst + row[4] + o, dst + row[5] + o,
-                               dst + row[6] + o, dst + row[7] + o};
-          transpose8x8_rows(s, d);
-        } else {
-          const float* const s[8] = {src + row[0] + o, src + row[1] + o, src + row[2] + o,
-                                     src + row[3] + o, src + row[4] + o, src + row[5] + o,
-                                     src + row[6] + o, src + row[7] + o};
-          float* const d[8] = {dst + w0,          dst + w0 + kc,     dst + w0 + 2 * kc,
-                               dst + w0 + 3 * kc, dst + w0 + 4 * kc, dst + w0 + 5 * kc,
-                               dst + w0 + 6 * kc, dst + w0 + 7 * kc};
-          transpose8x8_rows(s, d);
-        }
+        // the 8 outputs' rows in the weight (from output p0 + o, value j) and in the panel
+        int64_t wr[8], pr[8];
+        for (int i = 0; i < 8; ++i) wr[i] = base + (o + i) * kc + j, pr[i] = row[i] + o;
+        const int64_t(&from)[8] = TO_PANELS ? wr : pr;
+        const int64_t(&to)[8] = TO_PANELS ? pr : wr;
+        const float* const s[8] = {src + from[0], src + from[1], src + from[2], src + from[3],
+                                   src + from[4], src + from[5], src + from[6], src + from[7]};
+        float* const d[8] = {dst + to[0], dst + to[1], dst + to[2], dst + to[3],
+                             dst + to[4], dst + to[5], dst + to[6], dst + to[7]};
+        transpose8x8_rows(s, d);
       }
     }
     for (; j < kc; ++j) {  // the last kc % 8 values, one at a time
       const int64_t r = base + (k * C + c) * P;
       for (int64_t o = 0; o < P; ++o) {
-        if constexpr (TO_PANELS) {
-          dst[r + o] = src[base + o * kc + j];
-        } else {
-          dst[base + o * kc + j] = src[r + o];
-        }
+        const int64_t w = base + o * kc + j;
+        dst[TO_PANELS ? r + o : w] = src[TO_PANELS ? w : r + o];
       }
       if (++k == K) k = 0, ++c;
     }
@@ -1048,17 +1065,12 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // keep (defined): the whole column matrix [B * P, K*C], gathered into it and kept for the
   // weight gradient.
   T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
-  // Few output channels with a large weight (blocks of SMALL_LARGE_BLOCK_ROWS rows): a block's
-  // columns are gathered and multiplied one slab of SMALL_SLAB at a time, the slab in L2, instead
-  // of the block's whole rows at once (at 256 -> 256 on 8x8 maps B8, 2.3 MiB a block, written out
-  // to L3 and read back slab by slab).
-  const bool slabs = small && small_large_weight(kc, g.Cout) && !kp;
-  const int64_t width = slabs ? std::min(kc, SMALL_SLAB) : kc;  // columns of the tile's rows
+  const ColumnSlabs slabs = column_slabs(g, static_cast<bool>(small), kp != nullptr);
   auto init = [&] {
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
     const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
-    return Scratch<T>{Uninit<T>(block * width), Uninit<T>(y_rows * g.Cout)};
+    return Scratch<T>{Uninit<T>(block * slabs.width), Uninit<T>(y_rows * g.Cout)};
   };
   const auto body = [&](int64_t task, Scratch<T>& s) {
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
@@ -1068,12 +1080,11 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
         float* yp = cl ? op + q0 * g.Cout : s.y.data();
         for (int64_t t0 = 0; t0 < n; t0 += block) {
           const int64_t m = std::min(block, n - t0);
-          if (slabs) {
-            for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
-              const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
-              gather_range_rows(g, xp, tp_left, fp, q0 + t0, m, s0, s1, s.tile.data(), width);
-              small.forward(s.tile.data(), m, width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
-            }
+          if (slabs.on) {
+            float* cb = s.tile.data();
+            by_slabs(g, xp, tp_left, fp, q0 + t0, m, cb, slabs.width, [&](int64_t s0, int64_t s1) {
+              small.forward(cb, m, slabs.width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
+            });
             continue;
           }
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
@@ -1157,12 +1168,9 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
                    g.Cout >= DNN_WEIGHT_MIN_COUT && use_dnn();
   // Rows gathered at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
-  // Few output channels with a large weight: each block's columns gathered and multiplied one
-  // slab at a time, as in the forward pass.
-  const bool slabs = small && small_large_weight(kc, g.Cout) && !kp;
-  const int64_t width = slabs ? std::min(kc, SMALL_SLAB) : kc;  // columns of the tile's rows
+  const ColumnSlabs slabs = column_slabs(g, small != nullptr, kp != nullptr);
   const auto body = [&](int64_t c0, int64_t c1) {
-    const Uninit<T> cols(kp ? 0 : block * width), ybuf(cl ? 0 : tile * g.Cout);
+    const Uninit<T> cols(kp ? 0 : block * slabs.width), ybuf(cl ? 0 : tile * g.Cout);
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
     // written to its accumulator at the end of the chunk in the final order, [C_out, C, K]
     // (panels_to_weight).
@@ -1177,12 +1185,12 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           if (small) {
             for (int64_t t0 = 0; t0 < n; t0 += block) {
               const int64_t m = std::min(block, n - t0);
-              if (slabs) {  // as in the forward pass
-                for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
-                  const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
-                  gather_range_rows(g, xp, tp_left, fp, q0 + t0, m, s0, s1, cols.data(), width);
-                  small(cols.data(), m, width, kc, s0, s1, yt + t0 * g.Cout, acc_t.data());
-                }
+              if (slabs.on) {
+                float* cb = cols.data();
+                by_slabs(g, xp, tp_left, fp, q0 + t0, m, cb, slabs.width,
+                         [&](int64_t s0, int64_t s1) {
+                           small(cb, m, slabs.width, kc, s0, s1, yt + t0 * g.Cout, acc_t.data());
+                         });
                 continue;
               }
               const float* cb = kp ? kp + (q0 + t0) * kc : cols.data();

@@ -72,6 +72,10 @@ constexpr int64_t SMALL_SLAB = 512;
 constexpr bool small_large_weight(int64_t kc, int64_t cout) {
   return kc * cout > SMALL_LARGE_WEIGHT;
 }
+// The end of the slab that column a is in (slabs counted from column 0), at most s1.
+constexpr int64_t slab_end(int64_t a, int64_t s1) {
+  return std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
+}
 
 // Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
 // multiple of 8 that fits SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS (or
@@ -188,8 +192,8 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_body(const float* cols, int64_
                                                        int64_t kc, int64_t s0, int64_t s1,
                                                        const float* wt, const float* bias,
                                                        float* y) {
-  for (int64_t a = s0; a < s1; a = (a / SMALL_SLAB + 1) * SMALL_SLAB) {
-    const int64_t b = std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
+  for (int64_t a = s0, b; a < s1; a = b) {
+    b = slab_end(a, s1);
     for (int o0 = 0; o0 < CO; o0 += OC) {
       small_forward_range<CO, OC, L, R>(cols, n, ldc, s0, wt + o0 * kc,
                                         bias ? bias + o0 : nullptr, y + o0, a, b);
@@ -268,8 +272,8 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols
                                                                int64_t ldc, int64_t kc,
                                                                int64_t s0, int64_t s1,
                                                                const float* gy, float* acc) {
-  for (int64_t a = s0; a < s1; a = (a / SMALL_SLAB + 1) * SMALL_SLAB) {
-    const int64_t b = std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
+  for (int64_t a = s0, b; a < s1; a = b) {
+    b = slab_end(a, s1);
     for (int o0 = 0; o0 < CO; o0 += OC) {
       small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, ldc, s0, gy + o0, acc + o0 * kc, a, b);
     }
