@@ -263,18 +263,20 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* col
   for (; j0 < r1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, ldc, s0, gy, acc, j0);
 }
 
-// The weight gradient of all CO outputs over the columns [s0, s1) (which cols holds at row
-// stride ldc), OC outputs at a time, into CO / OC panels [kc, OC] (as wt); in slabs of
+// The weight gradient of the outputs [o_begin, o_end) (whole panels) of CO over the columns
+// [s0, s1) (which cols holds at row stride ldc), OC outputs at a time, into their panels [kc, OC]
+// of the CO / OC (as wt); in slabs of
 // SMALL_SLAB columns counted from 0, as small_forward_body. Each element of acc sums over the
 // rows in their order, whatever the range.
 template <int CO, int L, int JB, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
                                                                int64_t ldc, int64_t kc,
                                                                int64_t s0, int64_t s1,
-                                                               const float* gy, float* acc) {
+                                                               const float* gy, float* acc,
+                                                               int64_t o_begin, int64_t o_end) {
   for (int64_t a = s0, b; a < s1; a = b) {
     b = slab_end(a, s1);
-    for (int o0 = 0; o0 < CO; o0 += OC) {
+    for (int64_t o0 = o_begin; o0 < o_end; o0 += OC) {
       small_weight_gradient_chunk<CO, OC, L, JB>(cols, n, ldc, s0, gy + o0, acc + o0 * kc, a, b);
     }
   }
@@ -303,8 +305,9 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
   }                                                                                            \
   TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc, \
                                                     int64_t kc, int64_t s0, int64_t s1,        \
-                                                    const float* gy, float* acc) {             \
-    small_weight_gradient_body<CO, L, JB, OC>(cols, n, ldc, kc, s0, s1, gy, acc);              \
+                                                    const float* gy, float* acc, int64_t o0,   \
+                                                    int64_t o1) {                              \
+    small_weight_gradient_body<CO, L, JB, OC>(cols, n, ldc, kc, s0, s1, gy, acc, o0, o1);      \
   }
 // (256 and 512 outputs, as passes of 64, against the BLAS, on an AMD EPYC Zen 4, one thread, 2
 // rounds alternating, calibrated / conv2d forward and f+b, the BLAS -> these kernels: 128->256 at
@@ -370,9 +373,10 @@ struct SmallKernels {
   void (*forward)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
                   const float*, float*) = nullptr;
   void (*column_gradient)(const float*, int64_t, int64_t, const float*, float*) = nullptr;
-  // weight_gradient(cols, n, ldc, kc, s0, s1, gy, acc): the columns [s0, s1) of kc, as forward.
+  // weight_gradient(cols, n, ldc, kc, s0, s1, gy, acc, o0, o1): the columns [s0, s1) of kc, as
+  // forward, for the outputs [o0, o1) (whole panels: multiples of small_panel(C_out)).
   void (*weight_gradient)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
-                          float*) = nullptr;
+                          float*, int64_t, int64_t) = nullptr;
   explicit operator bool() const { return forward != nullptr; }
 };
 
