@@ -187,9 +187,12 @@ const DEFAULT: &[Shape] = &[
 const BUDGET_S: f64 = 1.5;
 /// Repetitions of `--quick`.
 const MIN_REPS: usize = 3;
-/// Repetitions at least otherwise: the fewest that give the ratio an interval ([`median_ci`]),
-/// so that a goal can hold or be contradicted.
-const CI_REPS: usize = 6;
+/// Repetitions at least otherwise, so that a goal can hold or be contradicted: 15 give the
+/// ratio's interval `x(4)` and `x(12)` ([`median_ci`]). (6, the fewest that give an interval at
+/// all, made it the smallest and the largest of the six: the slow `classic` layers, which get
+/// no more within `BUDGET_S`, came out inconclusive from one outlier, e.g. 128->128 at 128x128
+/// forward 1.03x [1.01, 1.17].)
+const CI_REPS: usize = 15;
 /// Repetitions at most (a layer or U-Net step that fits `BUDGET_S` this many times gets them).
 /// Each repetition is one call of each, alternating, as layers alternate in a training step;
 /// millisecond layers need many to narrow the interval of their median ratio: at 15, the
