@@ -895,14 +895,15 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (3, 16, 16, 9, 7),
         (2, 16, 32, 10, 9),
         (2, 32, 64, 7, 9),
-        // (more pixels than outputs from here on: with fewer, and more than one thread, the
-        // pass would be one GEMM through the library, see `whole_rows`)
         (1, 16, 128, 12, 13),
         (1, 8, 256, 17, 16),
         (1, 8, 512, 24, 23),
         (1, 64, 512, 24, 23),
         (1, 96, 512, 24, 23),
         (1, 32, 1024, 33, 32),
+        // fewer pixels than outputs, a large weight (with more than one thread the GEMM library
+        // would take such a pass whole, `whole_rows`, but for these kernels)
+        (1, 128, 512, 6, 5),
     ] {
         let Problem {
             plan,
@@ -943,6 +944,40 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
                     "{what}: {name}: AVX-512 and AVX2 kernels differ"
                 );
             }
+        }
+    }
+}
+
+/// With several threads the weight gradient of a large weight is split by output panels, each
+/// thread summing all rows in their order: the gradients (and the output) are those of one
+/// thread, bit for bit. (The bias gradient is ATen's sum, not held to it.)
+#[test]
+fn large_weight_gradients_do_not_depend_on_the_thread_count() {
+    if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
+        return; // (the 256- and 512-output kernels are AVX-512's)
+    }
+    poison_native_scratch();
+    tch::manual_seed(9);
+    let threads = tch::get_num_threads();
+    for shape in [[2, 64, 512, 10, 9], [8, 256, 256, 4, 4], [1, 128, 512, 6, 5]] {
+        let Problem {
+            plan,
+            x,
+            w,
+            bias,
+            probe,
+        } = random_problem(shape, 2.0);
+        tch::set_num_threads(1);
+        let one = run_backend(&x, &plan, &w, &bias, 1, &probe, Backend::Auto);
+        tch::set_num_threads(2);
+        let two = run_backend(&x, &plan, &w, &bias, 1, &probe, Backend::Auto);
+        tch::set_num_threads(threads);
+        for (name, a, b) in [
+            ("output", &one.out, &two.out),
+            ("grad input", &one.input, &two.input),
+            ("grad weight", &one.weight, &two.weight),
+        ] {
+            assert!(a.equal(b), "{shape:?}: {name}: one and two threads differ");
         }
     }
 }

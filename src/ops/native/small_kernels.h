@@ -263,11 +263,10 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* col
   for (; j0 < r1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, ldc, s0, gy, acc, j0);
 }
 
-// The weight gradient of the outputs [o_begin, o_end) (whole panels) of CO over the columns
-// [s0, s1) (which cols holds at row stride ldc), OC outputs at a time, into their panels [kc, OC]
-// of the CO / OC (as wt); in slabs of
-// SMALL_SLAB columns counted from 0, as small_forward_body. Each element of acc sums over the
-// rows in their order, whatever the range.
+// The weight gradient of the outputs [o_begin, o_end) of CO (whole panels) over the columns
+// [s0, s1) (which cols holds at row stride ldc), OC outputs at a time, each into its panel
+// [kc, OC] of acc (CO / OC panels, as wt); in slabs of SMALL_SLAB columns counted from 0, as
+// small_forward_body. Each element of acc sums over the rows in their order, whatever the range.
 template <int CO, int L, int JB, int OC>
 CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_body(const float* cols, int64_t n,
                                                                int64_t ldc, int64_t kc,
