@@ -901,9 +901,11 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (1, 64, 512, 24, 23),
         (1, 96, 512, 24, 23),
         (1, 32, 1024, 33, 32),
-        // fewer pixels than outputs, a large weight (with more than one thread the GEMM library
-        // would take such a pass whole, `whole_rows`, but for these kernels)
+        // fewer pixels than outputs and a large weight: with more than one thread the first
+        // goes through the GEMM library whole (`whole_rows`), the second (256 rows a thread at
+        // two threads) through these kernels on every thread
         (1, 128, 512, 6, 5),
+        (2, 32, 1024, 16, 16),
     ] {
         let Problem {
             plan,
@@ -959,7 +961,13 @@ fn large_weight_gradients_do_not_depend_on_the_thread_count() {
     poison_native_scratch();
     tch::manual_seed(9);
     let threads = tch::get_num_threads();
-    for shape in [[2, 64, 512, 10, 9], [8, 256, 256, 4, 4], [1, 128, 512, 6, 5]] {
+    // (large weights, at least 256 rows a thread at two threads; the last would go through the
+    // GEMM library whole, `whole_rows`, with fewer)
+    for shape in [
+        [2, 128, 256, 16, 16],
+        [1, 64, 512, 24, 24],
+        [2, 32, 1024, 16, 16],
+    ] {
         let Problem {
             plan,
             x,

@@ -112,11 +112,11 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
 // every per-thread GEMM would pack the whole weight for a handful of rows. The gather and scatter
 // then run on one thread: their cost is proportional to the column matrix, the GEMM's to the
 // column matrix times C_out. One thread: always false (nothing to share). Not for the
-// few-output-channel kernels (small_kernels), which pack the weight once and multiply tiles of
-// rows on every thread (their weight-gradient panels split between the threads, see
-// grad_weight_impl): classic 512->1024 and 1024->1024 at 16x16 B2, two threads, calibrated /
-// conv2d forward 1.27-1.46x through the BLAS's threads -> 0.94-1.08x, f+b 1.18-1.48x ->
-// 1.06-1.07x (2 rounds alternating).
+// few-output-channel kernels when each thread gets at least a block of rows (small_kernels):
+// they pack the weight once and multiply tiles of rows on every thread (their weight-gradient
+// panels split between the threads, see grad_weight_impl): classic 512->1024 and 1024->1024 at
+// 16x16 B2, two threads, calibrated / conv2d forward 1.27-1.46x through the BLAS's threads ->
+// 0.94-1.08x, f+b 1.18-1.48x -> 1.06-1.07x (2 rounds alternating).
 bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
   return at::get_num_threads() > 1 && weight_elems >= total * row_elems;
 }
@@ -647,10 +647,19 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
 // are single-threaded, and one tile per thread would give each its own weight-sized gradient
 // accumulator (at 1024->1024 on 16x16 maps, B2, two threads, f+b 1.41-1.49x conv2d against
 // 1.26-1.29x through the BLAS's multithreaded products).
+// With several threads, a pass that whole_rows would give the BLAS's threads keeps these
+// kernels when every thread still gets SMALL_LARGE_BLOCK_ROWS rows or more (each thread's blocks
+// read the whole weight, once per such block, as one thread does); with fewer rows a thread it
+// goes through the BLAS as before (measured at two threads only, see whole_rows).
 template <typename T>
 SmallKernels small_kernels(const Geo& g) {
   if (!std::is_same_v<T, float> || g.G != 1) return {};
-  return small_kernels_for(g.Cout, g.K * g.C);
+  const int64_t total = g.B * g.P, kc = g.K * g.C;
+  if (whole_rows(total, kc, g.Cout * kc) &&
+      total < at::get_num_threads() * SMALL_LARGE_BLOCK_ROWS) {
+    return {};
+  }
+  return small_kernels_for(g.Cout, kc);
 }
 
 // Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
@@ -1176,10 +1185,13 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // Two threads, calibrated / conv2d f+b, 2 rounds alternating: 256->256 at 8x8 B8 1.20-1.22 ->
   // 1.09-1.13x, 256->128 at 16x16 1.13-1.16 -> 1.11x, classic 512->1024 at 16x16 B2 1.07-1.17 ->
   // 1.06x.
+  // (Every thread gathers all rows: the condition threads * 32 <= C_out keeps that gather, about
+  // 4 reads a value, small against the thread's share of the products, C_out / threads
+  // multiply-adds a value; measured at two threads.)
   const int64_t threads = at::get_num_threads();
   const bool by_panels = small && !whole && threads > 1 && kp == nullptr &&
                          small_large_weight(kc, g.Cout) &&
-                         (g.Cout / small_panel(g.Cout)) % threads == 0;
+                         (g.Cout / small_panel(g.Cout)) % threads == 0 && threads * 32 <= g.Cout;
   const int64_t chunks =
       whole || by_panels ? 1 : std::max<int64_t>(1, std::min<int64_t>(threads, tasks));
   // Chunk 0 accumulates into the tensor that becomes the result, the others into a buffer freed
