@@ -311,8 +311,8 @@ fn native_matches_aten_on_random_plans() {
         (2, 16, 40, 9, 10, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         // A weight with more elements than the whole column matrix (deep layers on small
         // maps): with more than one thread, one GEMM over all rows (see `whole_rows`; 72
-        // and 64 outputs through the GEMM library, the few-output-channel kernels being
-        // single-threaded; 64 through those kernels with one thread).
+        // and 64 outputs through the GEMM library, 24 rows being fewer than a block a thread
+        // for the few-output-channel kernels; 64 through those kernels with one thread).
         (2, 64, 72, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (2, 64, 64, 3, 4, [3, 3], [1, 1], [1, 1], [1, 1], 1, false, 2.0),
         (1, 32, 48, 4, 3, [3, 3], [1, 1], [1, 1], [1, 1], 2, true, 2.0),

@@ -642,15 +642,14 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
-// The few-output-channel kernels (small_kernels.h) of a pass, or all null. Not for a pass of
-// whole_rows (a weight larger than the column matrix, with more than one thread): the kernels
-// are single-threaded, and one tile per thread would give each its own weight-sized gradient
-// accumulator (at 1024->1024 on 16x16 maps, B2, two threads, f+b 1.41-1.49x conv2d against
-// 1.26-1.29x through the BLAS's multithreaded products).
-// With several threads, a pass that whole_rows would give the BLAS's threads keeps these
-// kernels when every thread still gets SMALL_LARGE_BLOCK_ROWS rows or more (each thread's blocks
-// read the whole weight, once per such block, as one thread does); with fewer rows a thread it
-// goes through the BLAS as before (measured at two threads only, see whole_rows).
+// The few-output-channel kernels (small_kernels.h) of a pass, or all null. A pass of whole_rows
+// (a weight larger than the column matrix, with more than one thread) keeps them when every
+// thread still gets SMALL_LARGE_BLOCK_ROWS rows or more: each thread's tile then reads the whole
+// weight once per such block, as one thread does, and the weight gradient splits the panels
+// between the threads (grad_weight_impl). With fewer rows a thread such a pass goes through the
+// BLAS's multithreaded products, as all of them did before the panel split (one tile per thread
+// gave each a weight-sized gradient accumulator: 1024->1024 on 16x16 maps, B2, two threads, f+b
+// 1.41-1.49x conv2d, against 1.26-1.29x through the BLAS then; see whole_rows for now).
 template <typename T>
 SmallKernels small_kernels(const Geo& g) {
   if (!std::is_same_v<T, float> || g.G != 1) return {};
