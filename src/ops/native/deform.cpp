@@ -97,10 +97,10 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
   t = std::max(t, MIN_TILE_FLOP / std::max<int64_t>(1, 2 * weight_elems));
   t = std::clamp<int64_t>(t - t % 16, MIN_TILE, MAX_TILE);
   t = std::min(t, (total + threads - 1) / threads);
-  if (threads > 1 && t > 0) {
+  if (threads > 1 && t > 0) {  // (not below MIN_TILE unless t already is)
     const int64_t tiles = (total + t - 1) / t;
     const int64_t even = (tiles + threads - 1) / threads * threads;
-    t = std::min(t, ((total + even - 1) / even + 7) / 8 * 8);
+    t = std::min(t, std::max(((total + even - 1) / even + 7) / 8 * 8, std::min(t, MIN_TILE)));
   }
   return std::max<int64_t>(t, 1);
 }
