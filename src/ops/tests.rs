@@ -882,11 +882,17 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 /// multiplied in slabs of 512 columns: 64->512 on 552 pixels is two blocks and a part, K*C = 576
 /// a slab and a part; at 96->512 the first slab ends inside tap 5's channels). On a CPU without
 /// AVX-512 the AVX2 path is still held to ATen.
+/// Held by the tests that move the process-wide instruction-set cap of the few-output-channel
+/// kernels (`cap_small_kernel_isa`) and by those that need it steady to compare two runs bit for
+/// bit (tests run in threads of one process).
+static SMALL_ISA_CAP: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
         return; // native_kernels_are_built fails instead
     }
+    let _cap = SMALL_ISA_CAP.lock().unwrap_or_else(|e| e.into_inner());
     poison_native_scratch();
     let top = small_kernel_isa();
     tch::manual_seed(8);
@@ -955,6 +961,7 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
 /// thread, bit for bit. (The bias gradient is ATen's sum, not held to it.)
 #[test]
 fn large_weight_gradients_do_not_depend_on_the_thread_count() {
+    let _cap = SMALL_ISA_CAP.lock().unwrap_or_else(|e| e.into_inner());
     if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
         return; // (the 256- and 512-output kernels are AVX-512's)
     }
