@@ -38,7 +38,13 @@
 //!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
 //!     except for a first layer in grad mode: an input without gradient and <= 4 channels (an
 //!     image) keeps its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which
-//!     would otherwise gather them again at a cost close to the whole convolution's.
+//!     would otherwise gather them again at a cost close to the whole convolution's. But 3
+//!     float32 channels with the few-output-channel kernels and >= 4 items: with one plan for
+//!     the batch they are gathered for every item at once, from a padded copy holding each
+//!     pixel's items side by side (four items a 16-float vector, the bilinear weights computed
+//!     once a sample), and as a first layer keep nothing but that copy: the weight gradient
+//!     gathers the columns again, by pixel blocks of all items (per-item plans take the same
+//!     order, so both give the same bits). Writing the kept columns had bound that forward.
 //!   - *Weight gradient*: column tiles are recomputed (or the kept ones read) and
 //!     `gy^T @ cols` is accumulated per thread chunk (fixed chunks, so the result is the same on
 //!     every run for a given thread count), then summed and laid out as the weight; oneDNN (where

@@ -816,6 +816,73 @@ fn first_layer_without_input_gradient_matches_aten() {
     }
 }
 
+/// Three float channels with one plan for the batch are gathered for every item at once (a padded
+/// copy holding each pixel's items side by side, four to a vector), and as a first layer their
+/// weight gradient gathers the columns again by pixel blocks of all items instead of keeping
+/// them (from four items on): outputs and gradients match the ATen composition for batches that
+/// fill the last vector of four items wholly or partly (4, 5, 7), both borders, both input
+/// layouts, with and without an input gradient.
+#[test]
+fn three_channel_batches_match_aten() {
+    poison_native_scratch();
+    tch::manual_seed(23);
+    let opts = (Kind::Float, Device::Cpu);
+    for (b, cout, h, w, border) in [
+        (4, 8, 9, 11, Border::Zeros),
+        (4, 16, 7, 6, Border::WrapX),
+        (5, 8, 10, 9, Border::Zeros),
+        (7, 16, 6, 13, Border::WrapX),
+    ] {
+        let off = Tensor::randn([18, h, w], opts) * 3.0;
+        let plan = SamplingPlan::with_border(
+            &off,
+            [h, w],
+            ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+            Kind::Float,
+            border,
+        )
+        .unwrap();
+        let x0 = Tensor::randn([b, 3, h, w], opts);
+        let (wt0, bias0) = (
+            Tensor::randn([cout, 3, 3, 3], opts),
+            Tensor::randn([cout], opts),
+        );
+        let probe = Tensor::randn([b, cout, h, w], opts);
+        for x in [x0.shallow_clone(), channels_last(&x0)] {
+            let what = format!(
+                "B{b} 3->{cout} {h}x{w} {border:?}, channels-last {}",
+                is_channels_last(&x)
+            );
+            // with an input gradient
+            let native = run_backend(&x, &plan, &wt0, &bias0, 1, &probe, Backend::Auto);
+            let aten = run_backend(&x, &plan, &wt0, &bias0, 1, &probe, Backend::Aten);
+            assert_same(&native, &aten, F32_IMPL_TOL, &what);
+            // a first layer: the weight and bias gradients only
+            let first = |backend| {
+                let wt = wt0.detach().set_requires_grad(true);
+                let bias = bias0.detach().set_requires_grad(true);
+                let out =
+                    deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
+                let loss = (&out * &probe).sum(Kind::Float);
+                let g = Tensor::run_backward(&[loss], &[&wt, &bias], false, false);
+                [out.detach(), g[0].shallow_clone(), g[1].shallow_clone()]
+            };
+            let (n, a) = (first(Backend::Auto), first(Backend::Aten));
+            for (name, u, v) in [
+                ("output", &n[0], &a[0]),
+                ("grad weight", &n[1], &a[1]),
+                ("grad bias", &n[2], &a[2]),
+            ] {
+                let rel = max_rel(u, v);
+                assert!(
+                    rel < F32_IMPL_TOL,
+                    "{what}, first layer: {name} differs by {rel:e}"
+                );
+            }
+        }
+    }
+}
+
 /// A plan shared by the batch and per-item plans with the same offsets for every item must give
 /// the same bits (outputs, and the weight gradient of a first layer, computed from the columns
 /// its forward pass kept), in and out of grad mode (without it a first layer keeps no columns).
@@ -831,6 +898,9 @@ fn shared_and_per_item_plans_give_the_same_bits() {
     for (b, c, cout, h, w) in [
         (3, 3, 8, 11, 9),
         (2, 3, 16, 7, 13),
+        // from four items on, three channels go through the batch gather with one plan and its
+        // weight gradient by pixel blocks: per-item plans take the same order
+        (5, 3, 16, 7, 13),
         (3, 4, 8, 9, 9),
         (3, 8, 16, 10, 7),
         (2, 16, 8, 6, 11),

@@ -13,7 +13,10 @@
 //   y[T, C_out] = cols @ WP^T + bias (one at::mm per group; oneDNN for float32 with one group
 //   when asked, see use_dnn), copied into the output (NCHW or channels-last, as the input). A
 //   first layer (input without gradient, <= 4 channels) keeps its whole column matrix for the
-//   weight gradient.
+//   weight gradient, but for 3 float channels with the few-output-channel kernels
+//   (three_channels): there the whole batch is gathered at once from a padded copy holding each
+//   pixel's items side by side (with one plan for the batch), and the weight gradient gathers
+//   the columns again.
 // - backward, weight: the column tiles are recomputed (never stored; the input padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
@@ -209,6 +212,9 @@ struct Geo {
   // Plan item of batch item b.
   int64_t item(int64_t b) const { return per_item ? b : 0; }
 };
+
+// Items of padded_batch_input: B rounded up to a multiple of four.
+int64_t batch_items(int64_t B) { return (B + 3) / 4 * 4; }
 
 // input [B, C, H, W]; a weight [C_out, C/G, kh, kw] with kh * kw = K.
 Geo geometry(const at::Tensor& input, int64_t cout, int64_t k, int64_t ho, int64_t wo,
@@ -642,6 +648,49 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
+// The columns of output pixels [p0, p0 + n) of every batch item from the padded batch input
+// xq (padded_batch_input) into cols + b * ldb (item b's rows of K * 3 values, as
+// gather_columns_body writes them): four items a vector of sixteen floats, each lane the same
+// expression as gather_sample (the same bits). Each item's sample stores four values, the last
+// on the next sample's first, which the call stores later; its last sample stores three.
+template <int J>
+CALIBCONV_ALWAYS_INLINE inline VecOf<float, 4>::type item_lanes(const VecOf<float, 16>::type& v) {
+  return __builtin_shufflevector(v, v, 4 * J, 4 * J + 1, 4 * J + 2, 4 * J + 3);
+}
+CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t* top_left,
+                                   const float* frac, int64_t p0, int64_t n, float* cols,
+                                   int64_t ldb) {
+  using V16 = VecOf<float, 16>::type;
+  using V4 = VecOf<float, 4>::type;
+  constexpr int NC = 3;
+  const int64_t K = g.K, B = g.B, pix = batch_items(B) * 4, down = g.Wp * pix;
+  const int32_t* __restrict tl = top_left + p0 * K;
+  const float* __restrict f = frac + 2 * p0 * K;
+  const int64_t count = n * K;
+  for (int64_t i = 0; i < count; ++i) {
+    const float ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+    const float* a = xq + int64_t{tl[i]} * pix;
+    const bool last = i + 1 == count;
+    for (int64_t b0 = 0; b0 < B; b0 += 4) {
+      const float* ab = a + b0 * 4;
+      const V16 v = (hy * hx) * load<V16>(ab) + (hy * lx) * load<V16>(ab + pix) +
+                    (ly * hx) * load<V16>(ab + down) + (ly * lx) * load<V16>(ab + down + pix);
+      const auto put = [&](int64_t b, const V4& u) CALIBCONV_ALWAYS_INLINE {
+        float* d = cols + b * ldb + i * NC;
+        if (!last) {
+          store(d, u);
+        } else {
+          for (int c = 0; c < NC; ++c) d[c] = u[c];
+        }
+      };
+      put(b0, item_lanes<0>(v));
+      if (b0 + 1 < B) put(b0 + 1, item_lanes<1>(v));
+      if (b0 + 2 < B) put(b0 + 2, item_lanes<2>(v));
+      if (b0 + 3 < B) put(b0 + 3, item_lanes<3>(v));
+    }
+  }
+}
+
 // The few-output-channel kernels (small_kernels.h) of a pass, or all null. A pass of whole_rows
 // (a weight larger than the column matrix, with more than one thread) keeps them when every
 // thread still gets SMALL_LARGE_BLOCK_ROWS rows or more: each thread's tile then reads the whole
@@ -956,6 +1005,42 @@ at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
   return out;
 }
 
+// First layers gathered for the whole batch at once (batch_gather): float32, 3 channels, one
+// plan for every item. The padded input then holds, per padded pixel, every item's channels side
+// by side, four values an item (the fourth zero) and the items rounded up to a multiple of four
+// (zeros): [H + 3, W + 2, B4, 4] as padded_input's frame (zeros around, or Border::WrapX's
+// columns). A sample's corners are then whole vectors of four items (64 bytes), its bilinear
+// weights computed once for the batch.
+at::Tensor padded_batch_input(const at::Tensor& input, const Geo& g) {
+  const int64_t H = g.H, W = g.W, Wp = g.Wp, Hp = g.Hp, pix = batch_items(g.B) * 4;
+  at::Tensor out = at::empty({Hp * Wp * pix + PAD_SLACK}, input.options());
+  const float* src = input.const_data_ptr<float>();
+  float* dst = out.mutable_data_ptr<float>();
+  const int64_t sb = input.stride(0), sc = input.stride(1), sh = input.stride(2),
+                sw = input.stride(3);
+  std::fill(dst + Hp * Wp * pix, dst + Hp * Wp * pix + PAD_SLACK, 0.0f);
+  at::parallel_for(0, Hp, 1, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      float* d = dst + r * Wp * pix;
+      std::fill(d, d + Wp * pix, 0.0f);
+      const int64_t y = r - 1;
+      if (y < 0 || y >= H) continue;
+      for (int64_t b = 0; b < g.B; ++b) {
+        for (int64_t c = 0; c < 3; ++c) {
+          const float* row = src + b * sb + c * sc + y * sh;
+          float* o = d + pix + b * 4 + c;  // column 0
+          for (int64_t x = 0; x < W; ++x) o[x * pix] = row[x * sw];
+          if (g.wrap) {
+            d[b * 4 + c] = row[(W - 1) * sw];
+            o[W * pix] = row[0];
+          }
+        }
+      }
+    }
+  });
+  return out;
+}
+
 // The input gradient [B, C, H, W] in layout fmt from the padded buffer the scatter added into:
 // the padding is dropped, except with Border::WrapX, where the right padding column holds
 // additions to the first column (the left one receives none: wrapped corners start at column 0).
@@ -1060,6 +1145,144 @@ at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
 }
 
 // The output in layout fmt; weight [C_out, C/G, kh, kw] as the caller has it.
+// Pixels a task and a block of batch_gathered passes: the rows of tile_rows and
+// small_block_rows, shared by the items.
+struct BatchTiles {
+  int64_t per_task, block, tasks;
+};
+BatchTiles batch_tiles(const Geo& g) {
+  const int64_t kc = g.K * g.C;
+  const int64_t tile = tile_rows(g.B * g.P, kc, g.Cout * kc, sizeof(float));
+  const int64_t per_task = std::max<int64_t>(1, tile / g.B);
+  return {per_task, std::max<int64_t>(1, small_block_rows(kc, g.Cout, tile) / g.B),
+          (g.P + per_task - 1) / per_task};
+}
+
+// 3 float channels (an RGB image: a first layer) in one group, with the few-output-channel
+// kernels and at least four items (fewer leave most of the vectors of four items empty: at
+// 3->64 on 256x256 maps B2 the batch path's f+b was 3-5% slower, 2 processes). With one plan for every item the forward pass gathers the
+// whole batch at once (padded_batch_input, batch_gather); as a first layer (the input needs no
+// gradient) its weight gradient goes through pixel blocks of all items (grad_weight_first), the
+// columns gathered again rather than kept (the kept column matrix, 9 values a pixel for every
+// value of the input, was written to memory in the forward pass and read back in the backward:
+// that writing bound the gather). In one process alternating with the kept-columns path (one
+// thread, Zen 4, F195 plans, medians of 200-400 calls, 2-3 processes): forward 3->16 at 128x128
+// B8 4.16-4.73 -> 3.56-3.91 ms, 3->8 at 64x64 B8 0.62-0.64 -> 0.52-0.54 ms, forward+backward
+// 10.0-10.9 -> 10.0-10.7 ms and 1.23-1.56 -> 1.25-1.48 ms; peak memory of a training step of
+// the layer (`calibconv bench --first-layer`) 29.4 -> 18.0 MiB at 3->16 128x128 B8 (conv2d 16.0).
+bool three_channels(const Geo& g, bool is_float) {
+  return is_float && g.C == 3 && g.G == 1 && g.B >= 4 && small_kernels<float>(g);
+}
+bool batch_gathered(const Geo& g, bool is_float) {
+  return three_channels(g, is_float) && !g.per_item;
+}
+
+// The weight gradient of a three_channels first layer, [C_out, C, K]: tasks of output pixels as
+// forward_batch, each accumulating, block by block and item by item within a block, into one
+// accumulator per chunk of tasks (chunks fixed per thread count, as grad_weight_impl), the
+// columns gathered again from xsrc: the padded batch input with one plan (batch_gather), else
+// the padded input, item by item (per-item plans; the same values, so the same sums as with one
+// plan holding those samples).
+at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
+                             const at::Tensor& gy, const at::Tensor& top_left,
+                             const at::Tensor& frac) {
+  const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
+  const SmallKernels small = small_kernels<float>(g);
+  const TileKernels<float> kern = tile_kernels<float>(g);
+  const int64_t kc = g.K * g.C;
+  const BatchTiles bt = batch_tiles(g);
+  const int64_t chunks =
+      std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), bt.tasks));
+  at::Tensor gw = at::empty({g.Cout, g.C, g.K}, gy.options());
+  at::Tensor rest = at::empty({chunks - 1, g.Cout * kc}, gy.options());
+  const auto acc = [&](int64_t chunk) {
+    return chunk == 0 ? gw.mutable_data_ptr<float>()
+                      : rest.mutable_data_ptr<float>() + (chunk - 1) * g.Cout * kc;
+  };
+  const float* xp = xsrc.const_data_ptr<float>();
+  const float* gp = gy.const_data_ptr<float>();
+  const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
+  const float* fp = frac.const_data_ptr<float>();
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    const Uninit<float> cols(g.B * bt.block * kc), ybuf(cl ? 0 : bt.block * g.Cout);
+    std::vector<float> acc_t(kc * g.Cout);  // panels, as weight_columns
+    for (int64_t chunk = c0; chunk < c1; ++chunk) {
+      std::fill(acc_t.begin(), acc_t.end(), 0.0f);
+      for (int64_t task = chunk * bt.tasks / chunks; task < (chunk + 1) * bt.tasks / chunks;
+           ++task) {
+        const int64_t pa = task * bt.per_task, pb = std::min(g.P, pa + bt.per_task);
+        for (int64_t p0 = pa; p0 < pb; p0 += bt.block) {
+          const int64_t m = std::min(bt.block, pb - p0);
+          float* cb = cols.data();  // item b's rows: cb + b * m * kc
+          if (batched) {
+            batch_gather(g, xp, tp_left, fp, p0, m, cb, m * kc);
+          } else {
+            for (int64_t b = 0; b < g.B; ++b) {
+              kern.gather(g, xp, tp_left, fp, b, p0, m, cb + b * m * kc);
+            }
+          }
+          for (int64_t b = 0; b < g.B; ++b) {
+            const float* yt = rows_of(gp, cl, g.Cout, g.P, b * g.P + p0, m, ybuf.data());
+            small.weight_gradient(cb + b * m * kc, m, kc, kc, 0, kc, yt, acc_t.data(), 0, g.Cout);
+          }
+        }
+      }
+      panels_to_weight(acc_t.data(), acc(chunk), g.Cout, g.C, g.K);
+    }
+  });
+  if (chunks > 1) {
+    float* r0 = acc(0);
+    for (int64_t i = 0; i < g.Cout * kc; ++i) {
+      float sum = r0[i];
+      for (int64_t chunk = 1; chunk < chunks; ++chunk) sum += acc(chunk)[i];
+      r0[i] = sum;
+    }
+  }
+  return gw;
+}
+
+// forward_impl for batch_gathered layers: tasks of output pixels, each for every item; per
+// block of pixels the items' columns are gathered at once into the thread's buffer (item by
+// item) and each item's block multiplied into its output rows. *padded: the padded batch input
+// (a first layer's weight gradient gathers its columns again from it, grad_weight_first).
+at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
+                         const at::Tensor& bias, const at::Tensor& top_left,
+                         const at::Tensor& frac, at::MemoryFormat fmt, const SmallKernels& small,
+                         at::Tensor* padded) {
+  const bool cl = fmt == at::MemoryFormat::ChannelsLast;
+  const at::Tensor xq = padded_batch_input(input, g);
+  *padded = xq;
+  at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
+  const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
+  const float* bp = bias.defined() ? bias_c.const_data_ptr<float>() : nullptr;
+  const float* xp = xq.const_data_ptr<float>();
+  const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
+  const float* fp = frac.const_data_ptr<float>();
+  float* op = out.mutable_data_ptr<float>();
+  const int64_t kc = g.K * g.C;
+  const at::Tensor wt = weight_columns(weight, g);
+  const float* wtp = wt.const_data_ptr<float>();
+  const BatchTiles bt = batch_tiles(g);
+  auto init = [&] {
+    return Scratch<float>{Uninit<float>(g.B * bt.block * kc),
+                          Uninit<float>(cl ? 0 : bt.block * g.Cout)};
+  };
+  parallel_tasks(bt.tasks, init, [&](int64_t task, Scratch<float>& s) {
+    const int64_t pa = task * bt.per_task, pb = std::min(g.P, pa + bt.per_task);
+    for (int64_t p0 = pa; p0 < pb; p0 += bt.block) {
+      const int64_t m = std::min(bt.block, pb - p0);
+      float* cb = s.tile.data();  // item b's rows: cb + b * m * kc
+      batch_gather(g, xp, tp_left, fp, p0, m, cb, m * kc);
+      for (int64_t b = 0; b < g.B; ++b) {
+        float* yp = cl ? op + (b * g.P + p0) * g.Cout : s.y.data();
+        small.forward(cb + b * m * kc, m, kc, kc, 0, kc, wtp, bp, yp);
+        if (!cl) write_rows(yp, op, false, g.Cout, g.P, b * g.P + p0, m);
+      }
+    }
+  });
+  return out;
+}
+
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                         const at::Tensor& bias, const at::Tensor& top_left,
@@ -1510,15 +1733,25 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     // off, so the caller's is an argument. (Float64 products go through the BLAS, whose last
     // bits can depend on the alignment of the rows: there a kept and a tiled column matrix may
     // differ by an ulp; float32's register-blocked products do not.)
-    const bool keep_cols = grad_mode && !input.requires_grad() && weight.requires_grad() &&
-                           g.C <= KEEP_COLUMNS_MAX_C && g.G == 1;
+    const bool first = grad_mode && !input.requires_grad() && weight.requires_grad();
+    const bool is_float = input.scalar_type() == at::kFloat;
+    const bool keep_cols =
+        first && g.C <= KEEP_COLUMNS_MAX_C && g.G == 1 && !three_channels(g, is_float);
     at::Tensor keep =
         keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
     ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
+    // The output in the input's layout, or channels-last when asked (out_cl).
+    const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
+    if (batch_gathered(g, is_float)) {
+      at::Tensor padded;
+      out = forward_batch(g, input, weight, has_bias ? bias : at::Tensor(), top_left, frac, fmt,
+                          small_kernels<float>(g), &padded);
+      ctx->saved_data["batch_input"] = first ? c10::IValue(padded) : c10::IValue();
+      return out;
+    }
+    ctx->saved_data["batch_input"] = c10::IValue();
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
-      // The output in the input's layout, or channels-last when asked (out_cl).
-      const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
       out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left,
                                    frac, keep, fmt);
     });
@@ -1542,7 +1775,15 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     }
     at::Tensor gx, gw, gb;
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
-      if (ctx->needs_input_grad(1)) {
+      const bool is_float = std::is_same_v<scalar_t, float>;
+      if (ctx->needs_input_grad(1) && !ctx->needs_input_grad(0) && three_channels(g, is_float)) {
+        // a first layer: its columns gathered again (grad_weight_first)
+        const bool batched = d["batch_input"].isTensor();
+        const at::Tensor x =
+            batched ? d["batch_input"].toTensor() : padded_input<float>(input, g);
+        gw = grad_weight_first(g, x, batched, gy, d["top_left"].toTensor(), d["frac"].toTensor())
+                 .view(weight.sizes());
+      } else if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
         gw = grad_weight_impl<scalar_t>(g, input, gy, d["top_left"].toTensor(),
                                         d["frac"].toTensor(), kept)
