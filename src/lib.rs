@@ -15,8 +15,9 @@
 //!   in torchvision's layout, computed in parallel and cached. Tensors begin here.
 //! - [`ops`]: the deformable convolution with fixed offsets, with torchvision `deform_conv2d`
 //!   semantics, from a precomputed (and cached) sampling plan: native C++ kernels on the CPU (a
-//!   custom autograd function; 1.3-2.4x `conv2d` at 8-256 channels, see the README's
-//!   "Performance"), differentiable ATen ops elsewhere (CUDA, untested on hardware).
+//!   custom autograd function; 0.8-1.4x `conv2d` per layer and 1.0-1.1x a U-Net training step
+//!   on one thread, see the README's "Performance"), differentiable ATen ops elsewhere (CUDA,
+//!   untested on hardware).
 //! - [`nn`]: layers: [`nn::CalibratedConv2d`] (same parameter names and shapes as a standard
 //!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
 //!   network with milesial/Pytorch-UNet's parameter names (so PyTorch weights load by name and

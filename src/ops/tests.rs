@@ -885,7 +885,8 @@ fn three_channel_batches_match_aten() {
 
 /// A plan shared by the batch and per-item plans with the same offsets for every item must give
 /// the same bits (outputs, and the weight gradient of a first layer, computed from the columns
-/// its forward pass kept), in and out of grad mode (without it a first layer keeps no columns).
+/// its forward pass kept or, for 3 channels from four items on, gathered again by pixel blocks
+/// of all items), in and out of grad mode (without it a first layer keeps no columns).
 /// Three channels are gathered as vectors of four; an offset places a corner on the batch's last
 /// pixel (read from a padded copy) and the odd sizes leave partial stages.
 #[test]
@@ -921,7 +922,8 @@ fn shared_and_per_item_plans_give_the_same_bits() {
         );
         let probe = Tensor::randn([b, cout, h, w], opts);
         for x in [x.shallow_clone(), channels_last(&x)] {
-            // (a first layer: the input needs no gradient, the forward pass keeps its columns)
+            // (a first layer: the input needs no gradient, the forward pass keeps its columns but
+            // for 3 channels and >= 4 items)
             let run = |plan: &SamplingPlan| {
                 let wt = wt0.detach().set_requires_grad(true);
                 let bias = bias0.detach().set_requires_grad(true);

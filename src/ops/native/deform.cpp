@@ -81,7 +81,7 @@ constexpr int64_t MAX_TILE = 8192;
 constexpr int64_t DNN_WEIGHT_MIN_COUT = 32;
 // The forward pass keeps its column matrix for the weight gradient when the input needs no
 // gradient (a first layer) and has at most this many channels (the matrix is then K*C <= 36
-// values a pixel, about 9x the input).
+// values a pixel, about 9x the input), but for three_channels layers (their batch gather).
 constexpr int64_t KEEP_COLUMNS_MAX_C = 4;
 
 // Rows per tile for `total` rows (output pixels of the whole batch, or of one band) of
@@ -1158,18 +1158,19 @@ BatchTiles batch_tiles(const Geo& g) {
           (g.P + per_task - 1) / per_task};
 }
 
-// 3 float channels (an RGB image: a first layer) in one group, with the few-output-channel
-// kernels and at least four items (fewer leave most of the vectors of four items empty: at
-// 3->64 on 256x256 maps B2 the batch path's f+b was 3-5% slower, 2 processes). With one plan for every item the forward pass gathers the
-// whole batch at once (padded_batch_input, batch_gather); as a first layer (the input needs no
-// gradient) its weight gradient goes through pixel blocks of all items (grad_weight_first), the
-// columns gathered again rather than kept (the kept column matrix, 9 values a pixel for every
-// value of the input, was written to memory in the forward pass and read back in the backward:
-// that writing bound the gather). In one process alternating with the kept-columns path (one
-// thread, Zen 4, F195 plans, medians of 200-400 calls, 2-3 processes): forward 3->16 at 128x128
-// B8 4.16-4.73 -> 3.56-3.91 ms, 3->8 at 64x64 B8 0.62-0.64 -> 0.52-0.54 ms, forward+backward
-// 10.0-10.9 -> 10.0-10.7 ms and 1.23-1.56 -> 1.25-1.48 ms; peak memory of a training step of
-// the layer (`calibconv bench --first-layer`) 29.4 -> 18.0 MiB at 3->16 128x128 B8 (conv2d 16.0).
+// 3 float channels (an RGB image: a first layer) in one group, with the few-output-channel kernels
+// and at least four items (fewer leave the vectors of four items partly empty: at 3->64 on 256x256
+// maps B2 the batch path's f+b was 3-5% slower, 2 processes). With one plan for every item the
+// forward pass gathers the whole batch at once (padded_batch_input, batch_gather); as a first layer
+// (the input needs no gradient) its weight gradient goes through pixel blocks of all items
+// (grad_weight_first), the columns gathered again rather than kept (the kept column matrix, 9
+// values a pixel for every value of the input, was written to memory in the forward pass and read
+// back in the backward: that writing bound the gather). In one process alternating with the
+// kept-columns path (one thread, Zen 4, F195 plans, medians of 200-400 calls, 2-3 processes):
+// forward 3->16 at 128x128 B8 4.16-4.73 -> 3.56-3.91 ms, 3->8 at 64x64 B8 0.62-0.64 -> 0.52-0.54
+// ms, forward+backward 10.0-10.9 -> 10.0-10.7 ms and 1.23-1.56 -> 1.25-1.48 ms; peak memory of a
+// training step of the layer (`calibconv bench --first-layer`) 29.4 -> 18.0 MiB at 3->16 128x128 B8
+// (conv2d 16.0).
 bool three_channels(const Geo& g, bool is_float) {
   return is_float && g.C == 3 && g.G == 1 && g.B >= 4 && small_kernels<float>(g);
 }
