@@ -23,11 +23,17 @@ fn max_rel(a: &Tensor, b: &Tensor) -> f64 {
 
 /// The plan of a 3x3, stride-1 "same" convolution with offsets `off` on an `hw` input.
 fn plan3x3(off: &Tensor, hw: [i64; 2], kind: Kind) -> SamplingPlan {
-    SamplingPlan::new(
+    plan3x3_with_border(off, hw, kind, Border::Zeros)
+}
+
+/// [`plan3x3`] with a choice of border.
+fn plan3x3_with_border(off: &Tensor, hw: [i64; 2], kind: Kind, border: Border) -> SamplingPlan {
+    SamplingPlan::with_border(
         off,
         hw,
         ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
         kind,
+        border,
     )
     .unwrap()
 }
@@ -633,14 +639,7 @@ fn native_matches_aten_with_wrap_around() {
             } else {
                 Tensor::randn([18, h, w], opts) * 4.0
             };
-            let plan = SamplingPlan::with_border(
-                &off,
-                [h, w],
-                ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-                kind,
-                Border::WrapX,
-            )
-            .unwrap();
+            let plan = plan3x3_with_border(&off, [h, w], kind, Border::WrapX);
             let x = Tensor::randn([2, c, h, w], opts);
             let (wt, bias) = (Tensor::randn([4, c, 3, 3], opts), Tensor::randn([4], opts));
             let probe = Tensor::randn([2, 4, h, w], opts);
@@ -834,14 +833,7 @@ fn three_channel_batches_match_aten() {
         (7, 16, 6, 13, Border::WrapX),
     ] {
         let off = Tensor::randn([18, h, w], opts) * 3.0;
-        let plan = SamplingPlan::with_border(
-            &off,
-            [h, w],
-            ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-            Kind::Float,
-            border,
-        )
-        .unwrap();
+        let plan = plan3x3_with_border(&off, [h, w], Kind::Float, border);
         let x0 = Tensor::randn([b, 3, h, w], opts);
         let (wt0, bias0) = (
             Tensor::randn([cout, 3, 3, 3], opts),

@@ -1144,9 +1144,27 @@ at::Tensor weight_columns(const at::Tensor& weight, const Geo& g) {
   return wt;
 }
 
-// The output in layout fmt; weight [C_out, C/G, kh, kw] as the caller has it.
-// Pixels a task and a block of batch_gathered passes: the rows of tile_rows and
-// small_block_rows, shared by the items.
+// The weight gradient's chunk accumulators (acc(chunk), `rows` rows of `len` values each, acc(0)
+// the result's buffer) summed: per row, in parallel over rows, each value the sum of the chunks'
+// in chunk order, handed to finish(acc(0)'s row, the row's sums) to write out.
+template <typename T, typename Acc, typename Finish>
+void sum_chunks(const Acc& acc, int64_t chunks, int64_t rows, int64_t len, const Finish& finish) {
+  at::parallel_for(0, rows, 1, [&](int64_t o0, int64_t o1) {
+    std::vector<T> sum(len);
+    for (int64_t o = o0; o < o1; ++o) {
+      T* r0 = acc(0) + o * len;
+      for (int64_t i = 0; i < len; ++i) {
+        T s = r0[i];
+        for (int64_t chunk = 1; chunk < chunks; ++chunk) s += acc(chunk)[o * len + i];
+        sum[i] = s;
+      }
+      finish(r0, sum.data());
+    }
+  });
+}
+
+// Pixels a task and a block of the passes of a whole batch at once (forward_batch,
+// grad_weight_first): the rows of tile_rows and small_block_rows, shared by the items.
 struct BatchTiles {
   int64_t per_task, block, tasks;
 };
@@ -1173,9 +1191,6 @@ BatchTiles batch_tiles(const Geo& g) {
 // (conv2d 16.0).
 bool three_channels(const Geo& g, bool is_float) {
   return is_float && g.C == 3 && g.G == 1 && g.B >= 4 && small_kernels<float>(g);
-}
-bool batch_gathered(const Geo& g, bool is_float) {
-  return three_channels(g, is_float) && !g.per_item;
 }
 
 // The weight gradient of a three_channels first layer, [C_out, C, K]: tasks of output pixels as
@@ -1232,25 +1247,23 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
     }
   });
   if (chunks > 1) {
-    float* r0 = acc(0);
-    for (int64_t i = 0; i < g.Cout * kc; ++i) {
-      float sum = r0[i];
-      for (int64_t chunk = 1; chunk < chunks; ++chunk) sum += acc(chunk)[i];
-      r0[i] = sum;
-    }
+    sum_chunks<float>(acc, chunks, g.Cout, kc, [&](float* r0, const float* sum) {
+      std::copy(sum, sum + kc, r0);
+    });
   }
   return gw;
 }
 
-// forward_impl for batch_gathered layers: tasks of output pixels, each for every item; per
-// block of pixels the items' columns are gathered at once into the thread's buffer (item by
-// item) and each item's block multiplied into its output rows. *padded: the padded batch input
-// (a first layer's weight gradient gathers its columns again from it, grad_weight_first).
+// forward_impl for three_channels layers with one plan for every item: tasks of output pixels,
+// each for every item; per block of pixels the items' columns are gathered at once into the
+// thread's buffer (item by item) and each item's block multiplied into its output rows.
+// *padded: the padded batch input (a first layer's weight gradient gathers its columns again
+// from it, grad_weight_first).
 at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                          const at::Tensor& bias, const at::Tensor& top_left,
-                         const at::Tensor& frac, at::MemoryFormat fmt, const SmallKernels& small,
-                         at::Tensor* padded) {
+                         const at::Tensor& frac, at::MemoryFormat fmt, at::Tensor* padded) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
+  const SmallKernels small = small_kernels<float>(g);
   const at::Tensor xq = padded_batch_input(input, g);
   *padded = xq;
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
@@ -1284,6 +1297,7 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
   return out;
 }
 
+// The output in layout fmt; weight [C_out, C/G, kh, kw] as the caller has it.
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                         const at::Tensor& bias, const at::Tensor& top_left,
@@ -1529,22 +1543,13 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // that order already) swap (tap, channel) -> (channel, tap) in place, one output channel (a
   // row of K * C/G) at a time: [C_out, C/G, K].
   if (small && chunks == 1) return gw.view({g.Cout, g.Cg, g.K});
-  at::parallel_for(0, g.Cout, 1, [&](int64_t o0, int64_t o1) {
-    std::vector<T> row(kcg);
-    for (int64_t o = o0; o < o1; ++o) {
-      T* r0 = gwp + o * kcg;
-      for (int64_t i = 0; i < kcg; ++i) {
-        T sum = r0[i];
-        for (int64_t chunk = 1; chunk < chunks; ++chunk) sum += acc(chunk)[o * kcg + i];
-        row[i] = sum;
-      }
-      if (small) {
-        std::copy(row.begin(), row.end(), r0);
-        continue;
-      }
-      for (int64_t k = 0; k < g.K; ++k) {
-        for (int64_t c = 0; c < g.Cg; ++c) r0[c * g.K + k] = row[k * g.Cg + c];
-      }
+  sum_chunks<T>(acc, chunks, g.Cout, kcg, [&](T* r0, const T* sum) {
+    if (small) {
+      std::copy(sum, sum + kcg, r0);
+      return;
+    }
+    for (int64_t k = 0; k < g.K; ++k) {
+      for (int64_t c = 0; c < g.Cg; ++c) r0[c * g.K + k] = sum[k * g.Cg + c];
     }
   });
   return gw.view({g.Cout, g.Cg, g.K});
@@ -1736,18 +1741,18 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     // differ by an ulp; float32's register-blocked products do not.)
     const bool first = grad_mode && !input.requires_grad() && weight.requires_grad();
     const bool is_float = input.scalar_type() == at::kFloat;
-    const bool keep_cols =
-        first && g.C <= KEEP_COLUMNS_MAX_C && g.G == 1 && !three_channels(g, is_float);
+    const bool three = three_channels(g, is_float);
+    const bool keep_cols = first && g.C <= KEEP_COLUMNS_MAX_C && g.G == 1 && !three;
     at::Tensor keep =
         keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
     ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
     // The output in the input's layout, or channels-last when asked (out_cl).
     const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
-    if (batch_gathered(g, is_float)) {
+    if (three && !g.per_item) {  // the whole batch at once (forward_batch)
       at::Tensor padded;
       out = forward_batch(g, input, weight, has_bias ? bias : at::Tensor(), top_left, frac, fmt,
-                          small_kernels<float>(g), &padded);
+                          &padded);
       ctx->saved_data["batch_input"] = first ? c10::IValue(padded) : c10::IValue();
       return out;
     }
