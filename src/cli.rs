@@ -321,6 +321,19 @@ pub struct BenchArgs {
     /// `auto`: the default, the BLAS). For A/B timings on one machine.
     #[arg(long, value_enum)]
     pub gemm: Option<GemmChoice>,
+    /// The library of the products of large weights where the few-output-channel kernels exist
+    /// (column and weight gradients of weights over 1 MiB, forward over 4 MiB): `kernels`, `blas`,
+    /// or `auto` (the default: the BLAS where it is MKL on an Intel CPU). For A/B timings.
+    #[arg(long, value_enum)]
+    pub large_weights: Option<LargeWeightsChoice>,
+}
+
+/// The library of `calibconv bench --large-weights`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LargeWeightsChoice {
+    Auto,
+    Kernels,
+    Blas,
 }
 
 /// An instruction-set level of the few-output-channel kernels (`calibconv bench

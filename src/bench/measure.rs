@@ -349,6 +349,23 @@ impl UnetBench {
     }
 }
 
+/// Leaves the process's allocator where a trainer's is after its first steps: one training step
+/// of each U-Net the run times ([`unet_specs`]), standard and calibrated, then dropped. glibc
+/// raises its mmap threshold to the largest mmapped block freed (up to 32 MiB), so from then on
+/// blocks up to the size of the networks' activations come from recycled heap memory, as in the
+/// trainer from its second step on. Without it the layer rows began in a fresh process's state
+/// (every block over 128 KiB a fresh mmap, faulted in page by page) and a row's `conv2d`
+/// reference ran up to 4x faster or slower depending on what the calibrated layer beside it
+/// happened to free (the README's thirteenth-session paragraph).
+pub(super) fn warm_like_trainer(camera: &Camera, args: &Options) -> Result<()> {
+    for spec in unet_specs(args) {
+        let mut nets = UnetBench::new(camera, spec)?;
+        nets.step(0);
+        nets.step(1);
+    }
+    Ok(())
+}
+
 pub(super) fn bench_unet(camera: &Camera, args: &Options) -> Result<Vec<UnetResult>> {
     unet_specs(args)
         .into_iter()

@@ -13,7 +13,13 @@
 //! for people.
 //!
 //! The timing process is configured like the trainer: the allocator is left alone (no `mallopt`),
-//! and the thread count is libtorch's or `--threads`. Peak memory is measured afterwards in a
+//! and the thread count is libtorch's or `--threads`. Before the layer rows it runs one training
+//! step of each U-Net it times (standard and calibrated, [`measure::warm_like_trainer`]), as a
+//! trainer has before its later steps: glibc's dynamic mmap threshold then sits where a
+//! trainer's does, and a row's `conv2d` no longer runs up to 4x faster or slower with what the
+//! calibrated layer beside it frees (on an Intel Xeon, one thread, 2 runs each: small's first
+//! layer's `conv2d` forward 6.0-6.2 ms without the warm-up, 1.6 ms with it, and 9.8-10.3 -> 5.6-5.9
+//! ms at 16->16 on 128x128; the other 74 references moved by less than 10%). Peak memory is measured afterwards in a
 //! child process (`calibconv bench ... --memory-child`, the same arguments, which runs
 //! [`memory_child`]) that pins glibc's
 //! mmap threshold first (`mallopt`), so freed tensors go back to the kernel instead of lingering
@@ -52,8 +58,8 @@ use crate::kernel::pyramid_sizes;
 use crate::nn::{Head, UNetConfig};
 
 pub use measure::memory_child;
-use measure::{bench_functional, bench_pyramid, bench_shape, bench_unet, ratio};
-use proc::{cpu_seconds, load_average};
+use measure::{bench_functional, bench_pyramid, bench_shape, bench_unet, ratio, warm_like_trainer};
+use proc::{cpu_model, cpu_seconds, load_average};
 
 /// A part of the benchmark.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -355,9 +361,13 @@ struct UnetResult {
 
 #[derive(Debug, Serialize)]
 pub struct Report {
+    /// The CPU's name (`/proc/cpuinfo`), where known.
+    cpu: Option<String>,
     threads: i32,
     /// The instruction-set level of the few-output-channel kernels (`ops::small_kernel_isa`).
     small_kernels: String,
+    /// The library of the large weights' products (`ops::large_weights`).
+    large_weights: String,
     /// The library of the other float32 products (`ops::gemm_library`).
     gemm: String,
     /// `/proc/loadavg` (1, 5, 15 minutes) before and after the timings.
@@ -420,14 +430,19 @@ pub fn run(
     let load_before = load_average();
     let small_kernels = format!("{:?}", crate::ops::small_kernel_isa());
     let gemm = format!("{:?}", crate::ops::gemm_library());
+    let large_weights = format!("{:?}", crate::ops::large_weights());
+    let cpu = cpu_model();
     println!(
-        "calibconv bench: {threads} libtorch threads, camera {}, load {}, few-output-channel \
-         kernels {small_kernels}, other products {gemm}; ratios are calibrated / conv2d (medians \
+        "calibconv bench: {}, {threads} libtorch threads, camera {}, load {}, few-output-channel \
+         kernels {small_kernels} (large weights' products: {large_weights}), other products \
+         {gemm}; ratios are calibrated / conv2d (medians \
          of paired, interleaved runs)",
+        cpu.as_deref().unwrap_or("CPU unknown"),
         args.camera.display(),
         fmt_load(load_before)
     );
     if !layers.is_empty() {
+        warm_like_trainer(camera, args)?;
         print_header(args.aten);
     }
     let mut results = Vec::new();
@@ -469,8 +484,10 @@ peak memory not measured: {e}"
         }
     }
     Ok(Report {
+        cpu,
         threads,
         small_kernels,
+        large_weights,
         gemm,
         load_before,
         load_after,

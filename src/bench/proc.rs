@@ -1,6 +1,21 @@
-//! Platform probes of the benchmark: the load average, the process CPU time, resident memory
+//! Platform probes of the benchmark: the CPU's name, the load average, the process CPU time, resident memory
 //! (`/proc/self/status`, `/proc/self/clear_refs`) and glibc's mmap threshold. Real on Linux
 //! only; elsewhere each one reports `None` or does nothing.
+
+/// The CPU's name (`/proc/cpuinfo`'s first `model name`), where the platform has it: the
+/// figures of one CPU do not carry over to another (the kernels' choices differ by CPU).
+#[cfg(target_os = "linux")]
+pub(super) fn cpu_model() -> Option<String> {
+    let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    text.lines()
+        .find_map(|l| l.strip_prefix("model name")?.split_once(':'))
+        .map(|(_, name)| name.trim().to_string())
+}
+
+#[cfg(not(target_os = "linux"))]
+pub(super) fn cpu_model() -> Option<String> {
+    None
+}
 
 /// `/proc/loadavg`'s three load averages, where the platform has them.
 #[cfg(target_os = "linux")]

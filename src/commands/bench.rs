@@ -6,10 +6,10 @@ use anyhow::{bail, Context, Result};
 
 use calibconv::bench::{self, MemoryReport, Options, Part};
 use calibconv::io::write_bytes_atomic;
-use calibconv::ops::{GemmLibrary, SmallKernelIsa};
+use calibconv::ops::{GemmLibrary, LargeWeights, SmallKernelIsa};
 
 use super::load_camera;
-use crate::cli::{BenchArgs, BenchPart, GemmChoice, SmallKernelLevel};
+use crate::cli::{BenchArgs, BenchPart, GemmChoice, LargeWeightsChoice, SmallKernelLevel};
 
 pub fn run(args: BenchArgs) -> Result<()> {
     if [args.quick, args.full, args.presets]
@@ -38,6 +38,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
             GemmChoice::Auto => None,
             GemmChoice::Onednn => Some(GemmLibrary::OneDnn),
             GemmChoice::Blas => Some(GemmLibrary::Blas),
+        });
+    }
+    if let Some(choice) = args.large_weights {
+        calibconv::ops::set_large_weights(match choice {
+            LargeWeightsChoice::Auto => None,
+            LargeWeightsChoice::Kernels => Some(LargeWeights::Kernels),
+            LargeWeightsChoice::Blas => Some(LargeWeights::Blas),
         });
     }
     let camera = load_camera(&args.camera)?;

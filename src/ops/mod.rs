@@ -271,6 +271,44 @@ pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
     }
 }
 
+/// The library of the products of large weights (see [`LargeWeights::Blas`])
+/// where the few-output-channel kernels exist. Both give the same values up to rounding.
+/// (The discriminants are the native code's.)
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(i32)]
+pub enum LargeWeights {
+    /// The few-output-channel kernels multiply every product (the default except on Intel CPUs
+    /// with MKL).
+    Kernels = 1,
+    /// The BLAS computes the column and weight gradients of weights over 1 MiB (from 128->256 and
+    /// 256->128 on) and the forward of weights over 4 MiB (512->512 on): the default where the
+    /// BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
+    /// "Performance").
+    Blas = 2,
+}
+
+/// The library of the large weights' products this process uses ([`LargeWeights::Kernels`]
+/// without the native kernels, where there are none to choose).
+pub fn large_weights() -> LargeWeights {
+    #[cfg(calibconv_native)]
+    return native::large_weights(None);
+    #[cfg(not(calibconv_native))]
+    LargeWeights::Kernels
+}
+
+/// Sets the library of the large weights' products for the rest of the process (every thread;
+/// `None`: the CPU's default) and returns the one now in use. For tests and A/B timings
+/// (`calibconv bench --large-weights`); the results differ only by rounding.
+pub fn set_large_weights(choice: Option<LargeWeights>) -> LargeWeights {
+    #[cfg(calibconv_native)]
+    return native::large_weights(Some(choice));
+    #[cfg(not(calibconv_native))]
+    {
+        let _ = choice;
+        LargeWeights::Kernels
+    }
+}
+
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).
 pub fn deform_conv2d_planned(
     input: &Tensor,

@@ -951,6 +951,26 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 /// bit (tests run in threads of one process).
 static SMALL_ISA_CAP: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
+/// The large weights' products through the few-output-channel kernels until dropped (then the
+/// CPU's default again); taken under `SMALL_ISA_CAP`, like the level.
+struct LargeWeightsFor;
+
+impl LargeWeightsFor {
+    fn kernels() -> Self {
+        assert_eq!(
+            super::set_large_weights(Some(super::LargeWeights::Kernels)),
+            super::LargeWeights::Kernels
+        );
+        LargeWeightsFor
+    }
+}
+
+impl Drop for LargeWeightsFor {
+    fn drop(&mut self) {
+        super::set_large_weights(None);
+    }
+}
+
 #[test]
 fn few_output_channel_kernels_agree_across_isa_levels() {
     if !native_available() {
@@ -1020,15 +1040,18 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
     }
 }
 
-/// With several threads the weight gradient of a large weight is split by output panels, each
-/// thread summing all rows in their order: the gradients (and the output) are those of one
-/// thread, bit for bit. (The bias gradient is ATen's sum, not held to it.)
+/// With several threads the few-output-channel kernels split the weight gradient of a large
+/// weight by output panels, each thread summing all rows in their order: the gradients (and the
+/// output) are those of one thread, bit for bit. (The bias gradient is ATen's sum, not held to
+/// it.) The kernels are asked for: on Intel CPUs with MKL the BLAS takes these products by
+/// default, whose sums depend on its threads.
 #[test]
 fn large_weight_gradients_do_not_depend_on_the_thread_count() {
     let _cap = SMALL_ISA_CAP.lock().unwrap_or_else(|e| e.into_inner());
     if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
         return; // (the 256- and 512-output kernels are AVX-512's)
     }
+    let _kernels = LargeWeightsFor::kernels();
     poison_native_scratch();
     tch::manual_seed(9);
     let threads = tch::get_num_threads();

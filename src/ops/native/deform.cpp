@@ -691,6 +691,45 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
   }
 }
 
+// Which library multiplies large weights (more than SMALL_LARGE_WEIGHT values, 1 MiB: from
+// 128->256 and 256->128 on) where the few-output-channel kernels exist: 0 the CPU's default, 1
+// the kernels, 2 the BLAS (calibconv_native_large_weights; `calibconv bench --large-weights`).
+// The default is the BLAS where it is MKL on an Intel CPU, the kernels elsewhere. MKL runs its
+// AVX-512 code on Intel CPUs only (on AMD ones its AVX2 code, which the kernels beat at every
+// shape measured, see small_kernels.h); on an Intel Xeon with AVX-512 and AMX (2 cores, 48 KiB L1
+// and 2 MiB L2 each, one thread, calibrated / conv2d forward and f+b, one process per choice)
+// its column and weight gradients beat the kernels' at every large weight measured, kernels ->
+// BLAS for both gradients: 1024->1024 at 16x16 B2 f+b 1.72 -> 1.10x, 1024->512 at 32x32 B2
+// 1.79 -> 1.07x, 512->512 1.23 -> 1.04x, 256->256 at 64x64 B2 1.50 -> 1.07x, 256->128 at 16x16
+// B8 1.51 -> 1.21x, 256->256 at 8x8 B8 1.23 -> 1.15x, 128->256 at 8x8 1.22 -> 1.15x; its
+// forward beat the kernels' from weights of 4 MiB (BLAS_FORWARD_WEIGHT) on (1024->1024 1.23 ->
+// 1.03x, 1024->512 1.39 -> 1.22x, 512->512 1.30 -> 1.22x) but not below (256->256 at 8x8 1.25
+// -> 1.26x, 128->256 1.16 -> 1.20x). Smaller weights keep the kernels there too (64->64 at 32x32
+// B8 forward 1.24x against 1.34x through MKL, 32->16 at 128x128 1.41x against 1.72x).
+enum class LargeWeights : int32_t { Auto = 0, Kernels = 1, Blas = 2 };
+std::atomic<int32_t> large_weights_override{static_cast<int32_t>(LargeWeights::Auto)};
+constexpr int64_t BLAS_FORWARD_WEIGHT = 1 << 20;
+
+bool large_weights_to_blas() {
+  switch (static_cast<LargeWeights>(large_weights_override.load())) {
+    case LargeWeights::Kernels:
+      return false;
+    case LargeWeights::Blas:
+      return true;
+    default:
+      break;
+  }
+#ifdef CALIBCONV_HAVE_SMALL_KERNELS
+  static const bool intel_mkl = [] {
+    __builtin_cpu_init();
+    return at::hasMKL() && __builtin_cpu_is("intel");
+  }();
+  return intel_mkl;
+#else
+  return false;
+#endif
+}
+
 // The few-output-channel kernels (small_kernels.h) of a pass, or all null. A pass of whole_rows
 // (a weight larger than the column matrix, with more than one thread) keeps them when every
 // thread still gets SMALL_LARGE_BLOCK_ROWS rows or more: each thread's tile then reads the whole
@@ -707,7 +746,14 @@ SmallKernels small_kernels(const Geo& g) {
       total < at::get_num_threads() * SMALL_LARGE_BLOCK_ROWS) {
     return {};
   }
-  return small_kernels_for(g.Cout, kc);
+  SmallKernels s = small_kernels_for(g.Cout, kc);
+  const int64_t weight = kc * g.Cout;
+  if (s && weight > SMALL_LARGE_WEIGHT && large_weights_to_blas()) {
+    if (weight > BLAS_FORWARD_WEIGHT) return {};
+    s.column_gradient = nullptr;
+    s.weight_gradient = nullptr;
+  }
+  return s;
 }
 
 // Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
@@ -1861,6 +1907,14 @@ int32_t calibconv_native_gemm(int32_t choice) {
 int32_t calibconv_native_small_isa(int32_t cap) {
   if (cap >= 0) small_isa_cap.store(std::min<int32_t>(cap, static_cast<int32_t>(SmallIsa::Avx512)));
   return static_cast<int32_t>(small_isa());
+}
+
+// The library of the large weights' products (see large_weights_to_blas): sets it when choice
+// >= 0 (0 the CPU's default, 1 the few-output-channel kernels, 2 the BLAS), then returns the one in
+// use (1 the kernels, 2 the BLAS).
+int32_t calibconv_native_large_weights(int32_t choice) {
+  if (choice >= 0 && choice <= 2) large_weights_override.store(choice);
+  return large_weights_to_blas() ? 2 : 1;
 }
 
 // Poisons the scratch buffers that are written before they are read (see Uninit) from now on

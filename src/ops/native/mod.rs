@@ -35,6 +35,9 @@ extern "C" {
     /// See `deform.cpp`: sets the GEMM library when `choice >= 0` (0 the CPU's default, 1
     /// oneDNN, 2 the BLAS), returns the one in use (1 oneDNN, 2 the BLAS).
     fn calibconv_native_gemm(choice: i32) -> i32;
+    /// See `deform.cpp`: sets the library of the large weights' products when `choice >= 0` (0
+    /// the CPU's default, 1 the kernels, 2 the BLAS), returns the one in use (1 or 2).
+    fn calibconv_native_large_weights(choice: i32) -> i32;
     /// See `deform.cpp`: poisons (1) or stops poisoning (0) the scratch buffers that every
     /// pass must write before it reads them; returns whether they are poisoned.
     #[cfg(test)]
@@ -64,6 +67,21 @@ pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super:
     match unsafe { calibconv_native_gemm(choice) } {
         1 => Gemm::OneDnn,
         _ => Gemm::Blas,
+    }
+}
+
+/// The library of the large weights' products in use (see [`super::LargeWeights`]); with
+/// `choice`, first sets it (`Some(None)`: the CPU's default).
+pub(super) fn large_weights(choice: Option<Option<super::LargeWeights>>) -> super::LargeWeights {
+    let choice = match choice {
+        None => -1,
+        Some(None) => 0,
+        Some(Some(lib)) => lib as i32,
+    };
+    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
+    match unsafe { calibconv_native_large_weights(choice) } {
+        2 => super::LargeWeights::Blas,
+        _ => super::LargeWeights::Kernels,
     }
 }
 

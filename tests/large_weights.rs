@@ -1,0 +1,91 @@
+//! The two libraries of the large weights' products (the few-output-channel kernels, the BLAS)
+//! against the ATen composition, in a process of their own: the choice is process-wide.
+
+use calibconv::ops::{
+    deform_conv2d_planned_with, native_available, set_large_weights, small_kernel_isa, Backend,
+    ConvGeometry, LargeWeights, SamplingPlan, SmallKernelIsa,
+};
+use tch::{Device, Kind, Tensor};
+
+mod common;
+use common::max_rel;
+
+/// Output and input, weight and bias gradients of `(conv(x) * probe).sum()`.
+fn run(
+    x: &Tensor,
+    plan: &SamplingPlan,
+    w: &Tensor,
+    b: &Tensor,
+    probe: &Tensor,
+    be: Backend,
+) -> Vec<Tensor> {
+    let (x, w, b) = (
+        x.detach().set_requires_grad(true),
+        w.detach().set_requires_grad(true),
+        b.detach().set_requires_grad(true),
+    );
+    let out = deform_conv2d_planned_with(&x, plan, &w, Some(&b), 1, be).unwrap();
+    let loss = (&out * probe).sum(Kind::Float);
+    let mut all = vec![out.detach()];
+    all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
+    all
+}
+
+const NAMES: [&str; 4] = ["output", "grad input", "grad weight", "grad bias"];
+
+#[test]
+fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
+    if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
+        // The choice exists only where the kernels take 512 and 1024 outputs (AVX-512).
+        return;
+    }
+    // One thread: with more, layers this small (510 rows) go through the BLAS's threaded products
+    // whatever the choice (whole_rows in deform.cpp).
+    tch::set_num_threads(1);
+    tch::manual_seed(5);
+    let opts = (Kind::Float, Device::Cpu);
+    let (b, h, w) = (2, 17, 15);
+    let off = Tensor::randn([18, h, w], opts) * 2.0;
+    let plan = SamplingPlan::new(
+        &off,
+        [h, w],
+        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap();
+    // 64 -> 512: a weight of 576 x 512 values (1.1 MiB), gradients through the library chosen,
+    // forward through the kernels either way; 128 -> 1024: 4.5 MiB, every product chosen.
+    for (c, co, forward_chosen) in [(64, 512, false), (128, 1024, true)] {
+        let x = Tensor::randn([b, c, h, w], opts);
+        let wt = Tensor::randn([co, c, 3, 3], opts) * 0.05;
+        let bias = Tensor::randn([co], opts);
+        let probe = Tensor::randn([b, co, h, w], opts);
+        let aten = run(&x, &plan, &wt, &bias, &probe, Backend::Aten);
+        let mut by_lib = Vec::new();
+        for lib in [LargeWeights::Kernels, LargeWeights::Blas] {
+            assert_eq!(set_large_weights(Some(lib)), lib);
+            let got = run(&x, &plan, &wt, &bias, &probe, Backend::Auto);
+            for ((name, g), a) in NAMES.iter().zip(&got).zip(&aten) {
+                let rel = max_rel(g, a);
+                assert!(
+                    rel < 2e-5,
+                    "{c}->{co} {lib:?}: {name} differs from ATen by {rel:e}"
+                );
+            }
+            by_lib.push(got);
+        }
+        // The switch took effect where documented: the gradients of the input and the weight
+        // come from other products (other rounding), the output only above 4 MiB.
+        let same = |i: usize| by_lib[0][i].equal(&by_lib[1][i]);
+        assert_eq!(!same(0), forward_chosen, "{c}->{co}: output");
+        assert!(
+            !same(1),
+            "{c}->{co}: grad input from the same product under both"
+        );
+        assert!(
+            !same(2),
+            "{c}->{co}: grad weight from the same product under both"
+        );
+    }
+    set_large_weights(None);
+}
