@@ -432,7 +432,7 @@ CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t 
   }
 }
 
-template <typename T, int NC>
+template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
                                                         const int32_t* top_left, const T* frac,
                                                         int64_t b, int64_t p0, int64_t n,
@@ -448,7 +448,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const T* __restrict f = frac + 2 * s_begin;
   if constexpr (NC > 0 && gather_lanes<T, NC>() > 0) {
     // One group: the columns are the samples' rows back to back.
-    constexpr int L = gather_lanes<T, NC>(), CL = chunk_lanes<T, NC>();
+    constexpr int L = gather_lanes<T, NC>(), CL = CLW;
     using V = typename VecOf<T, CL>::type;
     const int64_t count = n * K;
     // (NC < L) the call's last sample stores its NC values alone, below.
@@ -533,7 +533,7 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 // against that scatter (float32, F195 plans, B8, one thread, the zeroing and the copy out
 // included): 8 channels 0.75x at 64x64 and 0.87x at 128x128, 16 channels 0.84-0.87x.
 // NC as in gather_columns_body.
-template <typename T, int NC>
+template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
                                                          const int32_t* top_left, const T* frac,
                                                          int64_t b, int64_t p0, int64_t n,
@@ -563,7 +563,7 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
         T* __restrict dst = a + corner[c];
         const T wc = w[c];
         if constexpr (NC > 0 && VecOf<T, NC>::ok) {
-          constexpr int CL = chunk_lanes<T, NC>();
+          constexpr int CL = CLW;
           using V = typename VecOf<T, CL>::type;
           for (int c0 = 0; c0 < NC; c0 += CL) {
             store(dst + c0, load<V>(dst + c0) + wc * load<V>(src + c0));
@@ -609,6 +609,37 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 CALIBCONV_TILE_KERNELS_ALL(float)
 CALIBCONV_TILE_KERNELS_ALL(double)
 
+// The gather and scatter of 32 and 64 float channels in whole 64-byte vectors, compiled for
+// AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the multiversioned bodies above
+// GCC would lower such vectors through the stack in the AVX2 clone) and picked where the CPU has
+// it (tile_kernels). Each lane computes the same expression as the 32-byte chunks (the same
+// bits; few_output_channel_kernels_agree_across_isa_levels compares them). On an Intel Xeon
+// (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d forward
+// and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at
+// 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31
+// / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. Not for 16
+// channels (one vector either way): 16->8 at 64x64 1.15-1.16 / 1.24-1.26x -> 1.21 / 1.29-1.30x.
+// (On an AMD Zen 4, which splits 64-byte operations in two, the thirteenth session measured such
+// chunks 4-5% faster as kernels and no change in a step.)
+#ifdef CALIBCONV_HAVE_SMALL_KERNELS
+#define CALIBCONV_WIDE_TILE_KERNELS(NC)                                                         \
+  CALIBCONV_TARGET_V4 void gather_float_##NC##_v4(const Geo& g, const float* xp,               \
+                                                  const int32_t* top_left, const float* frac,  \
+                                                  int64_t b, int64_t p0, int64_t n,            \
+                                                  float* cols) {                               \
+    gather_columns_body<float, NC, 16>(g, xp, top_left, frac, b, p0, n, cols);                 \
+  }                                                                                            \
+  CALIBCONV_TARGET_V4 void scatter_float_##NC##_v4(const Geo& g, float* gxp,                   \
+                                                   const int32_t* top_left, const float* frac, \
+                                                   int64_t b, int64_t p0, int64_t n,           \
+                                                   const float* gcols) {                       \
+    scatter_columns_body<float, NC, 16>(g, gxp, top_left, frac, b, p0, n, gcols);              \
+  }
+CALIBCONV_WIDE_TILE_KERNELS(32)
+CALIBCONV_WIDE_TILE_KERNELS(64)
+#undef CALIBCONV_WIDE_TILE_KERNELS
+#endif
+
 // The kernels of one element type, picked by channel count (one group) once per call.
 template <typename T>
 struct TileKernels {
@@ -641,6 +672,18 @@ template <typename T>
 TileKernels<T> tile_kernels(const Geo& g);
 template <>
 TileKernels<float> tile_kernels<float>(const Geo& g) {
+#ifdef CALIBCONV_HAVE_SMALL_KERNELS
+  if (g.G == 1 && small_isa() == SmallIsa::Avx512) {
+    switch (g.C) {
+      case 32:
+        return {gather_float_32_v4, scatter_float_32_v4};
+      case 64:
+        return {gather_float_64_v4, scatter_float_64_v4};
+      default:
+        break;
+    }
+  }
+#endif
   CALIBCONV_PICK_ALL(float)
 }
 template <>
