@@ -2,34 +2,13 @@
 //! against the ATen composition, in a process of their own: the choice is process-wide.
 
 use calibconv::ops::{
-    deform_conv2d_planned_with, native_available, set_large_weights, small_kernel_isa, Backend,
-    ConvGeometry, LargeWeights, SamplingPlan, SmallKernelIsa,
+    native_available, set_large_weights, small_kernel_isa, Backend, ConvGeometry, LargeWeights,
+    SamplingPlan, SmallKernelIsa,
 };
 use tch::{Device, Kind, Tensor};
 
 mod common;
-use common::max_rel;
-
-/// Output and input, weight and bias gradients of `(conv(x) * probe).sum()`.
-fn run(
-    x: &Tensor,
-    plan: &SamplingPlan,
-    w: &Tensor,
-    b: &Tensor,
-    probe: &Tensor,
-    be: Backend,
-) -> Vec<Tensor> {
-    let (x, w, b) = (
-        x.detach().set_requires_grad(true),
-        w.detach().set_requires_grad(true),
-        b.detach().set_requires_grad(true),
-    );
-    let out = deform_conv2d_planned_with(&x, plan, &w, Some(&b), 1, be).unwrap();
-    let loss = (&out * probe).sum(Kind::Float);
-    let mut all = vec![out.detach()];
-    all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
-    all
-}
+use common::{conv_output_and_gradients as run, max_rel};
 
 const NAMES: [&str; 4] = ["output", "grad input", "grad weight", "grad bias"];
 

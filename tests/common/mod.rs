@@ -210,3 +210,25 @@ pub fn read_safetensors(path: &Path) -> BTreeMap<String, Tensor> {
 pub fn read_text(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("reading {}: {e}", path.display()))
 }
+
+/// Output and input, weight and bias gradients of `(conv(x) * probe).sum()` for the deformable
+/// convolution through `plan` (one group) with implementation `be`.
+pub fn conv_output_and_gradients(
+    x: &Tensor,
+    plan: &calibconv::ops::SamplingPlan,
+    w: &Tensor,
+    b: &Tensor,
+    probe: &Tensor,
+    be: calibconv::ops::Backend,
+) -> Vec<Tensor> {
+    let (x, w, b) = (
+        x.detach().set_requires_grad(true),
+        w.detach().set_requires_grad(true),
+        b.detach().set_requires_grad(true),
+    );
+    let out = calibconv::ops::deform_conv2d_planned_with(&x, plan, &w, Some(&b), 1, be).unwrap();
+    let loss = (&out * probe).sum(Kind::Float);
+    let mut all = vec![out.detach()];
+    all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
+    all
+}
