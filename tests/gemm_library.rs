@@ -2,14 +2,11 @@
 //! (oneDNN, the BLAS) against the ATen composition, in a process of their own: the choice is
 //! process-wide, and the library tests compare bits between runs.
 
-use calibconv::ops::{
-    gemm_library, native_available, set_gemm_library, Backend, ConvGeometry, GemmLibrary,
-    SamplingPlan,
-};
+use calibconv::ops::{gemm_library, native_available, set_gemm_library, Backend, GemmLibrary};
 use tch::{Device, Kind, Tensor};
 
 mod common;
-use common::{conv_output_and_gradients as run, max_rel};
+use common::{conv_output_and_gradients as run, max_rel, random_plan3x3};
 
 #[test]
 fn both_gemm_libraries_match_the_aten_composition() {
@@ -23,14 +20,7 @@ fn both_gemm_libraries_match_the_aten_composition() {
     // 24 -> 40 channels (no few-output-channel kernels: every product through the library),
     // several tiles.
     let (b, c, co, h, w) = (2, 24, 40, 23, 19);
-    let off = Tensor::randn([18, h, w], opts) * 2.0;
-    let plan = SamplingPlan::new(
-        &off,
-        [h, w],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap();
+    let plan = random_plan3x3(h, w, 2.0);
     let x = Tensor::randn([b, c, h, w], opts);
     let wt = Tensor::randn([co, c, 3, 3], opts) * 0.1;
     let bias = Tensor::randn([co], opts);

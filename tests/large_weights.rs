@@ -2,13 +2,12 @@
 //! against the ATen composition, in a process of their own: the choice is process-wide.
 
 use calibconv::ops::{
-    native_available, set_large_weights, small_kernel_isa, Backend, ConvGeometry, LargeWeights,
-    SamplingPlan, SmallKernelIsa,
+    native_available, set_large_weights, small_kernel_isa, Backend, LargeWeights, SmallKernelIsa,
 };
 use tch::{Device, Kind, Tensor};
 
 mod common;
-use common::{conv_output_and_gradients as run, max_rel};
+use common::{conv_output_and_gradients as run, max_rel, random_plan3x3};
 
 const NAMES: [&str; 4] = ["output", "grad input", "grad weight", "grad bias"];
 
@@ -24,14 +23,7 @@ fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
     tch::manual_seed(5);
     let opts = (Kind::Float, Device::Cpu);
     let (b, h, w) = (2, 17, 15);
-    let off = Tensor::randn([18, h, w], opts) * 2.0;
-    let plan = SamplingPlan::new(
-        &off,
-        [h, w],
-        ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap();
+    let plan = random_plan3x3(h, w, 2.0);
     // 64 -> 512: a weight of 576 x 512 values (1.1 MiB), gradients through the library chosen,
     // forward through the kernels either way; 128 -> 1024: 4.5 MiB, every product chosen.
     for (c, co, forward_chosen) in [(64, 512, false), (128, 1024, true)] {

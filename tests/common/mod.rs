@@ -232,3 +232,16 @@ pub fn conv_output_and_gradients(
     all.extend(Tensor::run_backward(&[loss], &[&x, &w, &b], false, false));
     all
 }
+
+/// A float32 plan of a 3x3, stride-1 "same" layer on an `h` x `w` map from random offsets
+/// (standard normal times `scale`, one set for the batch).
+pub fn random_plan3x3(h: i64, w: i64, scale: f64) -> calibconv::ops::SamplingPlan {
+    let off = Tensor::randn([18, h, w], (Kind::Float, tch::Device::Cpu)) * scale;
+    calibconv::ops::SamplingPlan::new(
+        &off,
+        [h, w],
+        calibconv::ops::ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+        Kind::Float,
+    )
+    .unwrap()
+}
