@@ -30,7 +30,8 @@
 //!     contiguous channel vectors from the sample's top-left corner `t` and its neighbours
 //!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input; the gather is compiled for 1-4, 8,
 //!     16, 32 and 64 channels as whole-vector operations (3 channels as vectors of 4) and in
-//!     general, each for AVX-512 / AVX2 / baseline, picked at load time. Then one GEMM per
+//!     general, each for AVX-512 / AVX2 / baseline, picked at load time (32 and 64 channels in
+//!     whole 64-byte vectors where the CPU has AVX-512). Then one GEMM per
 //!     group against the weight packed as `[G, C_out/G, K, C/G]`, through the BLAS (`at::mm`,
 //!     libtorch's MKL; oneDNN's 1x1 convolution, `at::mkldnn_convolution`, when asked for: see
 //!     [`GemmLibrary`]); the result is written into the output (NCHW, or channels-last for a
@@ -68,8 +69,10 @@
 //!     over 1 MiB, whose forward and weight gradient gather and multiply a block's columns one
 //!     slab of 512 at a time; gathered, multiplied and scattered block by block): at these
 //!     shapes a GEMM call costs more in overhead than in arithmetic (at
-//!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread; with more threads a
-//!     weight larger than the column matrix goes through the library). Their
+//!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread on AMD CPUs; with more
+//!     threads a weight larger than the column matrix goes through the library; where the BLAS
+//!     is MKL on an Intel CPU, which runs its AVX-512 code there, the gradients of weights over 1
+//!     MiB and the forward of weights over 4 MiB go through it, [`LargeWeights`]). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
 //!     without AVX2 use the GEMM library. The forward keeps a row group's accumulators in
