@@ -584,18 +584,21 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 }
 
 // The multiversioned entry points, one per (element type, fixed channel count): NC = 0 is the
-// general case (any channels, any groups).
-#define CALIBCONV_TILE_KERNELS(T, NC)                                                          \
-  CALIBCONV_CLONES void gather_##T##_##NC(const Geo& g, const T* xp, const int32_t* top_left, \
-                                          const T* frac, int64_t b, int64_t p0, int64_t n,     \
-                                          T* cols) {                                           \
-    gather_columns_body<T, NC>(g, xp, top_left, frac, b, p0, n, cols);                         \
+// general case (any channels, any groups). CALIBCONV_TILE_KERNELS_AS names them
+// gather_T_NC<SUFFIX> / scatter_T_NC<SUFFIX>, compiled with ATTR and chunks of CLW lanes.
+#define CALIBCONV_TILE_KERNELS_AS(ATTR, T, NC, SUFFIX, CLW)                                     \
+  ATTR void gather_##T##_##NC##SUFFIX(const Geo& g, const T* xp, const int32_t* top_left,     \
+                                      const T* frac, int64_t b, int64_t p0, int64_t n,         \
+                                      T* cols) {                                               \
+    gather_columns_body<T, NC, CLW>(g, xp, top_left, frac, b, p0, n, cols);                    \
   }                                                                                            \
-  CALIBCONV_CLONES void scatter_##T##_##NC(const Geo& g, T* gxp, const int32_t* top_left,     \
-                                           const T* frac, int64_t b, int64_t p0, int64_t n,    \
-                                           const T* gcols) {                                   \
-    scatter_columns_body<T, NC>(g, gxp, top_left, frac, b, p0, n, gcols);                      \
+  ATTR void scatter_##T##_##NC##SUFFIX(const Geo& g, T* gxp, const int32_t* top_left,         \
+                                       const T* frac, int64_t b, int64_t p0, int64_t n,        \
+                                       const T* gcols) {                                       \
+    scatter_columns_body<T, NC, CLW>(g, gxp, top_left, frac, b, p0, n, gcols);                 \
   }
+#define CALIBCONV_TILE_KERNELS(T, NC) \
+  CALIBCONV_TILE_KERNELS_AS(CALIBCONV_CLONES, T, NC, , (chunk_lanes<T, NC>()))
 #define CALIBCONV_TILE_KERNELS_ALL(T) \
   CALIBCONV_TILE_KERNELS(T, 0)        \
   CALIBCONV_TILE_KERNELS(T, 1)        \
@@ -622,22 +625,8 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // (On an AMD Zen 4, which splits 64-byte operations in two, the thirteenth session measured such
 // chunks 4-5% faster as kernels and no change in a step.)
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
-#define CALIBCONV_WIDE_TILE_KERNELS(NC)                                                         \
-  CALIBCONV_TARGET_V4 void gather_float_##NC##_v4(const Geo& g, const float* xp,               \
-                                                  const int32_t* top_left, const float* frac,  \
-                                                  int64_t b, int64_t p0, int64_t n,            \
-                                                  float* cols) {                               \
-    gather_columns_body<float, NC, 16>(g, xp, top_left, frac, b, p0, n, cols);                 \
-  }                                                                                            \
-  CALIBCONV_TARGET_V4 void scatter_float_##NC##_v4(const Geo& g, float* gxp,                   \
-                                                   const int32_t* top_left, const float* frac, \
-                                                   int64_t b, int64_t p0, int64_t n,           \
-                                                   const float* gcols) {                       \
-    scatter_columns_body<float, NC, 16>(g, gxp, top_left, frac, b, p0, n, gcols);              \
-  }
-CALIBCONV_WIDE_TILE_KERNELS(32)
-CALIBCONV_WIDE_TILE_KERNELS(64)
-#undef CALIBCONV_WIDE_TILE_KERNELS
+CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 32, _v4, 16)
+CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 64, _v4, 16)
 #endif
 
 // The kernels of one element type, picked by channel count (one group) once per call.
@@ -651,9 +640,10 @@ struct TileKernels {
   Scatter scatter;
 };
 
-#define CALIBCONV_PICK(T, NC) \
-  case NC:                    \
-    return {gather_##T##_##NC, scatter_##T##_##NC};
+#define CALIBCONV_PICK_AS(T, NC, SUFFIX) \
+  case NC:                               \
+    return {gather_##T##_##NC##SUFFIX, scatter_##T##_##NC##SUFFIX};
+#define CALIBCONV_PICK(T, NC) CALIBCONV_PICK_AS(T, NC, )
 #define CALIBCONV_PICK_ALL(T)                                 \
   switch (g.G == 1 ? g.C : 0) {                               \
     CALIBCONV_PICK(T, 1)                                      \
@@ -675,10 +665,8 @@ TileKernels<float> tile_kernels<float>(const Geo& g) {
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
   if (g.G == 1 && small_isa() == SmallIsa::Avx512) {
     switch (g.C) {
-      case 32:
-        return {gather_float_32_v4, scatter_float_32_v4};
-      case 64:
-        return {gather_float_64_v4, scatter_float_64_v4};
+      CALIBCONV_PICK_AS(float, 32, _v4)
+      CALIBCONV_PICK_AS(float, 64, _v4)
       default:
         break;
     }
