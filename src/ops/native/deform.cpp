@@ -559,7 +559,6 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
       const T* __restrict src = gcols + t * row + k * Cg;
       T* const a = gxb + int64_t{tl[i]} * C;
       for (int c = 0; c < 4; ++c) {
-        if (w[c] == T(0)) continue;
         T* __restrict dst = a + corner[c];
         const T wc = w[c];
         if constexpr (NC > 0 && VecOf<T, NC>::ok) {
