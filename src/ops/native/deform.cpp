@@ -526,12 +526,21 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 // [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last buffer
 // gxp (as padded_input; unpadded_gradient folds it back). Corners off the input add into the
 // padding; samples wholly outside (the plan's zero block) are skipped, so no two tasks of a
-// phase write the same padding pixel. Zero weights add nothing, as in the scatter into the
-// unpadded input that came before (which also skipped out-of-range corners): every pixel of the
-// input gets the same additions in the same order, the same bits (with Border::WrapX the
-// first column's additions through the right padding column come last). In one C++ process
-// against that scatter (float32, F195 plans, B8, one thread, the zeroing and the copy out
-// included): 8 channels 0.75x at 64x64 and 0.87x at 128x128, 16 channels 0.84-0.87x.
+// phase write the same padding pixel. Every pixel of the input gets the same additions in the
+// same order as in the scatter into the unpadded input that came before (which skipped
+// out-of-range corners), the same bits (with Border::WrapX the first column's additions through
+// the right padding column come last). In one C++ process against that scatter (float32, F195
+// plans, B8, one thread, the zeroing and the copy out included): 8 channels 0.75x at 64x64 and
+// 0.87x at 128x128, 16 channels 0.84-0.87x.
+// A corner of zero weight adds w * g = +-0, which leaves every value but -0 as it is, and no
+// value here is -0 (the buffer starts at +0, and a sum is -0 only if both terms are): the same
+// bits as skipping it, for every finite gradient (an infinite or NaN one spreads NaN to its
+// zero-weight corners too). Such corners lie in the rows the plan's `rows` name (floor(y) and
+// floor(y) + 1 of every sample), so the bands stay disjoint. The branch that skipped them cost
+// more than the additions: two taken jumps a corner. Without it (F195 plans, one thread, Intel
+// Xeon, calibrated / conv2d f+b, 2 processes each way alternating): 16->16 at 128x128 B8
+// 1.51-1.53 -> 1.47-1.50x, 8->8 at 64x64 1.17-1.21 -> 1.09-1.12x, 16->16 at 64x64 1.42-1.46 ->
+// 1.39-1.40x, 32->16 at 128x128 and 32-64 channels within the spread.
 // NC as in gather_columns_body.
 template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
@@ -584,18 +593,21 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 
 // The multiversioned entry points, one per (element type, fixed channel count): NC = 0 is the
 // general case (any channels, any groups). CALIBCONV_TILE_KERNELS_AS names them
-// gather_T_NC<SUFFIX> / scatter_T_NC<SUFFIX>, compiled with ATTR and chunks of CLW lanes.
+// gather_T_NC<SUFFIX> / scatter_T_NC<SUFFIX>, compiled with ATTR and chunks of CLW lanes
+// (CALIBCONV_SCATTER_AS: the scatter alone).
+#define CALIBCONV_SCATTER_AS(ATTR, T, NC, SUFFIX, CLW)                                          \
+  ATTR void scatter_##T##_##NC##SUFFIX(const Geo& g, T* gxp, const int32_t* top_left,         \
+                                       const T* frac, int64_t b, int64_t p0, int64_t n,        \
+                                       const T* gcols) {                                       \
+    scatter_columns_body<T, NC, CLW>(g, gxp, top_left, frac, b, p0, n, gcols);                 \
+  }
 #define CALIBCONV_TILE_KERNELS_AS(ATTR, T, NC, SUFFIX, CLW)                                     \
   ATTR void gather_##T##_##NC##SUFFIX(const Geo& g, const T* xp, const int32_t* top_left,     \
                                       const T* frac, int64_t b, int64_t p0, int64_t n,         \
                                       T* cols) {                                               \
     gather_columns_body<T, NC, CLW>(g, xp, top_left, frac, b, p0, n, cols);                    \
   }                                                                                            \
-  ATTR void scatter_##T##_##NC##SUFFIX(const Geo& g, T* gxp, const int32_t* top_left,         \
-                                       const T* frac, int64_t b, int64_t p0, int64_t n,        \
-                                       const T* gcols) {                                       \
-    scatter_columns_body<T, NC, CLW>(g, gxp, top_left, frac, b, p0, n, gcols);                 \
-  }
+  CALIBCONV_SCATTER_AS(ATTR, T, NC, SUFFIX, CLW)
 #define CALIBCONV_TILE_KERNELS(T, NC) \
   CALIBCONV_TILE_KERNELS_AS(CALIBCONV_CLONES, T, NC, , (chunk_lanes<T, NC>()))
 #define CALIBCONV_TILE_KERNELS_ALL(T) \
@@ -611,21 +623,26 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 CALIBCONV_TILE_KERNELS_ALL(float)
 CALIBCONV_TILE_KERNELS_ALL(double)
 
-// The gather and scatter of 32 and 64 float channels in whole 64-byte vectors, compiled for
-// AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the multiversioned bodies above
-// GCC would lower such vectors through the stack in the AVX2 clone) and picked where the CPU has
-// it (tile_kernels). Each lane computes the same expression as the 32-byte chunks (the same
+// The gather and scatter of 32 and 64 float channels (and the scatter of 16) in whole 64-byte
+// vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
+// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
+// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the 32-byte chunks (the same
 // bits; few_output_channel_kernels_agree_across_isa_levels compares them). On an Intel Xeon
 // (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d forward
 // and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at
 // 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31
-// / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. Not for 16
-// channels (one vector either way): 16->8 at 64x64 1.15-1.16 / 1.24-1.26x -> 1.21 / 1.29-1.30x.
+// / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16 channels the
+// scatter only: once it had no branches (see scatter_columns_body), 16->16 at 128x128 f+b
+// 1.43-1.47 -> 1.38-1.39x, 16->16 at 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within
+// the spread; the 64-byte gather of 16 channels is no faster (16->8 at 64x64 forward 1.15-1.16 ->
+// 1.19-1.20x, f+b 1.24-1.25 -> 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 ->
+// 1.29-1.30x).
 // (On an AMD Zen 4, which splits 64-byte operations in two, the thirteenth session measured such
 // chunks 4-5% faster as kernels and no change in a step.)
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 32, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 64, _v4, 16)
+CALIBCONV_SCATTER_AS(CALIBCONV_TARGET_V4, float, 16, _v4, 16)
 #endif
 
 // The kernels of one element type, picked by channel count (one group) once per call.
@@ -666,6 +683,8 @@ TileKernels<float> tile_kernels<float>(const Geo& g) {
     switch (g.C) {
       CALIBCONV_PICK_AS(float, 32, _v4)
       CALIBCONV_PICK_AS(float, 64, _v4)
+      case 16:  // the 64-byte scatter only
+        return {gather_float_16, scatter_float_16_v4};
       default:
         break;
     }
