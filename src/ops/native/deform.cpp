@@ -7,9 +7,9 @@
 //   output channel swapped, a cheap local transpose); the backward pass repacks it rather than
 //   keeping a weight-sized buffer alive between the passes.
 // - forward: per tile of T output pixels (rows q = b * P + p of the whole batch), gather the
-//   column tile [T, K*C] (layout: group, tap, channel) from a padded channels-last copy of the
-//   input (padded_input) with the plan's top-left corners and the bilinear weights of its
-//   fractions (ly, lx), then
+//   column tile [T, K*C] (layout: group, tap, channel) from the input padded channels-last
+//   (pad_row; each thread pads the rows its tiles read, one item at a time, PaddedRows) with the
+//   plan's top-left corners and the bilinear weights of its fractions (ly, lx), then
 //   y[T, C_out] = cols @ WP^T + bias (one at::mm per group; oneDNN for float32 with one group
 //   when asked, see use_dnn), copied into the output (NCHW or channels-last, as the input). A
 //   first layer (input without gradient, <= 4 channels) keeps its whole column matrix for the
@@ -17,7 +17,7 @@
 //   (three_channels): there the whole batch is gathered at once from a padded copy holding each
 //   pixel's items side by side (with one plan for the batch), and the weight gradient gathers
 //   the columns again.
-// - backward, weight: the column tiles are recomputed (never stored; the input padded again) and
+// - backward, weight: the column tiles are recomputed (never stored; the rows padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
 //   to its four corners of a padded channels-last gradient buffer (a scatter; the padding is
@@ -805,23 +805,130 @@ SmallKernels small_kernels(const Geo& g) {
   return s;
 }
 
-// Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
-// piece by piece within batch items (for_items), from the padded channels-last input xp.
+// Values of slack after the padded input: the gather's vector-of-four loads of 3 channels read
+// one value past a pixel.
+constexpr int64_t PAD_SLACK = 4;
+
+// Row r of item b of the padded input (see padded_input) into dst [Wp, C]: row r - 1 of the
+// input from src (channels-last [B, H, W, C], or NCHW where `direct`), or zeros above and below
+// it; then its padding columns.
 template <typename T>
-void gather_rows(const Geo& g, const TileKernels<T>& kern, const T* xp, const int32_t* top_left,
-                 const T* frac, int64_t q0, int64_t n, T* cols) {
+void pad_row(const Geo& g, const T* src, bool direct, int64_t b, int64_t r, T* d) {
+  const int64_t C = g.C, H = g.H, W = g.W, Wp = g.Wp, y = r - 1;
+  if (y < 0 || y >= H) {
+    std::fill(d, d + Wp * C, T(0));
+    return;
+  }
+  T* row = d + C;  // column 0
+  if (direct) {  // NCHW: row y of every channel plane, interleaved
+    const T* s = src + b * C * g.HW + y * W;
+    // (the channel count fixed at compile time: the loop over a row's pixels unrolls)
+    const auto interleave = [&](auto nc) {
+      constexpr int64_t NC = decltype(nc)::value;
+      for (int64_t x0 = 0; x0 < W; ++x0) {
+        for (int64_t c = 0; c < NC; ++c) row[x0 * NC + c] = s[c * g.HW + x0];
+      }
+    };
+    switch (C) {
+      case 1: interleave(std::integral_constant<int64_t, 1>{}); break;
+      case 2: interleave(std::integral_constant<int64_t, 2>{}); break;
+      case 3: interleave(std::integral_constant<int64_t, 3>{}); break;
+      default: interleave(std::integral_constant<int64_t, 4>{}); break;
+    }
+  } else {
+    const T* s = src + (b * g.HW + y * W) * C;
+    std::copy(s, s + W * C, row);
+  }
+  if (g.wrap) {
+    std::copy(row + (W - 1) * C, row + W * C, d);
+    std::copy(row, row + C, row + W * C);
+  } else {
+    std::fill(d, d + C, T(0));
+    std::fill(row + W * C, row + (W + 1) * C, T(0));
+  }
+}
+
+// Whether padded_input reads the input as NCHW (an image of few channels, transposed in the same
+// pass) rather than a channels-last copy.
+bool pad_direct(const at::Tensor& input, const Geo& g) {
+  return !input.is_contiguous(at::MemoryFormat::ChannelsLast) && g.C <= 4;
+}
+
+// The padded input as one thread's gathers read it, one batch item at a time: a buffer of one
+// item's padded frame (and PAD_SLACK zeros), into which the rows that a piece of output pixels
+// reads (the plan's `rows`, and the zero rows that samples outside read) are padded when it first
+// needs them (pad_row), until a piece of another item comes. Every value a gather reads is the
+// value padded_input would hold there (the same bits), but the copy is written to a buffer that
+// stays in the caches, not to a batch-sized one that goes out to memory and is read back. Rows
+// that no piece reads are never copied; with several threads, rows that two threads' pieces both
+// read are copied by both.
+template <typename T>
+class PaddedRows {
+ public:
+  // src: the input as pad_row reads it (null: no gathers, no buffer); rows: the plan's
+  // [items, H_out, 2] input rows.
+  PaddedRows(const Geo& g, const T* src, bool direct, const int32_t* rows)
+      : g_(g), src_(src), direct_(direct), rows_(rows), frame_(g.Hp * g.Wp * g.C),
+        buf_(src ? frame_ + PAD_SLACK : 0), filled_(src ? g.Hp : 0) {
+    if (src) std::fill(buf_.data() + frame_, buf_.data() + frame_ + PAD_SLACK, T(0));
+  }
+  // The padded input as the gathers take it (xp) for the output pixels [p0, p0 + len) of batch
+  // item b, their rows padded: item b's frame is the buffer (the gathers read xp + b * frame on).
+  const T* piece(int64_t b, int64_t p0, int64_t len) {
+    if (b != item_) {
+      item_ = b;
+      std::fill(filled_.begin(), filled_.end(), 0);
+      ensure(g_.H + 1, g_.H + 2);  // zero rows: the block that samples outside read
+    }
+    const int32_t* r = rows_ + g_.item(b) * g_.Ho * 2;
+    int64_t lo = INT64_MAX, hi = INT64_MIN;
+    for (int64_t oy = p0 / g_.Wo; oy <= (p0 + len - 1) / g_.Wo; ++oy) {
+      if (r[2 * oy] > r[2 * oy + 1]) continue;
+      lo = std::min<int64_t>(lo, r[2 * oy]);
+      hi = std::max<int64_t>(hi, r[2 * oy + 1]);
+    }
+    if (lo <= hi) ensure(lo + 1, hi + 1);  // input rows y are padded rows y + 1
+    // (an address computation outside the buffer, as an integer: the gathers add b * frame back)
+    return reinterpret_cast<const T*>(reinterpret_cast<uintptr_t>(buf_.data()) -
+                                      static_cast<uintptr_t>(b * frame_) * sizeof(T));
+  }
+
+ private:
+  void ensure(int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r <= r1; ++r) {
+      if (filled_[r]) continue;
+      pad_row(g_, src_, direct_, item_, r, buf_.data() + r * g_.Wp * g_.C);
+      filled_[r] = 1;
+    }
+  }
+  const Geo& g_;
+  const T* src_;
+  bool direct_;
+  const int32_t* rows_;
+  int64_t frame_;
+  Uninit<T> buf_;
+  std::vector<uint8_t> filled_;
+  int64_t item_ = -1;
+};
+
+// Gathers the columns of the flattened rows [q0, q0 + n) (q = b * P + p) into cols [n, K*C],
+// piece by piece within batch items (for_items), from the padded input (the thread's PaddedRows).
+template <typename T>
+void gather_rows(const Geo& g, const TileKernels<T>& kern, PaddedRows<T>& src,
+                 const int32_t* top_left, const T* frac, int64_t q0, int64_t n, T* cols) {
   const int64_t kc = g.K * g.C;
   for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-    kern.gather(g, xp, top_left, frac, b, p0, len, cols + off * kc);
+    kern.gather(g, src.piece(b, p0, len), top_left, frac, b, p0, len, cols + off * kc);
   });
 }
 
 // gather_rows for the columns [s0, s1) (gather_range_float), into cols at row stride ldc.
-void gather_range_rows(const Geo& g, const float* xp, const int32_t* top_left,
+void gather_range_rows(const Geo& g, PaddedRows<float>& src, const int32_t* top_left,
                        const float* frac, int64_t q0, int64_t n, int64_t s0, int64_t s1,
                        float* cols, int64_t ldc) {
   for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-    gather_range_float(g, xp, top_left, frac, b, p0, len, s0, s1, cols + off * ldc, ldc);
+    gather_range_float(g, src.piece(b, p0, len), top_left, frac, b, p0, len, s0, s1,
+                       cols + off * ldc, ldc);
   });
 }
 
@@ -843,12 +950,12 @@ ColumnSlabs column_slabs(const Geo& g, bool small, bool kept) {
 // For column_slabs layers: gathers the slabs of the rows [q0, q0 + m) one after the other into
 // cols (rows `width` apart) and calls multiply(s0, s1) on each, the columns [s0, s1).
 template <typename F>
-void by_slabs(const Geo& g, const float* xp, const int32_t* top_left, const float* frac,
+void by_slabs(const Geo& g, PaddedRows<float>& src, const int32_t* top_left, const float* frac,
               int64_t q0, int64_t m, float* cols, int64_t width, const F& multiply) {
   const int64_t kc = g.K * g.C;
   for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
     const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
-    gather_range_rows(g, xp, top_left, frac, q0, m, s0, s1, cols, width);
+    gather_range_rows(g, src, top_left, frac, q0, m, s0, s1, cols, width);
     multiply(s0, s1);
   }
 }
@@ -1041,64 +1148,30 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
   return wp;
 }
 
-// Values of slack after the padded input: the gather's vector-of-four loads of 3 channels read
-// one value past a pixel.
-constexpr int64_t PAD_SLACK = 4;
 
 // The input as the gather reads it: channels-last, padded to [B, H + 3, W + 2, C] (one row above,
 // two below, one column on each side; see `padded_size` in plan.rs) with zeros, or with
 // Border::WrapX the input's last column in the left padding column and its first in the right;
 // then PAD_SLACK zeros. A copy of the input (a few percent of the gather's reads, which are
 // 4 * K values a pixel); an NCHW input of few channels (an image) is transposed in the same pass.
+// (The first layers of three channels read it; the other gathers pad one item at a time, as
+// PaddedRows.)
 template <typename T>
 at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
-  const bool direct = !input.is_contiguous(at::MemoryFormat::ChannelsLast) && g.C <= 4;
+  const bool direct = pad_direct(input, g);
   const at::Tensor x = direct ? input.contiguous() : channels_last<T>(input);
-  const int64_t C = g.C, H = g.H, W = g.W, Wp = g.Wp, Hp = g.Hp, frame = Hp * Wp * C;
+  const int64_t Wp = g.Wp, Hp = g.Hp, frame = Hp * Wp * g.C;
   at::Tensor out = at::empty({g.B * frame + PAD_SLACK}, x.options());
   const T* src = x.const_data_ptr<T>();
   T* dst = out.mutable_data_ptr<T>();
   std::fill(dst + g.B * frame, dst + g.B * frame + PAD_SLACK, T(0));
-  const int64_t grain = std::max<int64_t>(1, (1 << 15) / std::max<int64_t>(1, Wp * C));
+  const int64_t grain = std::max<int64_t>(1, (1 << 15) / std::max<int64_t>(1, Wp * g.C));
   at::parallel_for(0, g.B * Hp, grain, [&](int64_t r0, int64_t r1) {
-    for (int64_t r = r0; r < r1; ++r) {
-      const int64_t b = r / Hp, y = r % Hp - 1;
-      T* d = dst + r * Wp * C;
-      if (y < 0 || y >= H) {
-        std::fill(d, d + Wp * C, T(0));
-        continue;
-      }
-      T* row = d + C;  // column 0
-      if (direct) {  // NCHW: row y of every channel plane, interleaved
-        const T* s = src + b * C * g.HW + y * W;
-        // (the channel count fixed at compile time: the loop over a row's pixels unrolls)
-        const auto interleave = [&](auto nc) {
-          constexpr int64_t NC = decltype(nc)::value;
-          for (int64_t x0 = 0; x0 < W; ++x0) {
-            for (int64_t c = 0; c < NC; ++c) row[x0 * NC + c] = s[c * g.HW + x0];
-          }
-        };
-        switch (C) {
-          case 1: interleave(std::integral_constant<int64_t, 1>{}); break;
-          case 2: interleave(std::integral_constant<int64_t, 2>{}); break;
-          case 3: interleave(std::integral_constant<int64_t, 3>{}); break;
-          default: interleave(std::integral_constant<int64_t, 4>{}); break;
-        }
-      } else {
-        const T* s = src + (b * g.HW + y * W) * C;
-        std::copy(s, s + W * C, row);
-      }
-      if (g.wrap) {
-        std::copy(row + (W - 1) * C, row + W * C, d);
-        std::copy(row, row + C, row + W * C);
-      } else {
-        std::fill(d, d + C, T(0));
-        std::fill(row + W * C, row + (W + 1) * C, T(0));
-      }
-    }
+    for (int64_t r = r0; r < r1; ++r) pad_row(g, src, direct, r / Hp, r % Hp, dst + r * Wp * g.C);
   });
   return out;
 }
+
 
 // First layers gathered for the whole batch at once (batch_gather): float32, 3 channels, one
 // plan for every item. The padded input then holds, per padded pixel, every item's channels side
@@ -1396,9 +1469,13 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                         const at::Tensor& bias, const at::Tensor& top_left,
-                        const at::Tensor& frac, const at::Tensor& keep, at::MemoryFormat fmt) {
+                        const at::Tensor& frac, const at::Tensor& rows, const at::Tensor& keep,
+                        at::MemoryFormat fmt) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
-  const at::Tensor x = padded_input<T>(input, g);
+  // The input as pad_row reads it (each thread pads the rows it gathers from, PaddedRows).
+  const bool direct = pad_direct(input, g);
+  const at::Tensor x = direct ? input.contiguous() : channels_last<T>(input);
+  const int32_t* rp = rows.const_data_ptr<int32_t>();
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
   const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
   const T* bp = bias.defined() ? bias_c.const_data_ptr<T>() : nullptr;
@@ -1430,13 +1507,19 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   // weight gradient.
   T* kp = keep.defined() ? keep.mutable_data_ptr<T>() : nullptr;
   const ColumnSlabs slabs = column_slabs(g, static_cast<bool>(small), kp != nullptr);
+  struct Local {
+    Scratch<T> s;
+    PaddedRows<T> src;
+  };
   auto init = [&] {
     // (the output tile: not with oneDNN, nor for channels-last output of the small kernels,
     // which write the output's rows directly)
     const int64_t y_rows = dnn || (small && cl) ? 0 : tile;
-    return Scratch<T>{Uninit<T>(block * slabs.width), Uninit<T>(y_rows * g.Cout)};
+    return Local{Scratch<T>{Uninit<T>(block * slabs.width), Uninit<T>(y_rows * g.Cout)},
+                 PaddedRows<T>(g, xp, direct, rp)};
   };
-  const auto body = [&](int64_t task, Scratch<T>& s) {
+  const auto body = [&](int64_t task, Local& local) {
+    Scratch<T>& s = local.s;
     const int64_t q0 = task * tile, n = std::min(tile, total - q0);
     if constexpr (std::is_same_v<T, float>) {
       if (small) {  // block by block, into the output's rows (channels-last) or a tile of them
@@ -1446,13 +1529,13 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
           const int64_t m = std::min(block, n - t0);
           if (slabs.on) {
             float* cb = s.tile.data();
-            by_slabs(g, xp, tp_left, fp, q0 + t0, m, cb, slabs.width, [&](int64_t s0, int64_t s1) {
+            by_slabs(g, local.src, tp_left, fp, q0 + t0, m, cb, slabs.width, [&](int64_t s0, int64_t s1) {
               small.forward(cb, m, slabs.width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
             });
             continue;
           }
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
-          gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cb);
+          gather_rows(g, kern, local.src, tp_left, fp, q0 + t0, m, cb);
           small.forward(cb, m, kc, kc, 0, kc, wtp, bp, yp + t0 * g.Cout);
         }
         if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
@@ -1460,7 +1543,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       }
     }
     T* tp = kp ? kp + q0 * kc : s.tile.data();
-    gather_rows(g, kern, xp, tp_left, fp, q0, n, tp);
+    gather_rows(g, kern, local.src, tp_left, fp, q0, n, tp);
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
         const Mat<const float> cols{tp, n, kc, kc, 1};
@@ -1483,8 +1566,8 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
     write_rows(yp, op, cl, g.Cout, g.P, q0, n);
   };
   if (whole && total > 0) {
-    Scratch<T> s = init();
-    body(0, s);
+    Local local = init();
+    body(0, local);
   } else {
     parallel_tasks(tiles, init, body);
   }
@@ -1495,11 +1578,14 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
 template <typename T>
 at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
                             const at::Tensor& top_left, const at::Tensor& frac,
-                            const at::Tensor& kept) {
+                            const at::Tensor& rows, const at::Tensor& kept) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
-  // The columns the forward pass kept, or the padded input to gather them again from.
+  // The columns the forward pass kept, or the input to gather them again from (as pad_row reads
+  // it: each thread pads the rows it gathers from, PaddedRows).
   const T* kp = kept.defined() ? kept.const_data_ptr<T>() : nullptr;
-  const at::Tensor x = kp ? input : padded_input<T>(input, g);
+  const bool direct = !kp && pad_direct(input, g);
+  const at::Tensor x = kp ? input : direct ? input.contiguous() : channels_last<T>(input);
+  const int32_t* rows_p = rows.const_data_ptr<int32_t>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
   const auto small = small_kernels<T>(g).weight_gradient;
@@ -1551,20 +1637,20 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // The rows [q0, q0 + n) of the output gradient yt [n, C_out] into the panels acc (as
   // weight_columns), for the outputs [o0, o1), block by block, the columns gathered into cols
   // (or the kept ones read).
-  const auto small_rows = [&](int64_t q0, int64_t n, const T* yt, T* cols, T* acc, int64_t o0,
-                              int64_t o1) {
+  const auto small_rows = [&](PaddedRows<T>& src, int64_t q0, int64_t n, const T* yt, T* cols,
+                              T* acc, int64_t o0, int64_t o1) {
     if constexpr (std::is_same_v<T, float>) {
       for (int64_t t0 = 0; t0 < n; t0 += block) {
         const int64_t m = std::min(block, n - t0);
         if (slabs.on) {
-          by_slabs(g, xp, tp_left, fp, q0 + t0, m, cols, slabs.width,
+          by_slabs(g, src, tp_left, fp, q0 + t0, m, cols, slabs.width,
                    [&](int64_t s0, int64_t s1) {
                      small(cols, m, slabs.width, kc, s0, s1, yt + t0 * g.Cout, acc, o0, o1);
                    });
           continue;
         }
         const float* cb = kp ? kp + (q0 + t0) * kc : cols;
-        if (!kp) gather_rows(g, kern, xp, tp_left, fp, q0 + t0, m, cols);
+        if (!kp) gather_rows(g, kern, src, tp_left, fp, q0 + t0, m, cols);
         small(cb, m, kc, kc, 0, kc, yt + t0 * g.Cout, acc, o0, o1);
       }
     }
@@ -1574,6 +1660,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       const Uninit<float> acc_t(kc * g.Cout);
       at::parallel_for(0, threads, 1, [&](int64_t t0, int64_t t1) {
         const Uninit<T> cols(block * slabs.width), ybuf(cl ? 0 : tile * g.Cout);
+        PaddedRows<T> src(g, xp, direct, rows_p);
         for (int64_t t = t0; t < t1; ++t) {
           const int64_t o0 = t * g.Cout / threads, o1 = (t + 1) * g.Cout / threads;
           float* a = acc_t.data() + o0 * kc;  // the range's panels, one after the other
@@ -1581,7 +1668,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           for (int64_t q0 = 0; q0 < total; q0 += tile) {
             const int64_t n = std::min(tile, total - q0);
             const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
-            small_rows(q0, n, yt, cols.data(), acc_t.data(), o0, o1);
+            small_rows(src, q0, n, yt, cols.data(), acc_t.data(), o0, o1);
           }
           panels_to_weight(a, gwp + o0 * kc, o1 - o0, g.C, g.K);
         }
@@ -1591,6 +1678,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   }
   const auto body = [&](int64_t c0, int64_t c1) {
     const Uninit<T> cols(kp ? 0 : block * slabs.width), ybuf(cl ? 0 : tile * g.Cout);
+    PaddedRows<T> src(g, kp ? nullptr : xp, direct, rows_p);
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
     // written to its accumulator at the end of the chunk in the final order, [C_out, C, K]
     // (panels_to_weight).
@@ -1602,11 +1690,11 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
         const int64_t q0 = task * tile, n = std::min(tile, total - q0);
         const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
         if (small) {
-          small_rows(q0, n, yt, cols.data(), acc_t.data(), 0, g.Cout);
+          small_rows(src, q0, n, yt, cols.data(), acc_t.data(), 0, g.Cout);
           continue;
         }
         const T* cp = kp ? kp + q0 * kc : cols.data();
-        if (!kp) gather_rows(g, kern, xp, tp_left, fp, q0, n, cols.data());
+        if (!kp) gather_rows(g, kern, src, tp_left, fp, q0, n, cols.data());
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
             const Mat<const float> cols_t{cp, kc, n, 1, kc};
@@ -1854,7 +1942,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["batch_input"] = c10::IValue();
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
       out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left,
-                                   frac, keep, fmt);
+                                   frac, rows, keep, fmt);
     });
     return out;
   }
@@ -1887,7 +1975,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
       } else if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
         gw = grad_weight_impl<scalar_t>(g, input, gy, d["top_left"].toTensor(),
-                                        d["frac"].toTensor(), kept)
+                                        d["frac"].toTensor(), d["rows"].toTensor(), kept)
                  .view(weight.sizes());
       }
       if (ctx->needs_input_grad(0)) {
