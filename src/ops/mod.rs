@@ -30,8 +30,9 @@
 //!     contiguous channel vectors from the sample's top-left corner `t` and its neighbours
 //!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input (each thread pads the rows its
 //!     tiles read into a buffer of one item's frame, which stays in the caches, rather than the
-//!     whole batch up front: 32->16 at 128x128 B8 f+b 1.53-1.58 -> 1.39-1.41x conv2d, 64->64 at
-//!     256x256 B2 forward 1.16 -> 0.97-0.99x, one thread, Intel Xeon); the gather is compiled
+//!     whole batch up front: one thread, Intel Xeon, calibrated / conv2d, 64->64 at 256x256 B2
+//!     forward 1.16 -> 0.97-0.99x, U-Net training steps of the quick and study profiles
+//!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x); the gather is compiled
 //!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
 //!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32 and 64
 //!     channels in whole 64-byte vectors where the CPU has AVX-512). Then one GEMM per
@@ -65,7 +66,10 @@
 //!     of threads. (A transposed plan that turns this into a gather was tried and dropped: for
 //!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
 //!     400 MiB more.)
-//!   - *Bias gradient*: a sum of the output gradient.
+//!   - *Bias gradient*: a sum of the output gradient; with the few-output-channel kernels below,
+//!     summed block by block as the weight gradient reads the output gradient (in its order),
+//!     not in a pass of its own (16->16 at 128x128 B8 f+b 1.40-1.46 -> 1.36-1.39x conv2d, one
+//!     thread, Intel Xeon).
 //!   - *Few output channels* (float32, one group, 8, 16, 32, 64, 128, 256, 512 or 1024 outputs
 //!     and a weight of at most 36 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
 //!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per

@@ -25,7 +25,8 @@
 //   bands of output rows, in two phases (even bands, then odd bands) chosen so that the input
 //   rows that two bands of the same phase touch are disjoint: no atomics, no races, and the
 //   summation order does not depend on the number of threads.
-// - bias: a sum of the output gradient.
+// - bias: a sum of the output gradient (with the few-output-channel kernels, summed block by
+//   block in the weight gradient's pass, see grad_weight_impl).
 // - few output channels (float32, one group, C_out 8 to 1024 with a weight of at most 36 MiB; 8
 //   to 32 with AVX2): the three products run through register-blocked kernels on L1-sized blocks
 //   of pixels (gathered, multiplied, scattered block by block) instead of a oneDNN / BLAS call
@@ -1574,11 +1575,18 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   return out;
 }
 
-// Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions).
+// Gradient of the weight, [C_out, C/G, K] (the caller views the kernel dimensions), and, where
+// `bias` is asked for and the few-output-channel kernels run, the bias's [C_out] (else
+// undefined): the sum of the output gradient's rows, added up block by block as the weight
+// gradient reads them (in L1), in the weight gradient's order (its chunks; by_panels: each
+// thread its outputs over all rows), instead of a pass of its own over the output gradient
+// (`gy.sum`, which reads it from memory).
 template <typename T>
-at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Tensor& gy,
-                            const at::Tensor& top_left, const at::Tensor& frac,
-                            const at::Tensor& rows, const at::Tensor& kept) {
+std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tensor& input,
+                                                   const at::Tensor& gy,
+                                                   const at::Tensor& top_left,
+                                                   const at::Tensor& frac, const at::Tensor& rows,
+                                                   const at::Tensor& kept, bool bias) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
   // The columns the forward pass kept, or the input to gather them again from (as pad_row reads
   // it: each thread pads the rows it gathers from, PaddedRows).
@@ -1624,6 +1632,10 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   T* const rp = rest.mutable_data_ptr<T>();
   const int64_t wsize = g.G * g.Coutg * kcg;
   const auto acc = [&](int64_t chunk) { return chunk == 0 ? gwp : rp + (chunk - 1) * wsize; };
+  // The bias gradient: chunk c's sum in row c of bsum (chunk 0's is the result's).
+  const bool with_bias = bias && small;
+  at::Tensor bsum = with_bias ? at::empty({chunks, g.Cout}, gy.options()) : at::Tensor();
+  T* const bp = with_bias ? bsum.mutable_data_ptr<T>() : nullptr;
   const T* xp = x.const_data_ptr<T>();
   const T* gp = gy.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
@@ -1637,11 +1649,19 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // The rows [q0, q0 + n) of the output gradient yt [n, C_out] into the panels acc (as
   // weight_columns), for the outputs [o0, o1), block by block, the columns gathered into cols
   // (or the kept ones read).
+  // With b (the bias gradient's accumulator for the outputs [o0, o1); null: none), the rows'
+  // output gradients are added to it too.
   const auto small_rows = [&](PaddedRows<T>& src, int64_t q0, int64_t n, const T* yt, T* cols,
-                              T* acc, int64_t o0, int64_t o1) {
+                              T* acc, int64_t o0, int64_t o1, T* b) {
     if constexpr (std::is_same_v<T, float>) {
       for (int64_t t0 = 0; t0 < n; t0 += block) {
         const int64_t m = std::min(block, n - t0);
+        if (b) {
+          for (int64_t t = t0; t < t0 + m; ++t) {
+            const T* y = yt + t * g.Cout;
+            for (int64_t o = o0; o < o1; ++o) b[o - o0] += y[o];
+          }
+        }
         if (slabs.on) {
           by_slabs(g, src, tp_left, fp, q0 + t0, m, cols, slabs.width,
                    [&](int64_t s0, int64_t s1) {
@@ -1665,15 +1685,17 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
           const int64_t o0 = t * g.Cout / threads, o1 = (t + 1) * g.Cout / threads;
           float* a = acc_t.data() + o0 * kc;  // the range's panels, one after the other
           std::fill(a, a + (o1 - o0) * kc, 0.0f);
+          T* bt = with_bias ? bp + o0 : nullptr;  // (one chunk: the result's row)
+          if (bt) std::fill(bt, bt + (o1 - o0), T(0));
           for (int64_t q0 = 0; q0 < total; q0 += tile) {
             const int64_t n = std::min(tile, total - q0);
             const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
-            small_rows(src, q0, n, yt, cols.data(), acc_t.data(), o0, o1);
+            small_rows(src, q0, n, yt, cols.data(), acc_t.data(), o0, o1, bt);
           }
           panels_to_weight(a, gwp + o0 * kc, o1 - o0, g.C, g.K);
         }
       });
-      return gw.view({g.Cout, g.Cg, g.K});
+      return {gw.view({g.Cout, g.Cg, g.K}), with_bias ? bsum[0] : at::Tensor()};
     }
   }
   const auto body = [&](int64_t c0, int64_t c1) {
@@ -1686,11 +1708,13 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
       if (chunk > c0) std::fill(acc_t.begin(), acc_t.end(), T(0));  // (c0's: a new vector)
+      T* bt = with_bias ? bp + chunk * g.Cout : nullptr;
+      if (bt) std::fill(bt, bt + g.Cout, T(0));
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
         const int64_t q0 = task * tile, n = std::min(tile, total - q0);
         const T* yt = rows_of(gp, cl, g.Cout, g.P, q0, n, ybuf.data());  // [n, C_out]
         if (small) {
-          small_rows(src, q0, n, yt, cols.data(), acc_t.data(), 0, g.Cout);
+          small_rows(src, q0, n, yt, cols.data(), acc_t.data(), 0, g.Cout, bt);
           continue;
         }
         const T* cp = kp ? kp + q0 * kc : cols.data();
@@ -1725,7 +1749,12 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
   // Sum the chunks into chunk 0 and (but for the few-output-channel kernels' accumulators, in
   // that order already) swap (tap, channel) -> (channel, tap) in place, one output channel (a
   // row of K * C/G) at a time: [C_out, C/G, K].
-  if (small && chunks == 1) return gw.view({g.Cout, g.Cg, g.K});
+  // (the bias's chunks in their order, into chunk 0's row)
+  for (int64_t chunk = 1; with_bias && chunk < chunks; ++chunk) {
+    for (int64_t o = 0; o < g.Cout; ++o) bp[o] += bp[chunk * g.Cout + o];
+  }
+  const at::Tensor gb = with_bias ? bsum[0] : at::Tensor();
+  if (small && chunks == 1) return {gw.view({g.Cout, g.Cg, g.K}), gb};
   sum_chunks<T>(acc, chunks, g.Cout, kcg, [&](T* r0, const T* sum) {
     if (small) {
       std::copy(sum, sum + kcg, r0);
@@ -1735,7 +1764,7 @@ at::Tensor grad_weight_impl(const Geo& g, const at::Tensor& input, const at::Ten
       for (int64_t c = 0; c < g.Cg; ++c) r0[c * g.K + k] = sum[k * g.Cg + c];
     }
   });
-  return gw.view({g.Cout, g.Cg, g.K});
+  return {gw.view({g.Cout, g.Cg, g.K}), gb};
 }
 
 // Bands of the scatter: at least BAND_PIXELS output pixels (each band's tiles are GEMMs that
@@ -1974,9 +2003,11 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                  .view(weight.sizes());
       } else if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
-        gw = grad_weight_impl<scalar_t>(g, input, gy, d["top_left"].toTensor(),
-                                        d["frac"].toTensor(), d["rows"].toTensor(), kept)
-                 .view(weight.sizes());
+        auto [w, b] = grad_weight_impl<scalar_t>(
+            g, input, gy, d["top_left"].toTensor(), d["frac"].toTensor(), d["rows"].toTensor(),
+            kept, d["has_bias"].toBool() && ctx->needs_input_grad(2));
+        gw = w.view(weight.sizes());
+        gb = b;  // (undefined where the weight gradient did not sum it)
       }
       if (ctx->needs_input_grad(0)) {
         gx = grad_input_impl<scalar_t>(g, input, pack_weight(weight, g), gy,
@@ -1984,7 +2015,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                                        d["rows"].toTensor());
       }
     });
-    if (d["has_bias"].toBool() && ctx->needs_input_grad(2)) {
+    if (d["has_bias"].toBool() && ctx->needs_input_grad(2) && !gb.defined()) {
       gb = gy.sum({0, 2, 3});
     }
     return {gx,           gw,           gb,           at::Tensor(), at::Tensor(),
