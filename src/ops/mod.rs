@@ -58,7 +58,9 @@
 //!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
 //!     to its four corners of a padded channels-last buffer (from its top-left corner, as the
 //!     gather; the padding is dropped at the end; corners of zero weight too, which leaves
-//!     every finite value's bits as they are, rather than a branch a corner). Tiles run in bands of output rows in two
+//!     every finite value's bits as they are, rather than a branch a corner; each row of the
+//!     buffer zeroed by the band that first adds to it, just before, not the whole buffer up
+//!     front). Tiles run in bands of output rows in two
 //!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
 //!     16 bands per batch up) for which the input rows read by two bands of the same phase are
 //!     disjoint (from the plan's row ranges); with one band per item a task takes whole items.

@@ -547,6 +547,39 @@ fn input_gradient_is_exact_with_far_reaching_offsets() {
     assert_same(&native, &aten, F64_IMPL_TOL, "far-reaching offsets");
 }
 
+#[test]
+fn input_rows_no_sample_reads_get_a_zero_gradient() {
+    // Every sample within the input's first rows (rows -1 to 2 hold its corners): the rows
+    // below are in no band's reach, so no band zeroes their gradient (grad_input_impl zeroes
+    // them apart), and it must be exactly zero, with the scratch poisoned.
+    poison_native_scratch();
+    tch::manual_seed(9);
+    let (h, w) = (12, 7);
+    for (kind, ci, co, tol) in [
+        (Kind::Float, 16, 16, F32_IMPL_TOL),
+        (Kind::Double, 3, 4, F64_IMPL_TOL),
+    ] {
+        let opts = (kind, Device::Cpu);
+        let rows = Tensor::arange(h, opts).view([1, h, 1]);
+        let dy = (-rows).expand([9, h, w], false) + Tensor::rand([9, h, w], opts) * 0.5;
+        let dx = Tensor::randn([9, h, w], opts) * 0.3;
+        let off = Tensor::stack(&[dy, dx], 1).reshape([18, h, w]);
+        let plan = plan3x3(&off, [h, w], kind);
+        let x = Tensor::randn([2, ci, h, w], opts);
+        let (wt, bias) = (Tensor::randn([co, ci, 3, 3], opts), Tensor::randn([co], opts));
+        let probe = Tensor::randn([2, co, h, w], opts);
+        let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
+        let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
+        let what = format!("{kind:?} {ci}->{co}, samples in the first rows");
+        assert_same(&native, &aten, tol, &what);
+        let below = native.input.narrow(2, 3, h - 3);
+        assert!(
+            below.eq(0.0).all().int64_value(&[]) == 1,
+            "{what}: rows no sample reads have a nonzero gradient"
+        );
+    }
+}
+
 /// Finite-difference check in f64 through the native path, with per-item offsets and a
 /// channels-last input (the shared-offsets NCHW case is `gradients_match_finite_differences`).
 #[test]

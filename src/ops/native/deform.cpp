@@ -855,6 +855,20 @@ bool pad_direct(const at::Tensor& input, const Geo& g) {
   return !input.is_contiguous(at::MemoryFormat::ChannelsLast) && g.C <= 4;
 }
 
+// The lowest and highest input row (-1 to H) that the output rows [oy0, oy1] of plan item `it`
+// read (the plan's `rows`, [items, H_out, 2]); lo > hi where they read none.
+std::pair<int64_t, int64_t> input_rows(const Geo& g, const int32_t* rows, int64_t it, int64_t oy0,
+                                       int64_t oy1) {
+  const int32_t* r = rows + it * g.Ho * 2;
+  int64_t lo = INT64_MAX, hi = INT64_MIN;
+  for (int64_t oy = oy0; oy <= oy1; ++oy) {
+    if (r[2 * oy] > r[2 * oy + 1]) continue;
+    lo = std::min<int64_t>(lo, r[2 * oy]);
+    hi = std::max<int64_t>(hi, r[2 * oy + 1]);
+  }
+  return {lo, hi};
+}
+
 // The padded input as one thread's gathers read it, one batch item at a time: a buffer of one
 // item's padded frame (and PAD_SLACK zeros), into which the rows that a piece of output pixels
 // reads (the plan's `rows`, and the zero rows that samples outside read) are padded when it first
@@ -881,13 +895,7 @@ class PaddedRows {
       std::fill(filled_.begin(), filled_.end(), 0);
       ensure(g_.H + 1, g_.H + 2);  // zero rows: the block that samples outside read
     }
-    const int32_t* r = rows_ + g_.item(b) * g_.Ho * 2;
-    int64_t lo = INT64_MAX, hi = INT64_MIN;
-    for (int64_t oy = p0 / g_.Wo; oy <= (p0 + len - 1) / g_.Wo; ++oy) {
-      if (r[2 * oy] > r[2 * oy + 1]) continue;
-      lo = std::min<int64_t>(lo, r[2 * oy]);
-      hi = std::max<int64_t>(hi, r[2 * oy + 1]);
-    }
+    const auto [lo, hi] = input_rows(g_, rows_, g_.item(b), p0 / g_.Wo, (p0 + len - 1) / g_.Wo);
     if (lo <= hi) ensure(lo + 1, hi + 1);  // input rows y are padded rows y + 1
     // (an address computation outside the buffer, as an integer: the gathers add b * frame back)
     return reinterpret_cast<const T*>(reinterpret_cast<uintptr_t>(buf_.data()) -
@@ -1816,17 +1824,58 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
                            const at::Tensor& gy, const at::Tensor& top_left,
                            const at::Tensor& frac, const at::Tensor& rows) {
   const bool cl_y = !gy.is_contiguous();  // else channels-last (see backward)
-  // Padded channels-last accumulation buffer (as padded_input).
-  at::Tensor gx = at::zeros({g.B * g.Hp * g.Wp * g.C}, gy.options());
+  // Padded channels-last accumulation buffer (as padded_input), zeroed row by row (see zero_rows
+  // below).
+  at::Tensor gx = at::empty({g.B * g.Hp * g.Wp * g.C}, gy.options());
+  if (poison_scratch.load(std::memory_order_relaxed)) {
+    gx.fill_(std::numeric_limits<T>::quiet_NaN());
+  }
   const T* gp = gy.const_data_ptr<T>();
   const T* wpp = wp.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* fp = frac.const_data_ptr<T>();
   T* xp = gx.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
-  const int64_t r = band_rows(g, rows.const_data_ptr<int32_t>());
+  const int32_t* rows_p = rows.const_data_ptr<int32_t>();
+  const int64_t r = band_rows(g, rows_p);
   const int64_t bands = (g.Ho + r - 1) / r;
   const int64_t band_pixels = std::min(g.P, r * g.Wo);
+  // The buffer is not zeroed up front (a pass over memory as large as the input's): every
+  // padded row is zeroed by the phase whose bands first add to it, each band just before its
+  // scatter (the row then in the caches), and the rows that no band adds to are zeroed here.
+  // zero_phase[it * Hp + row]: 1 where an even band (phase 0) of plan item `it` reads the row,
+  // else 2 where an odd band does, else 0. The bands of a phase read disjoint rows (band_rows),
+  // so each row is zeroed once, before its first addition, whatever the thread count.
+  const int64_t plan_items = g.per_item ? g.B : 1;
+  std::vector<uint8_t> zero_phase(plan_items * g.Hp, 0);
+  for (int64_t it = 0; it < plan_items; ++it) {
+    for (int64_t band = 0; band < bands; ++band) {
+      const auto [lo, hi] = input_rows(g, rows_p, it, band * r, std::min(g.Ho, (band + 1) * r) - 1);
+      for (int64_t y = lo; y <= hi; ++y) {
+        uint8_t& z = zero_phase[it * g.Hp + y + 1];
+        if (z != 1) z = band % 2 == 0 ? 1 : 2;
+      }
+    }
+  }
+  const auto zero_row = [&](int64_t b, int64_t row) {
+    T* d = gx.mutable_data_ptr<T>() + (b * g.Hp + row) * g.Wp * g.C;
+    std::fill(d, d + g.Wp * g.C, T(0));
+  };
+  for (int64_t b = 0; b < g.B; ++b) {
+    for (int64_t row = 0; row < g.Hp; ++row) {
+      if (zero_phase[g.item(b) * g.Hp + row] == 0) zero_row(b, row);
+    }
+  }
+  // Zeroes the rows that phase `phase`'s task of the flattened rows [q0, q1) zeroes.
+  const auto zero_rows = [&](int64_t phase, int64_t q0, int64_t q1) {
+    for_items(g.P, q0, q1 - q0, [&](int64_t b, int64_t p0, int64_t len, int64_t) {
+      const int64_t it = g.item(b);
+      const auto [lo, hi] = input_rows(g, rows_p, it, p0 / g.Wo, (p0 + len - 1) / g.Wo);
+      for (int64_t y = lo; y <= hi; ++y) {
+        if (zero_phase[it * g.Hp + y + 1] == phase + 1) zero_row(b, y + 1);
+      }
+    });
+  };
   // A task is one band of one item or, with one band per item, whole items (as many as fill a
   // tile, leaving a task per thread): tasks never share an item's band, so the scatter has no
   // race, and every input pixel receives its contributions in output-pixel order whatever the
@@ -1900,6 +1949,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     for (int64_t phase = 0; phase < 2; ++phase) {
       for (int64_t task = 0; task < groups_of_items * ((bands - phase + 1) / 2); ++task) {
         const auto [q_begin, q_end] = task_rows(phase, task);
+        zero_rows(phase, q_begin, q_end);
         scatter_rows(src + q_begin * kc, q_begin, q_end - q_begin);
       }
     }
@@ -1909,6 +1959,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     const int64_t phase_bands = (bands - phase + 1) / 2;
     parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, Scratch<T>& s) {
       const auto [q_begin, q_end] = task_rows(phase, task);
+      zero_rows(phase, q_begin, q_end);
       for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
         const int64_t n = std::min(tile, q_end - q0);
         const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
