@@ -566,7 +566,10 @@ fn input_rows_no_sample_reads_get_a_zero_gradient() {
         let off = Tensor::stack(&[dy, dx], 1).reshape([18, h, w]);
         let plan = plan3x3(&off, [h, w], kind);
         let x = Tensor::randn([2, ci, h, w], opts);
-        let (wt, bias) = (Tensor::randn([co, ci, 3, 3], opts), Tensor::randn([co], opts));
+        let (wt, bias) = (
+            Tensor::randn([co, ci, 3, 3], opts),
+            Tensor::randn([co], opts),
+        );
         let probe = Tensor::randn([2, co, h, w], opts);
         let native = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
         let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
