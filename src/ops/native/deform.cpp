@@ -627,10 +627,10 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // The gather and scatter of 32 and 64 float channels (and the scatter of 16) in whole 64-byte
 // vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
 // multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
-// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the 32-byte chunks (the same
-// bits; few_output_channel_kernels_agree_across_isa_levels compares them). On an Intel Xeon
-// (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d forward
-// and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at
+// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the
+// 32-byte chunks (the same bits; few_output_channel_kernels_agree_across_isa_levels compares
+// them). On an Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating,
+// calibrated / conv2d forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at
 // 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31
 // / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16 channels the
 // scatter only: once it had no branches (see scatter_columns_body), 16->16 at 128x128 f+b
@@ -810,7 +810,7 @@ SmallKernels small_kernels(const Geo& g) {
 // one value past a pixel.
 constexpr int64_t PAD_SLACK = 4;
 
-// Row r of item b of the padded input (see padded_input) into dst [Wp, C]: row r - 1 of the
+// Row r of item b of the padded input (see padded_input) into d [Wp, C]: row r - 1 of the
 // input from src (channels-last [B, H, W, C], or NCHW where `direct`), or zeros above and below
 // it; then its padding columns.
 template <typename T>
@@ -849,8 +849,8 @@ void pad_row(const Geo& g, const T* src, bool direct, int64_t b, int64_t r, T* d
   }
 }
 
-// Whether padded_input reads the input as NCHW (an image of few channels, transposed in the same
-// pass) rather than a channels-last copy.
+// Whether the padding (pad_row) reads the input as NCHW (an image of few channels, transposed in
+// the same pass) rather than a channels-last copy.
 bool pad_direct(const at::Tensor& input, const Geo& g) {
   return !input.is_contiguous(at::MemoryFormat::ChannelsLast) && g.C <= 4;
 }
@@ -1156,7 +1156,6 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
   });
   return wp;
 }
-
 
 // The input as the gather reads it: channels-last, padded to [B, H + 3, W + 2, C] (one row above,
 // two below, one column on each side; see `padded_size` in plan.rs) with zeros, or with
@@ -1538,9 +1537,10 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
           const int64_t m = std::min(block, n - t0);
           if (slabs.on) {
             float* cb = s.tile.data();
-            by_slabs(g, local.src, tp_left, fp, q0 + t0, m, cb, slabs.width, [&](int64_t s0, int64_t s1) {
-              small.forward(cb, m, slabs.width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
-            });
+            by_slabs(g, local.src, tp_left, fp, q0 + t0, m, cb, slabs.width,
+                     [&](int64_t s0, int64_t s1) {
+                       small.forward(cb, m, slabs.width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
+                     });
             continue;
           }
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
