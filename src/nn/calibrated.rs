@@ -13,6 +13,18 @@ use crate::ops::{
     SamplingPlan,
 };
 
+/// Output channels below which a CPU layer run with more than one thread returns NCHW rather
+/// than channels-last: libtorch's channels-last batch norm (which follows every calibrated layer
+/// of the U-Net) is several times slower with two threads than with one when a pixel's channels
+/// fill less than a 64-byte cache line (fewer than 16 float32 values; the threads' partial sums
+/// seem to share lines). Forward + backward of `BatchNorm2d` on `[8, C, H, W]` float32, torch
+/// 2.13 on a 2-core Intel Xeon (`tools/bench_batch_norm_layouts.py`), NCHW / channels-last: 8 channels at 64x64 one thread 0.76 / 0.67
+/// ms, two threads 0.52 / 2.49 ms; at 128x128 1.29 / 10.3 ms (two threads); 16 channels at
+/// 128x128 2.81 / 2.19 ms, 32 at 16x16 0.10 / 0.11 ms. With one thread such layers stay
+/// channels-last (no conversions; the quick sweep trains so). The values do not depend on the
+/// layout; the batch norm's last bits may.
+const NCHW_BELOW_CHANNELS: i64 = 16;
+
 /// Geometry and bias of a convolution (pairs are `[y, x]`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Conv2dConfig {
@@ -63,7 +75,8 @@ impl Conv2dConfig {
 /// any input layout, so that in a network of these layers the batch norm, ReLU and pooling after
 /// one and the next one's input stay channels-last and nothing converts per call. An NCHW image
 /// (at most 4 channels) is read as it is; a wider NCHW input is converted once. Code that needs
-/// NCHW memory (`view` on an activation) calls `contiguous()`.
+/// NCHW memory (`view` on an activation) calls `contiguous()`. With fewer than 16 outputs and
+/// more than one libtorch thread the output is NCHW instead ([`NCHW_BELOW_CHANNELS`]).
 ///
 /// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
 /// The sampling plan is built once per (offsets, geometry, device) and shared (same tensor
@@ -147,7 +160,8 @@ impl CalibratedConv2d {
     ///
     /// # Shapes
     /// - `xs`: `[B, C_in, H, W]` with `[H, W]` the size the layer was built for
-    /// - output: `[B, C_out, H_out, W_out]`, channels-last in memory on the CPU
+    /// - output: `[B, C_out, H_out, W_out]`, channels-last in memory on the CPU (NCHW with fewer
+    ///   than 16 outputs and more than one libtorch thread, see `NCHW_BELOW_CHANNELS`)
     pub fn f_forward(&self, xs: &Tensor) -> Result<Tensor> {
         if xs.device() != self.plan.device() {
             let plan = self.plan.to_device(xs.device());
@@ -156,7 +170,14 @@ impl CalibratedConv2d {
         // On the CPU the layer works channels-last (its output, hence the batch norm and ReLU
         // after it and the next layer's input, stay channels-last): no layout conversion per
         // call, the network's NCHW image included (see `deform_conv2d_planned_channels_last`).
+        // But with fewer than NCHW_BELOW_CHANNELS outputs and more than one thread its output is
+        // NCHW (see there).
         if xs.device() == Device::Cpu && xs.dim() == 4 {
+            if self.ws.size()[0] < NCHW_BELOW_CHANNELS && tch::get_num_threads() > 1 {
+                let y =
+                    deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)?;
+                return Ok(y.contiguous());
+            }
             return deform_conv2d_planned_channels_last(
                 xs,
                 &self.plan,
