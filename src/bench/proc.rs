@@ -1,6 +1,6 @@
 //! Platform probes of the benchmark: the CPU's name, the load average, the process CPU time,
-//! resident memory (`/proc/self/status`, `/proc/self/clear_refs`) and glibc's mmap threshold. Real on Linux
-//! only; elsewhere each one reports `None` or does nothing.
+//! resident memory (`/proc/self/status`, `/proc/self/clear_refs`) and glibc's mmap threshold. Real
+//! on Linux only; elsewhere each one reports `None` or does nothing.
 
 /// The CPU's name (`/proc/cpuinfo`'s first `model name`), where the platform has it: the
 /// figures of one CPU do not carry over to another (the kernels' choices differ by CPU).

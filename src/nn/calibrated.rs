@@ -13,14 +13,14 @@ use crate::ops::{
     SamplingPlan,
 };
 
-/// Output channels below which a CPU layer run with more than one thread returns NCHW rather
-/// than channels-last: libtorch's channels-last batch norm (which follows every calibrated layer
-/// of the U-Net) is several times slower with two threads than with one when a pixel's channels
-/// fill less than a 64-byte cache line (fewer than 16 float32 values; the threads' partial sums
-/// seem to share lines). Forward + backward of `BatchNorm2d` on `[8, C, H, W]` float32, torch
-/// 2.13 on a 2-core Intel Xeon (`tools/bench_batch_norm_layouts.py`), NCHW / channels-last: 8 channels at 64x64 one thread 0.76 / 0.67
-/// ms, two threads 0.52 / 2.49 ms; at 128x128 1.29 / 10.3 ms (two threads); 16 channels at
-/// 128x128 2.81 / 2.19 ms, 32 at 16x16 0.10 / 0.11 ms. With one thread such layers stay
+/// Output channels below which a CPU layer run with more than one thread returns NCHW rather than
+/// channels-last: libtorch's channels-last batch norm (which follows every calibrated layer of the
+/// U-Net) is several times slower with two threads than with one when a pixel's channels fill less
+/// than a 64-byte cache line (fewer than 16 float32 values; the threads' partial sums seem to share
+/// lines). Forward + backward of `BatchNorm2d` on `[8, C, H, W]` float32, torch 2.13 on a 2-core
+/// Intel Xeon (`tools/bench_batch_norm_layouts.py`), NCHW / channels-last: 8 channels at 64x64 one
+/// thread 0.76 / 0.67 ms, two threads 0.52 / 2.49 ms; at 128x128 1.29 / 10.3 ms (two threads); 16
+/// channels at 128x128 2.81 / 2.19 ms, 32 at 16x16 0.10 / 0.11 ms. With one thread such layers stay
 /// channels-last (no conversions; the quick sweep trains so). The values do not depend on the
 /// layout; the batch norm's last bits may.
 const NCHW_BELOW_CHANNELS: i64 = 16;

@@ -626,15 +626,15 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 
 // The gather and scatter of 32 and 64 float channels (and the scatter of 16) in whole 64-byte
 // vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
-// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
-// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the
-// 32-byte chunks (the same bits; few_output_channel_kernels_agree_across_isa_levels compares
-// them). On an Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating,
-// calibrated / conv2d forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at
-// 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31
-// / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16 channels the
-// scatter only: once it had no branches (see scatter_columns_body), 16->16 at 128x128 f+b
-// 1.43-1.47 -> 1.38-1.39x, 16->16 at 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within
+// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone) and
+// picked where the CPU has it (tile_kernels). Each lane computes the same expression as the 32-byte
+// chunks (the same bits; few_output_channel_kernels_agree_across_isa_levels compares them). On an
+// Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d
+// forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32
+// at 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x ->
+// 1.30-1.31 / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16
+// channels the scatter only: once it had no branches (see scatter_columns_body), 16->16 at 128x128
+// f+b 1.43-1.47 -> 1.38-1.39x, 16->16 at 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within
 // the spread; the 64-byte gather of 16 channels is no faster (16->8 at 64x64 forward 1.15-1.16 ->
 // 1.19-1.20x, f+b 1.24-1.25 -> 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 ->
 // 1.29-1.30x).
@@ -1157,6 +1157,13 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
   return wp;
 }
 
+// The input as pad_row reads it: as it is (made contiguous) where `direct` (pad_direct), else
+// channels-last.
+template <typename T>
+at::Tensor pad_source(const at::Tensor& input, bool direct) {
+  return direct ? input.contiguous() : channels_last<T>(input);
+}
+
 // The input as the gather reads it: channels-last, padded to [B, H + 3, W + 2, C] (one row above,
 // two below, one column on each side; see `padded_size` in plan.rs) with zeros, or with
 // Border::WrapX the input's last column in the left padding column and its first in the right;
@@ -1167,7 +1174,7 @@ at::Tensor pack_weight(const at::Tensor& weight, const Geo& g) {
 template <typename T>
 at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
   const bool direct = pad_direct(input, g);
-  const at::Tensor x = direct ? input.contiguous() : channels_last<T>(input);
+  const at::Tensor x = pad_source<T>(input, direct);
   const int64_t Wp = g.Wp, Hp = g.Hp, frame = Hp * Wp * g.C;
   at::Tensor out = at::empty({g.B * frame + PAD_SLACK}, x.options());
   const T* src = x.const_data_ptr<T>();
@@ -1482,7 +1489,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   // The input as pad_row reads it (each thread pads the rows it gathers from, PaddedRows).
   const bool direct = pad_direct(input, g);
-  const at::Tensor x = direct ? input.contiguous() : channels_last<T>(input);
+  const at::Tensor x = pad_source<T>(input, direct);
   const int32_t* rp = rows.const_data_ptr<int32_t>();
   at::Tensor out = at::empty({g.B, g.Cout, g.Ho, g.Wo}, input.options().memory_format(fmt));
   const at::Tensor bias_c = bias.defined() ? bias.contiguous() : bias;
@@ -1600,7 +1607,7 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
   // it: each thread pads the rows it gathers from, PaddedRows).
   const T* kp = kept.defined() ? kept.const_data_ptr<T>() : nullptr;
   const bool direct = !kp && pad_direct(input, g);
-  const at::Tensor x = kp ? input : direct ? input.contiguous() : channels_last<T>(input);
+  const at::Tensor x = kp ? input : pad_source<T>(input, direct);
   const int32_t* rows_p = rows.const_data_ptr<int32_t>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int64_t total = g.B * g.P;
@@ -1797,16 +1804,11 @@ int64_t band_rows(const Geo& g, const int32_t* rows) {
     const int64_t bands = (g.Ho + r - 1) / r;
     bool ok = true;
     for (int64_t it = 0; it < items && ok; ++it) {
-      const int32_t* ri = rows + it * g.Ho * 2;
       for (int64_t phase = 0; phase < 2 && ok; ++phase) {
         int64_t reach = INT64_MIN;  // highest input row of the earlier bands of this phase
         for (int64_t band = phase; band < bands && ok; band += 2) {
-          int64_t lo = INT64_MAX, hi = INT64_MIN;
-          for (int64_t oy = band * r; oy < std::min(g.Ho, (band + 1) * r); ++oy) {
-            if (ri[2 * oy] > ri[2 * oy + 1]) continue;
-            lo = std::min<int64_t>(lo, ri[2 * oy]);
-            hi = std::max<int64_t>(hi, ri[2 * oy + 1]);
-          }
+          const auto [lo, hi] =
+              input_rows(g, rows, it, band * r, std::min(g.Ho, (band + 1) * r) - 1);
           if (lo > hi) continue;
           ok = lo > reach;
           reach = std::max(reach, hi);
@@ -1850,7 +1852,8 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   std::vector<uint8_t> zero_phase(plan_items * g.Hp, 0);
   for (int64_t it = 0; it < plan_items; ++it) {
     for (int64_t band = 0; band < bands; ++band) {
-      const auto [lo, hi] = input_rows(g, rows_p, it, band * r, std::min(g.Ho, (band + 1) * r) - 1);
+      const auto [lo, hi] =
+          input_rows(g, rows_p, it, band * r, std::min(g.Ho, (band + 1) * r) - 1);
       for (int64_t y = lo; y <= hi; ++y) {
         uint8_t& z = zero_phase[it * g.Hp + y + 1];
         if (z != 1) z = band % 2 == 0 ? 1 : 2;
@@ -1858,7 +1861,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     }
   }
   const auto zero_row = [&](int64_t b, int64_t row) {
-    T* d = gx.mutable_data_ptr<T>() + (b * g.Hp + row) * g.Wp * g.C;
+    T* d = xp + (b * g.Hp + row) * g.Wp * g.C;
     std::fill(d, d + g.Wp * g.C, T(0));
   };
   for (int64_t b = 0; b < g.B; ++b) {
