@@ -313,6 +313,44 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
             : Mat<T>{out + (b * g.Cout + gi * g.Coutg) * g.P + p0, n, g.Coutg, 1, g.P};
 }
 
+// The per-sample coefficients that the gathers and scatters read (their `coef` argument): the
+// plan's fractions (ly, lx), two a sample, from which each sample's four bilinear weights are
+// computed where it is gathered or scattered (for every batch item again); or, for the kernels
+// of at most CORNER_WEIGHTS_MAX_C channels in one group but 3 (NC 1, 2, 4, 8), the four
+// weights themselves, (1 - ly)(1 - lx), (1 - ly) lx, ly (1 - lx) and ly lx, computed once a call
+// (corner_weights: the same values, so the same bits). At 8 channels a sample is one 32-byte
+// vector a corner, and the weights were half its instructions: with them from memory (F195 plans,
+// one thread, Intel Xeon, rdtsc per call) the forward's gather of 8->8 at 64x64 B8 took 1.32-1.34
+// -> 1.01-1.03 M TSC cycles, and calibrated / conv2d forward went 1.30-1.31 -> 1.08-1.18x, f+b
+// 1.07-1.09 -> 0.98-1.01x (2 processes each). With more channels the stream of weights (16 bytes a
+// sample instead of 8) cost more than it saved: the gather of 16->16 at 128x128 7.9-8.5 -> 9.4 M
+// cycles, of 64->32 at 64x64 5.6 -> 6.1-6.3 M; with 3 channels (first layers, whose gathers take
+// two samples a vector or four items a vector) 3->8 at 64x64 forward 1.06-1.12 -> 1.12-1.14x.
+constexpr int64_t CORNER_WEIGHTS_MAX_C = 8;
+template <int NC>
+constexpr bool reads_corner_weights() {
+  return NC > 0 && NC <= CORNER_WEIGHTS_MAX_C && NC != 3;
+}
+template <int NC>
+constexpr int64_t coef_stride() {
+  return reads_corner_weights<NC>() ? 4 : 2;
+}
+// Sample i's four corner weights, from coef as the kernels of NC channels read it.
+template <typename T>
+struct Corners {
+  T w0, w1, w2, w3;
+};
+template <typename T, int NC>
+CALIBCONV_ALWAYS_INLINE inline Corners<T> corners_at(const T* coef, int64_t i) {
+  if constexpr (reads_corner_weights<NC>()) {
+    const T* w = coef + 4 * i;
+    return {w[0], w[1], w[2], w[3]};
+  } else {
+    const T ly = coef[2 * i], lx = coef[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+    return {hy * hx, hy * lx, ly * hx, ly * lx};
+  }
+}
+
 // The gather of the columns of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
 // (layout: group, tap, channel within the group) from the padded channels-last input xp
 // (padded_input): a sample's corners are t, t + 1, t + Wp, t + Wp + 1 from its top-left corner t
@@ -355,12 +393,12 @@ constexpr int chunk_lanes() {
 // 3 channels, stored value by value; an always-inlined template takes its caller's clone's
 // instruction set).
 template <typename V, typename T, int NC>
-CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, const T* f,
+CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, const T* coef,
                                                int64_t down, int64_t i, int c0) {
-  const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+  const Corners<T> w = corners_at<T, NC>(coef, i);
   const T* a = xb + int64_t{tl[i]} * NC + c0;
-  return (hy * hx) * load<V>(a) + (hy * lx) * load<V>(a + NC) + (ly * hx) * load<V>(a + down) +
-         (ly * lx) * load<V>(a + down + NC);
+  return w.w0 * load<V>(a) + w.w1 * load<V>(a + NC) + w.w2 * load<V>(a + down) +
+         w.w3 * load<V>(a + down + NC);
 }
 
 // The samples [0, i) of a 3-channel float gather, four at a time, returned i (the rest, at least
@@ -384,6 +422,7 @@ CALIBCONV_ALWAYS_INLINE inline int64_t gather3_quads(const float* xb, const int3
   using I8 = VecOf<int32_t, 8>::type;
   constexpr int NC = 3;
   int64_t i = 0;
+  static_assert(!reads_corner_weights<NC>());
   for (; i + 4 < count; i += 4) {
     const V8 fr = load<V8>(f + 2 * i);
     for (int h = 0; h < 2; ++h) {
@@ -415,12 +454,12 @@ struct Sample {
   T w0, w1, w2, w3;
   const T *a0, *a1, *a2, *a3;
 };
-template <typename T>
-CALIBCONV_ALWAYS_INLINE inline Sample<T> sample_at(const T* xb, const int32_t* tl, const T* f,
+template <typename T, int NC>
+CALIBCONV_ALWAYS_INLINE inline Sample<T> sample_at(const T* xb, const int32_t* tl, const T* coef,
                                                    int64_t i, int64_t C, int64_t down) {
-  const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+  const Corners<T> w = corners_at<T, NC>(coef, i);
   const T* a0 = xb + int64_t{tl[i]} * C;
-  return {hy * hx, hy * lx, ly * hx, ly * lx, a0, a0 + C, a0 + down, a0 + down + C};
+  return {w.w0, w.w1, w.w2, w.w3, a0, a0 + C, a0 + down, a0 + down + C};
 }
 template <typename T>
 CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t o, int64_t n,
@@ -435,7 +474,7 @@ CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t 
 
 template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
-                                                        const int32_t* top_left, const T* frac,
+                                                        const int32_t* top_left, const T* coef,
                                                         int64_t b, int64_t p0, int64_t n,
                                                         T* cols) {
   const int64_t item = g.item(b);
@@ -446,7 +485,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const T* xb = xp + (b * frame - shift) * C;
   const int64_t s_begin = (item * g.P + p0) * K;
   const int32_t* __restrict tl = top_left + s_begin;
-  const T* __restrict f = frac + 2 * s_begin;
+  const T* __restrict f = coef + coef_stride<NC>() * s_begin;
   if constexpr (NC > 0 && gather_lanes<T, NC>() > 0) {
     // One group: the columns are the samples' rows back to back.
     constexpr int L = gather_lanes<T, NC>(), CL = CLW;
@@ -467,8 +506,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
         // clone): against that, `calibconv bench` (one thread, Zen 4, 2 rounds) forward 32->16 at
         // 128x128 1.18-1.19 -> 1.02-1.04x conv2d, 64->32 at 64x64 1.26-1.32 -> 1.11-1.18x, 32->32
         // at 64x64 1.24 -> 1.11-1.13x; the same bits.
-        const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-        const T w0 = hy * hx, w1 = hy * lx, w2 = ly * hx, w3 = ly * lx;
+        const auto [w0, w1, w2, w3] = corners_at<T, NC>(f, i);
         const T* a = xb + int64_t{tl[i]} * NC;
         for (int c0 = 0; c0 < L; c0 += CL) {
           const T* ac = a + c0;
@@ -486,7 +524,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const int64_t row = K * C;
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
-      const Sample<T> sm = sample_at(xb, tl, f, t * K + k, C, down);
+      const Sample<T> sm = sample_at<T, NC>(xb, tl, f, t * K + k, C, down);
       T* dst = cols + t * row + k * Cg;
       if constexpr (NC > 0) {
         sample_channels(sm, 0, NC, dst);
@@ -500,7 +538,9 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
 // The columns [s0, s1) of the rows of output pixels [p0, p0 + n) of batch item b (one group),
 // into cols [n, s1 - s0] at row stride ldc: for the few-output-channel kernels' large weights,
 // whose forward gathers and multiplies a block's columns one slab at a time (forward_impl). Each
-// value is gather_columns_body's expression (the same bits).
+// value is gather_columns_body's expression (the same bits). coef: fractions (such layers have
+// more than CORNER_WEIGHTS_MAX_C channels: a weight of SMALL_LARGE_WEIGHT values at 8 channels
+// would need over 3000 outputs).
 CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const int32_t* top_left,
                                          const float* frac, int64_t b, int64_t p0, int64_t n,
                                          int64_t s0, int64_t s1, float* cols, int64_t ldc) {
@@ -515,7 +555,7 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
   const int64_t k0 = s0 / C, k1 = (s1 + C - 1) / C;  // the taps the range covers
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = k0; k < k1; ++k) {
-      const Sample<float> sm = sample_at(xb, tl, f, t * K + k, C, down);
+      const Sample<float> sm = sample_at<float, 0>(xb, tl, f, t * K + k, C, down);
       // (the channels [c0, c1) of tap k; channel c of the tap is column k * C + c)
       const int64_t c0 = std::max<int64_t>(s0 - k * C, 0), c1 = std::min<int64_t>(s1 - k * C, C);
       sample_channels(sm, c0, c1 - c0, cols + t * ldc + (k * C + c0 - s0));
@@ -545,7 +585,7 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 // NC as in gather_columns_body.
 template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
-                                                         const int32_t* top_left, const T* frac,
+                                                         const int32_t* top_left, const T* coef,
                                                          int64_t b, int64_t p0, int64_t n,
                                                          const T* gcols) {
   const int64_t item = g.item(b);
@@ -558,14 +598,14 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
   const int64_t row = K * C;
   const int64_t s_begin = (item * g.P + p0) * K;
   const int32_t* __restrict tl = top_left + s_begin;
-  const T* __restrict f = frac + 2 * s_begin;
+  const T* __restrict f = coef + coef_stride<NC>() * s_begin;
   const int64_t corner[4] = {0, C, down, down + C};
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
       const int64_t i = t * K + k;
       if (tl[i] == blank) continue;
-      const T ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-      const T w[4] = {hy * hx, hy * lx, ly * hx, ly * lx};
+      const Corners<T> cw = corners_at<T, NC>(f, i);
+      const T w[4] = {cw.w0, cw.w1, cw.w2, cw.w3};
       const T* __restrict src = gcols + t * row + k * Cg;
       T* const a = gxb + int64_t{tl[i]} * C;
       for (int c = 0; c < 4; ++c) {
@@ -598,15 +638,15 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 // (CALIBCONV_SCATTER_AS: the scatter alone).
 #define CALIBCONV_SCATTER_AS(ATTR, T, NC, SUFFIX, CLW)                                          \
   ATTR void scatter_##T##_##NC##SUFFIX(const Geo& g, T* gxp, const int32_t* top_left,         \
-                                       const T* frac, int64_t b, int64_t p0, int64_t n,        \
+                                       const T* coef, int64_t b, int64_t p0, int64_t n,        \
                                        const T* gcols) {                                       \
-    scatter_columns_body<T, NC, CLW>(g, gxp, top_left, frac, b, p0, n, gcols);                 \
+    scatter_columns_body<T, NC, CLW>(g, gxp, top_left, coef, b, p0, n, gcols);                 \
   }
 #define CALIBCONV_TILE_KERNELS_AS(ATTR, T, NC, SUFFIX, CLW)                                     \
   ATTR void gather_##T##_##NC##SUFFIX(const Geo& g, const T* xp, const int32_t* top_left,     \
-                                      const T* frac, int64_t b, int64_t p0, int64_t n,         \
+                                      const T* coef, int64_t b, int64_t p0, int64_t n,         \
                                       T* cols) {                                               \
-    gather_columns_body<T, NC, CLW>(g, xp, top_left, frac, b, p0, n, cols);                    \
+    gather_columns_body<T, NC, CLW>(g, xp, top_left, coef, b, p0, n, cols);                    \
   }                                                                                            \
   CALIBCONV_SCATTER_AS(ATTR, T, NC, SUFFIX, CLW)
 #define CALIBCONV_TILE_KERNELS(T, NC) \
@@ -708,23 +748,23 @@ CALIBCONV_ALWAYS_INLINE inline VecOf<float, 4>::type item_lanes(const VecOf<floa
   return __builtin_shufflevector(v, v, 4 * J, 4 * J + 1, 4 * J + 2, 4 * J + 3);
 }
 CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t* top_left,
-                                   const float* frac, int64_t p0, int64_t n, float* cols,
+                                   const float* coef, int64_t p0, int64_t n, float* cols,
                                    int64_t ldb) {
   using V16 = VecOf<float, 16>::type;
   using V4 = VecOf<float, 4>::type;
   constexpr int NC = 3;
   const int64_t K = g.K, B = g.B, pix = batch_items(B) * 4, down = g.Wp * pix;
   const int32_t* __restrict tl = top_left + p0 * K;
-  const float* __restrict f = frac + 2 * p0 * K;
+  const float* __restrict f = coef + coef_stride<NC>() * p0 * K;
   const int64_t count = n * K;
   for (int64_t i = 0; i < count; ++i) {
-    const float ly = f[2 * i], lx = f[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+    const auto [w0, w1, w2, w3] = corners_at<float, NC>(f, i);
     const float* a = xq + int64_t{tl[i]} * pix;
     const bool last = i + 1 == count;
     for (int64_t b0 = 0; b0 < B; b0 += 4) {
       const float* ab = a + b0 * 4;
-      const V16 v = (hy * hx) * load<V16>(ab) + (hy * lx) * load<V16>(ab + pix) +
-                    (ly * hx) * load<V16>(ab + down) + (ly * lx) * load<V16>(ab + down + pix);
+      const V16 v = w0 * load<V16>(ab) + w1 * load<V16>(ab + pix) + w2 * load<V16>(ab + down) +
+                    w3 * load<V16>(ab + down + pix);
       const auto put = [&](int64_t b, const V4& u) CALIBCONV_ALWAYS_INLINE {
         float* d = cols + b * ldb + i * NC;
         if (!last) {
@@ -924,19 +964,19 @@ class PaddedRows {
 // piece by piece within batch items (for_items), from the padded input (the thread's PaddedRows).
 template <typename T>
 void gather_rows(const Geo& g, const TileKernels<T>& kern, PaddedRows<T>& src,
-                 const int32_t* top_left, const T* frac, int64_t q0, int64_t n, T* cols) {
+                 const int32_t* top_left, const T* coef, int64_t q0, int64_t n, T* cols) {
   const int64_t kc = g.K * g.C;
   for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-    kern.gather(g, src.piece(b, p0, len), top_left, frac, b, p0, len, cols + off * kc);
+    kern.gather(g, src.piece(b, p0, len), top_left, coef, b, p0, len, cols + off * kc);
   });
 }
 
 // gather_rows for the columns [s0, s1) (gather_range_float), into cols at row stride ldc.
 void gather_range_rows(const Geo& g, PaddedRows<float>& src, const int32_t* top_left,
-                       const float* frac, int64_t q0, int64_t n, int64_t s0, int64_t s1,
+                       const float* coef, int64_t q0, int64_t n, int64_t s0, int64_t s1,
                        float* cols, int64_t ldc) {
   for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-    gather_range_float(g, src.piece(b, p0, len), top_left, frac, b, p0, len, s0, s1,
+    gather_range_float(g, src.piece(b, p0, len), top_left, coef, b, p0, len, s0, s1,
                        cols + off * ldc, ldc);
   });
 }
@@ -959,12 +999,12 @@ ColumnSlabs column_slabs(const Geo& g, bool small, bool kept) {
 // For column_slabs layers: gathers the slabs of the rows [q0, q0 + m) one after the other into
 // cols (rows `width` apart) and calls multiply(s0, s1) on each, the columns [s0, s1).
 template <typename F>
-void by_slabs(const Geo& g, PaddedRows<float>& src, const int32_t* top_left, const float* frac,
+void by_slabs(const Geo& g, PaddedRows<float>& src, const int32_t* top_left, const float* coef,
               int64_t q0, int64_t m, float* cols, int64_t width, const F& multiply) {
   const int64_t kc = g.K * g.C;
   for (int64_t s0 = 0; s0 < kc; s0 += SMALL_SLAB) {
     const int64_t s1 = std::min(kc, s0 + SMALL_SLAB);
-    gather_range_rows(g, src, top_left, frac, q0, m, s0, s1, cols, width);
+    gather_range_rows(g, src, top_left, coef, q0, m, s0, s1, cols, width);
     multiply(s0, s1);
   }
 }
@@ -1384,7 +1424,7 @@ bool three_channels(const Geo& g, bool is_float) {
 // plan holding those samples).
 at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
                              const at::Tensor& gy, const at::Tensor& top_left,
-                             const at::Tensor& frac) {
+                             const at::Tensor& coef) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
   const SmallKernels small = small_kernels<float>(g);
   const TileKernels<float> kern = tile_kernels<float>(g);
@@ -1401,7 +1441,7 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
   const float* xp = xsrc.const_data_ptr<float>();
   const float* gp = gy.const_data_ptr<float>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
-  const float* fp = frac.const_data_ptr<float>();
+  const float* cfp = coef.const_data_ptr<float>();
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     const Uninit<float> cols(g.B * bt.block * kc), ybuf(cl ? 0 : bt.block * g.Cout);
     std::vector<float> acc_t(kc * g.Cout);  // panels, as weight_columns
@@ -1414,10 +1454,10 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
           const int64_t m = std::min(bt.block, pb - p0);
           float* cb = cols.data();  // item b's rows: cb + b * m * kc
           if (batched) {
-            batch_gather(g, xp, tp_left, fp, p0, m, cb, m * kc);
+            batch_gather(g, xp, tp_left, cfp, p0, m, cb, m * kc);
           } else {
             for (int64_t b = 0; b < g.B; ++b) {
-              kern.gather(g, xp, tp_left, fp, b, p0, m, cb + b * m * kc);
+              kern.gather(g, xp, tp_left, cfp, b, p0, m, cb + b * m * kc);
             }
           }
           for (int64_t b = 0; b < g.B; ++b) {
@@ -1444,7 +1484,7 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
 // from it, grad_weight_first).
 at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                          const at::Tensor& bias, const at::Tensor& top_left,
-                         const at::Tensor& frac, at::MemoryFormat fmt, at::Tensor* padded) {
+                         const at::Tensor& coef, at::MemoryFormat fmt, at::Tensor* padded) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   const SmallKernels small = small_kernels<float>(g);
   const at::Tensor xq = padded_batch_input(input, g);
@@ -1454,7 +1494,7 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
   const float* bp = bias.defined() ? bias_c.const_data_ptr<float>() : nullptr;
   const float* xp = xq.const_data_ptr<float>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
-  const float* fp = frac.const_data_ptr<float>();
+  const float* cfp = coef.const_data_ptr<float>();
   float* op = out.mutable_data_ptr<float>();
   const int64_t kc = g.K * g.C;
   const at::Tensor wt = weight_columns(weight, g);
@@ -1469,7 +1509,7 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
     for (int64_t p0 = pa; p0 < pb; p0 += bt.block) {
       const int64_t m = std::min(bt.block, pb - p0);
       float* cb = s.tile.data();  // item b's rows: cb + b * m * kc
-      batch_gather(g, xp, tp_left, fp, p0, m, cb, m * kc);
+      batch_gather(g, xp, tp_left, cfp, p0, m, cb, m * kc);
       for (int64_t b = 0; b < g.B; ++b) {
         float* yp = cl ? op + (b * g.P + p0) * g.Cout : s.y.data();
         small.forward(cb + b * m * kc, m, kc, kc, 0, kc, wtp, bp, yp);
@@ -1484,7 +1524,7 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
 template <typename T>
 at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor& weight,
                         const at::Tensor& bias, const at::Tensor& top_left,
-                        const at::Tensor& frac, const at::Tensor& rows, const at::Tensor& keep,
+                        const at::Tensor& coef, const at::Tensor& rows, const at::Tensor& keep,
                         at::MemoryFormat fmt) {
   const bool cl = fmt == at::MemoryFormat::ChannelsLast;
   // The input as pad_row reads it (each thread pads the rows it gathers from, PaddedRows).
@@ -1496,7 +1536,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const T* bp = bias.defined() ? bias_c.const_data_ptr<T>() : nullptr;
   const T* xp = x.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
-  const T* fp = frac.const_data_ptr<T>();
+  const T* cfp = coef.const_data_ptr<T>();
   T* op = out.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   // Tiles of flattened rows q = b * P + p; per-item plans keep their tiles within one item only
@@ -1544,14 +1584,14 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
           const int64_t m = std::min(block, n - t0);
           if (slabs.on) {
             float* cb = s.tile.data();
-            by_slabs(g, local.src, tp_left, fp, q0 + t0, m, cb, slabs.width,
+            by_slabs(g, local.src, tp_left, cfp, q0 + t0, m, cb, slabs.width,
                      [&](int64_t s0, int64_t s1) {
                        small.forward(cb, m, slabs.width, kc, s0, s1, wtp, bp, yp + t0 * g.Cout);
                      });
             continue;
           }
           float* cb = kp ? kp + (q0 + t0) * kc : s.tile.data();
-          gather_rows(g, kern, local.src, tp_left, fp, q0 + t0, m, cb);
+          gather_rows(g, kern, local.src, tp_left, cfp, q0 + t0, m, cb);
           small.forward(cb, m, kc, kc, 0, kc, wtp, bp, yp + t0 * g.Cout);
         }
         if (!cl) write_rows(yp, op, false, g.Cout, g.P, q0, n);
@@ -1559,7 +1599,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
       }
     }
     T* tp = kp ? kp + q0 * kc : s.tile.data();
-    gather_rows(g, kern, local.src, tp_left, fp, q0, n, tp);
+    gather_rows(g, kern, local.src, tp_left, cfp, q0, n, tp);
     if constexpr (std::is_same_v<T, float>) {
       if (dnn) {  // y = cols @ W^T + bias, copied into the output's layout
         const Mat<const float> cols{tp, n, kc, kc, 1};
@@ -1600,7 +1640,7 @@ template <typename T>
 std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tensor& input,
                                                    const at::Tensor& gy,
                                                    const at::Tensor& top_left,
-                                                   const at::Tensor& frac, const at::Tensor& rows,
+                                                   const at::Tensor& coef, const at::Tensor& rows,
                                                    const at::Tensor& kept, bool bias) {
   const bool cl = !gy.is_contiguous();  // else channels-last (see backward)
   // The columns the forward pass kept, or the input to gather them again from (as pad_row reads
@@ -1654,7 +1694,7 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
   const T* xp = x.const_data_ptr<T>();
   const T* gp = gy.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
-  const T* fp = frac.const_data_ptr<T>();
+  const T* cfp = coef.const_data_ptr<T>();
   const TileKernels<T> kern = tile_kernels<T>(g);
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 &&
                    g.Cout >= DNN_WEIGHT_MIN_COUT && use_dnn();
@@ -1678,14 +1718,14 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
           }
         }
         if (slabs.on) {
-          by_slabs(g, src, tp_left, fp, q0 + t0, m, cols, slabs.width,
+          by_slabs(g, src, tp_left, cfp, q0 + t0, m, cols, slabs.width,
                    [&](int64_t s0, int64_t s1) {
                      small(cols, m, slabs.width, kc, s0, s1, yt + t0 * g.Cout, acc, o0, o1);
                    });
           continue;
         }
         const float* cb = kp ? kp + (q0 + t0) * kc : cols;
-        if (!kp) gather_rows(g, kern, src, tp_left, fp, q0 + t0, m, cols);
+        if (!kp) gather_rows(g, kern, src, tp_left, cfp, q0 + t0, m, cols);
         small(cb, m, kc, kc, 0, kc, yt + t0 * g.Cout, acc, o0, o1);
       }
     }
@@ -1733,7 +1773,7 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
           continue;
         }
         const T* cp = kp ? kp + q0 * kc : cols.data();
-        if (!kp) gather_rows(g, kern, src, tp_left, fp, q0, n, cols.data());
+        if (!kp) gather_rows(g, kern, src, tp_left, cfp, q0, n, cols.data());
         if constexpr (std::is_same_v<T, float>) {
           if (dnn) {  // acc += (cols^T @ gy)^T: the pixels are the convolution's channels
             const Mat<const float> cols_t{cp, kc, n, 1, kc};
@@ -1824,7 +1864,7 @@ int64_t band_rows(const Geo& g, const int32_t* rows) {
 template <typename T>
 at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
                            const at::Tensor& gy, const at::Tensor& top_left,
-                           const at::Tensor& frac, const at::Tensor& rows) {
+                           const at::Tensor& coef, const at::Tensor& rows) {
   const bool cl_y = !gy.is_contiguous();  // else channels-last (see backward)
   // Padded channels-last accumulation buffer (as padded_input), zeroed row by row (see zero_rows
   // below).
@@ -1835,7 +1875,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const T* gp = gy.const_data_ptr<T>();
   const T* wpp = wp.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
-  const T* fp = frac.const_data_ptr<T>();
+  const T* cfp = coef.const_data_ptr<T>();
   T* xp = gx.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int32_t* rows_p = rows.const_data_ptr<int32_t>();
@@ -1937,7 +1977,7 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   // Adds the column gradient src [n, K*C] of rows [q0, q0 + n) to the corners they sampled.
   const auto scatter_rows = [&](const T* src, int64_t q0, int64_t n) {
     for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.scatter(g, xp, tp_left, fp, b, p0, len, src + off * kc);
+      kern.scatter(g, xp, tp_left, cfp, b, p0, len, src + off * kc);
     });
   };
   const int64_t total = g.B * g.P;
@@ -1977,6 +2017,33 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   return unpadded_gradient<T>(gx, g, memory_format(input));
 }
 
+// The coefficients that the kernels of layer g read (see reads_corner_weights) from the plan's
+// fractions frac [N * 2]: the fractions themselves, or for the kernels of one group that
+// tile_kernels picks by a channel count of 1, 2, 4 or 8 (reads_corner_weights) the corner weights
+// [N * 4], in the fractions' type.
+at::Tensor sample_coefficients(const at::Tensor& frac, const Geo& g) {
+  const bool fixed = g.C == 1 || g.C == 2 || g.C == 4 || g.C == 8;
+  if (g.G != 1 || !fixed) return frac;
+  static_assert(CORNER_WEIGHTS_MAX_C == 8, "the channel counts above");
+  const at::Tensor f = frac.contiguous();
+  const int64_t n = f.numel() / 2;
+  at::Tensor w = at::empty({n * 4}, f.options());
+  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "calibconv_corner_weights", [&] {
+    const scalar_t* __restrict src = f.const_data_ptr<scalar_t>();
+    scalar_t* __restrict dst = w.mutable_data_ptr<scalar_t>();
+    at::parallel_for(0, n, 4096, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        const scalar_t ly = src[2 * i], lx = src[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
+        dst[4 * i] = hy * hx;
+        dst[4 * i + 1] = hy * lx;
+        dst[4 * i + 2] = ly * hx;
+        dst[4 * i + 3] = ly * lx;
+      }
+    });
+  });
+  return w;
+}
+
 struct DeformConv : public torch::autograd::Function<DeformConv> {
   static at::Tensor forward(AutogradContext* ctx, const at::Tensor& input,
                             const at::Tensor& weight, const at::Tensor& bias,
@@ -1990,7 +2057,9 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     // repacks it, so no weight-sized buffer lives from forward to backward.
     ctx->save_for_backward({input, weight});
     ctx->saved_data["top_left"] = top_left;
-    ctx->saved_data["frac"] = frac;
+    // The per-sample coefficients the kernels read (sample_coefficients).
+    const at::Tensor coef = sample_coefficients(frac, g);
+    ctx->saved_data["coef"] = coef;
     ctx->saved_data["rows"] = rows;
     ctx->saved_data["ho"] = ho;
     ctx->saved_data["wo"] = wo;
@@ -2017,7 +2086,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
     if (three && !g.per_item) {  // the whole batch at once (forward_batch)
       at::Tensor padded;
-      out = forward_batch(g, input, weight, has_bias ? bias : at::Tensor(), top_left, frac, fmt,
+      out = forward_batch(g, input, weight, has_bias ? bias : at::Tensor(), top_left, coef, fmt,
                           &padded);
       ctx->saved_data["batch_input"] = first ? c10::IValue(padded) : c10::IValue();
       return out;
@@ -2025,7 +2094,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["batch_input"] = c10::IValue();
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_forward", [&] {
       out = forward_impl<scalar_t>(g, input, weight, has_bias ? bias : at::Tensor(), top_left,
-                                   frac, rows, keep, fmt);
+                                   coef, rows, keep, fmt);
     });
     return out;
   }
@@ -2053,19 +2122,19 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
         const bool batched = d["batch_input"].isTensor();
         const at::Tensor x =
             batched ? d["batch_input"].toTensor() : padded_input<float>(input, g);
-        gw = grad_weight_first(g, x, batched, gy, d["top_left"].toTensor(), d["frac"].toTensor())
+        gw = grad_weight_first(g, x, batched, gy, d["top_left"].toTensor(), d["coef"].toTensor())
                  .view(weight.sizes());
       } else if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
         auto [w, b] = grad_weight_impl<scalar_t>(
-            g, input, gy, d["top_left"].toTensor(), d["frac"].toTensor(), d["rows"].toTensor(),
+            g, input, gy, d["top_left"].toTensor(), d["coef"].toTensor(), d["rows"].toTensor(),
             kept, d["has_bias"].toBool() && ctx->needs_input_grad(2));
         gw = w.view(weight.sizes());
         gb = b;  // (undefined where the weight gradient did not sum it)
       }
       if (ctx->needs_input_grad(0)) {
         gx = grad_input_impl<scalar_t>(g, input, pack_weight(weight, g), gy,
-                                       d["top_left"].toTensor(), d["frac"].toTensor(),
+                                       d["top_left"].toTensor(), d["coef"].toTensor(),
                                        d["rows"].toTensor());
       }
     });
