@@ -35,7 +35,12 @@
 //!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x); the gather is compiled
 //!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
 //!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32 and 64
-//!     channels in whole 64-byte vectors where the CPU has AVX-512). Then one GEMM per
+//!     channels in whole 64-byte vectors where the CPU has AVX-512). The kernels of 1, 2, 4
+//!     and 8 channels read each sample's four corner weights, computed from the plan's
+//!     fractions once a call and kept for the backward pass (16 bytes a sample), instead of
+//!     computing them per sample and item (one thread, Intel Xeon: 8->8 at 64x64 B8 forward
+//!     1.31-1.36 -> 1.19-1.22x `conv2d`); with more channels the larger stream cost more than it
+//!     saved, so they take the fractions. Then one GEMM per
 //!     group against the weight packed as `[G, C_out/G, K, C/G]`, through the BLAS (`at::mm`,
 //!     libtorch's MKL; oneDNN's 1x1 convolution, `at::mkldnn_convolution`, when asked for: see
 //!     [`GemmLibrary`]); the result is written into the output (NCHW, or channels-last for a

@@ -317,8 +317,9 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
 // plan's fractions (ly, lx), two a sample, from which each sample's four bilinear weights are
 // computed where it is gathered or scattered (for every batch item again); or, for the kernels
 // of at most CORNER_WEIGHTS_MAX_C channels in one group but 3 (NC 1, 2, 4, 8), the four
-// weights themselves, (1 - ly)(1 - lx), (1 - ly) lx, ly (1 - lx) and ly lx, computed once a call
-// (corner_weights: the same values, so the same bits). At 8 channels a sample is one 32-byte
+// weights themselves, (1 - ly)(1 - lx), (1 - ly) lx, ly (1 - lx) and ly lx, computed once for
+// the forward pass and once for the backward (sample_coefficients: the same values, so the same
+// bits). At 8 channels a sample is one 32-byte
 // vector a corner, and the weights were half its instructions: with them from memory (F195 plans,
 // one thread, Intel Xeon, rdtsc per call) the forward's gather of 8->8 at 64x64 B8 took 1.32-1.34
 // -> 1.01-1.03 M TSC cycles, and calibrated / conv2d forward went 1.30-1.31 -> 1.08-1.18x, f+b
@@ -2057,9 +2058,12 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     // repacks it, so no weight-sized buffer lives from forward to backward.
     ctx->save_for_backward({input, weight});
     ctx->saved_data["top_left"] = top_left;
-    // The per-sample coefficients the kernels read (sample_coefficients).
+    // The per-sample coefficients the kernels read (sample_coefficients); the backward pass
+    // computes them again from the fractions rather than keep the corner weights (16 bytes a
+    // sample) from forward to backward: 0.6 MiB for each 8-channel layer of the quick profile's
+    // network, whose training step's peak memory went 25 -> 27 MiB with them kept.
     const at::Tensor coef = sample_coefficients(frac, g);
-    ctx->saved_data["coef"] = coef;
+    ctx->saved_data["frac"] = frac;
     ctx->saved_data["rows"] = rows;
     ctx->saved_data["ho"] = ho;
     ctx->saved_data["wo"] = wo;
@@ -2115,6 +2119,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
       gy = gy.contiguous(memory_format(input));
     }
     at::Tensor gx, gw, gb;
+    const at::Tensor coef = sample_coefficients(d["frac"].toTensor(), g);
     AT_DISPATCH_FLOATING_TYPES(input.scalar_type(), "calibconv_deform_backward", [&] {
       const bool is_float = std::is_same_v<scalar_t, float>;
       if (ctx->needs_input_grad(1) && !ctx->needs_input_grad(0) && three_channels(g, is_float)) {
@@ -2122,19 +2127,19 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
         const bool batched = d["batch_input"].isTensor();
         const at::Tensor x =
             batched ? d["batch_input"].toTensor() : padded_input<float>(input, g);
-        gw = grad_weight_first(g, x, batched, gy, d["top_left"].toTensor(), d["coef"].toTensor())
+        gw = grad_weight_first(g, x, batched, gy, d["top_left"].toTensor(), coef)
                  .view(weight.sizes());
       } else if (ctx->needs_input_grad(1)) {
         const at::Tensor kept = d["cols"].isTensor() ? d["cols"].toTensor() : at::Tensor();
         auto [w, b] = grad_weight_impl<scalar_t>(
-            g, input, gy, d["top_left"].toTensor(), d["coef"].toTensor(), d["rows"].toTensor(),
+            g, input, gy, d["top_left"].toTensor(), coef, d["rows"].toTensor(),
             kept, d["has_bias"].toBool() && ctx->needs_input_grad(2));
         gw = w.view(weight.sizes());
         gb = b;  // (undefined where the weight gradient did not sum it)
       }
       if (ctx->needs_input_grad(0)) {
         gx = grad_input_impl<scalar_t>(g, input, pack_weight(weight, g), gy,
-                                       d["top_left"].toTensor(), d["coef"].toTensor(),
+                                       d["top_left"].toTensor(), coef,
                                        d["rows"].toTensor());
       }
     });
