@@ -45,11 +45,34 @@ fn few_outputs_are_nchw_with_several_threads_and_the_values_do_not_change() {
             .permute([0, 2, 3, 1])
             .contiguous()
             .permute([0, 3, 1, 2]);
+        // the same output gradient for both runs, in neither output's layout
+        let r = Tensor::randn([2, c_out, size[0], size[1]], (Kind::Float, Device::Cpu));
         for input in [&x, &x_cl] {
-            tch::set_num_threads(1);
-            let one = conv.forward(input);
-            tch::set_num_threads(2);
-            let two = conv.forward(input);
+            // forward and backward at n threads: the output, and the input's and the weight's
+            // gradients
+            let run = |n: usize| {
+                tch::set_num_threads(n as i32);
+                let leaf = input.detach().set_requires_grad(true);
+                let y = conv.forward(&leaf);
+                for p in vs.trainable_variables() {
+                    let mut g = p.grad();
+                    if g.defined() {
+                        let _ = g.zero_();
+                    }
+                }
+                (&y * &r).sum(Kind::Float).backward();
+                let w = vs
+                    .variables()
+                    .into_iter()
+                    .find(|(name, _)| name == &format!("conv{c_in}_{c_out}.weight"))
+                    .expect("the layer's weight")
+                    .1
+                    .grad()
+                    .copy();
+                (y.detach(), leaf.grad(), w)
+            };
+            let (one, gx_one, gw_one) = run(1);
+            let (two, gx_two, gw_two) = run(2);
             tch::set_num_threads(threads);
             let what = format!(
                 "{c_in}->{c_out}, input channels-last {}",
@@ -68,6 +91,19 @@ fn few_outputs_are_nchw_with_several_threads_and_the_values_do_not_change() {
                 );
             }
             assert!(one.equal(&two), "{what}: the values depend on the layout");
+            // The input gradient's scatter adds in an order of its own, whatever the thread count
+            // and the output gradient's layout; the weight gradient's chunks depend on the thread
+            // count.
+            assert!(
+                gx_one.equal(&gx_two),
+                "{what}: the input gradient depends on the layout"
+            );
+            // (float32 sums of 960 products in another order: tolerance scaled to the largest)
+            let scale = gw_one.abs().max().double_value(&[]);
+            assert!(
+                gw_one.allclose(&gw_two, 1e-5, 1e-5 * scale, false),
+                "{what}: the weight gradient depends on the layout"
+            );
         }
     }
 }

@@ -9,8 +9,8 @@ use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
 use crate::ops::{
-    deform_conv2d_planned, deform_conv2d_planned_channels_last, layer_plan, Border, ConvGeometry,
-    SamplingPlan,
+    deform_conv2d_planned, deform_conv2d_planned_channels_last, deform_conv2d_planned_nchw,
+    layer_plan, Border, ConvGeometry, SamplingPlan,
 };
 
 /// Output channels below which a CPU layer run with more than one thread returns NCHW rather than
@@ -174,9 +174,13 @@ impl CalibratedConv2d {
         // NCHW (see there).
         if xs.device() == Device::Cpu && xs.dim() == 4 {
             if self.ws.size()[0] < NCHW_BELOW_CHANNELS && tch::get_num_threads() > 1 {
-                let y =
-                    deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)?;
-                return Ok(y.contiguous());
+                return deform_conv2d_planned_nchw(
+                    xs,
+                    &self.plan,
+                    &self.ws,
+                    self.bs.as_ref(),
+                    self.groups,
+                );
             }
             return deform_conv2d_planned_channels_last(
                 xs,

@@ -351,7 +351,14 @@ pub fn deform_conv2d_planned_with(
     check_call(input, plan, weight, bias, groups)?;
     #[cfg(calibconv_native)]
     if backend == Backend::Auto && input.device() == tch::Device::Cpu {
-        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, false);
+        return native::deform_conv2d_cpu(
+            input,
+            plan,
+            weight,
+            bias,
+            groups,
+            native::OutLayout::Input,
+        );
     }
     let _ = backend;
     aten_deform_conv2d(input, plan, weight, bias, groups)
@@ -375,10 +382,43 @@ pub(crate) fn deform_conv2d_planned_channels_last(
     #[cfg(calibconv_native)]
     if input.device() == tch::Device::Cpu && image {
         check_call(input, plan, weight, bias, groups)?;
-        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, true);
+        return native::deform_conv2d_cpu(
+            input,
+            plan,
+            weight,
+            bias,
+            groups,
+            native::OutLayout::ChannelsLast,
+        );
     }
     let _ = image;
     deform_conv2d_planned(&channels_last(input), plan, weight, bias, groups)
+}
+
+/// [`deform_conv2d_planned`] with an NCHW output for a CPU input of any layout (the calibrated
+/// layer's output with few channels at more than one thread, see `nn::CalibratedConv2d`): the
+/// native kernels write it directly, where a conversion after the op cost a copy of the output
+/// forward and one of its gradient backward. Elsewhere the result is made contiguous.
+pub(crate) fn deform_conv2d_planned_nchw(
+    input: &Tensor,
+    plan: &SamplingPlan,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    groups: i64,
+) -> Result<Tensor> {
+    #[cfg(calibconv_native)]
+    if input.device() == tch::Device::Cpu {
+        check_call(input, plan, weight, bias, groups)?;
+        return native::deform_conv2d_cpu(
+            input,
+            plan,
+            weight,
+            bias,
+            groups,
+            native::OutLayout::Nchw,
+        );
+    }
+    Ok(deform_conv2d_planned(input, plan, weight, bias, groups)?.contiguous())
 }
 
 /// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).

@@ -2051,7 +2051,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
                             const at::Tensor& top_left,
                             const at::Tensor& frac, const at::Tensor& rows, int64_t ho,
                             int64_t wo, int64_t groups, bool per_item, bool wrap, bool has_bias,
-                            bool grad_mode, bool out_cl) {
+                            bool grad_mode, int64_t out_layout) {
     const Geo g = geometry(input, weight.size(0), weight.size(2) * weight.size(3), ho, wo, groups,
                            per_item, wrap);
     // The weight (a parameter, alive anyway) rather than its packed copy: the backward pass
@@ -2086,8 +2086,11 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
         keep_cols ? at::empty({g.B * g.P, g.K * g.C}, input.options()) : at::Tensor();
     ctx->saved_data["cols"] = keep_cols ? c10::IValue(keep) : c10::IValue();
     at::Tensor out;
-    // The output in the input's layout, or channels-last when asked (out_cl).
-    const auto fmt = out_cl ? at::MemoryFormat::ChannelsLast : memory_format(input);
+    // The output in the input's layout, or the one asked for (out_layout: 1 channels-last,
+    // 2 NCHW; the kernels write either from either input layout).
+    const auto fmt = out_layout == 1   ? at::MemoryFormat::ChannelsLast
+                     : out_layout == 2 ? at::MemoryFormat::Contiguous
+                                       : memory_format(input);
     if (three && !g.per_item) {  // the whole batch at once (forward_batch)
       at::Tensor padded;
       out = forward_batch(g, input, weight, has_bias ? bias : at::Tensor(), top_left, coef, fmt,
@@ -2170,7 +2173,7 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
                                   const at::Tensor* bias, const at::Tensor* top_left,
                                   const at::Tensor* frac,
                                   const at::Tensor* rows, int64_t ho, int64_t wo, int64_t groups,
-                                  int32_t per_item, int32_t wrap, int32_t out_channels_last,
+                                  int32_t per_item, int32_t wrap, int32_t out_layout,
                                   at::Tensor** out) {
   try {
     // autograd Functions take defined tensors: no bias is an empty tensor and a flag.
@@ -2178,7 +2181,7 @@ char* calibconv_deform_conv2d_cpu(const at::Tensor* input, const at::Tensor* wei
     at::Tensor y = DeformConv::apply(*input, *weight, bias ? *bias : none, *top_left,
                                      *frac, *rows, ho, wo, groups, per_item != 0, wrap != 0,
                                      bias != nullptr, at::GradMode::is_enabled(),
-                                     out_channels_last != 0);
+                                     int64_t{out_layout});
     *out = new at::Tensor(std::move(y));
     return nullptr;
   } catch (const std::exception& e) {

@@ -26,7 +26,7 @@ extern "C" {
         groups: i64,
         per_item: i32,
         wrap: i32,
-        out_channels_last: i32,
+        out_layout: i32,
         out: *mut *mut C_tensor,
     ) -> *mut c_char;
     fn calibconv_free_error(message: *mut c_char);
@@ -98,16 +98,27 @@ pub(super) fn small_kernel_isa(cap: Option<super::SmallKernelIsa>) -> super::Sma
     }
 }
 
-/// The deformable convolution of CPU tensors through the native kernels, its output in the
-/// input's layout or, with `out_channels_last`, channels-last. The caller has checked shapes,
-/// kinds and devices (see `super::check_call`).
+/// The layout of the native op's output (the kernels write either layout from either input
+/// layout, so none costs a conversion).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum OutLayout {
+    /// The input's (NCHW or channels-last), as `conv2d`.
+    Input = 0,
+    /// Channels-last.
+    ChannelsLast = 1,
+    /// NCHW.
+    Nchw = 2,
+}
+
+/// The deformable convolution of CPU tensors through the native kernels, its output in
+/// `out_layout`. The caller has checked shapes, kinds and devices (see `super::check_call`).
 pub(super) fn deform_conv2d_cpu(
     input: &Tensor,
     plan: &SamplingPlan,
     weight: &Tensor,
     bias: Option<&Tensor>,
     groups: i64,
-    out_channels_last: bool,
+    out_layout: OutLayout,
 ) -> Result<Tensor> {
     let kind = input.kind();
     let frac = plan.frac();
@@ -130,7 +141,7 @@ pub(super) fn deform_conv2d_cpu(
             groups,
             i32::from(plan.batch().is_some()),
             i32::from(plan.border() == super::plan::Border::WrapX),
-            i32::from(out_channels_last),
+            out_layout as i32,
             &mut out,
         )
     };
