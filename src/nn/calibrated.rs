@@ -9,8 +9,8 @@ use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
 use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, Offsets};
 use crate::ops::{
-    deform_conv2d_planned, deform_conv2d_planned_channels_last, deform_conv2d_planned_nchw,
-    layer_plan, Border, ConvGeometry, SamplingPlan,
+    deform_conv2d_planned, deform_conv2d_planned_as, layer_plan, Border, ConvGeometry, CpuLayout,
+    SamplingPlan,
 };
 
 /// Output channels below which a CPU layer run with more than one thread returns NCHW rather than
@@ -169,26 +169,17 @@ impl CalibratedConv2d {
         }
         // On the CPU the layer works channels-last (its output, hence the batch norm and ReLU
         // after it and the next layer's input, stay channels-last): no layout conversion per
-        // call, the network's NCHW image included (see `deform_conv2d_planned_channels_last`).
+        // call, the network's NCHW image included (see `deform_conv2d_planned_as`).
         // But with fewer than NCHW_BELOW_CHANNELS outputs and more than one thread its output is
         // NCHW (see there).
         if xs.device() == Device::Cpu && xs.dim() == 4 {
-            if self.ws.size()[0] < NCHW_BELOW_CHANNELS && tch::get_num_threads() > 1 {
-                return deform_conv2d_planned_nchw(
-                    xs,
-                    &self.plan,
-                    &self.ws,
-                    self.bs.as_ref(),
-                    self.groups,
-                );
-            }
-            return deform_conv2d_planned_channels_last(
-                xs,
-                &self.plan,
-                &self.ws,
-                self.bs.as_ref(),
-                self.groups,
-            );
+            let layout = if self.ws.size()[0] < NCHW_BELOW_CHANNELS && tch::get_num_threads() > 1 {
+                CpuLayout::Nchw
+            } else {
+                CpuLayout::ChannelsLast
+            };
+            let (ws, bs) = (&self.ws, self.bs.as_ref());
+            return deform_conv2d_planned_as(xs, &self.plan, ws, bs, self.groups, layout);
         }
         deform_conv2d_planned(xs, &self.plan, &self.ws, self.bs.as_ref(), self.groups)
     }

@@ -364,61 +364,52 @@ pub fn deform_conv2d_planned_with(
     aten_deform_conv2d(input, plan, weight, bias, groups)
 }
 
-/// [`deform_conv2d_planned`] with a channels-last output for a CPU input of any layout, the
-/// calibrated layer's contract (`nn::CalibratedConv2d`: its output, hence the batch norm and ReLU
-/// after it and the next layer's input, stay channels-last). An NCHW input of at most 4 channels
-/// (a first layer's image) goes to the native kernels as it is: they read it into their padded
-/// channels-last copy directly and write the output channels-last, so no converted copy of the
-/// image is made per call. Wider NCHW inputs are converted first (the backward pass then reads
-/// and returns channels-last tensors), as is every input of the ATen composition.
-pub(crate) fn deform_conv2d_planned_channels_last(
+/// The layout of a calibrated layer's output on the CPU ([`deform_conv2d_planned_as`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum CpuLayout {
+    /// Channels-last: the calibrated layer's contract (`nn::CalibratedConv2d`: its output, hence
+    /// the batch norm and ReLU after it and the next layer's input, stay channels-last).
+    ChannelsLast,
+    /// NCHW: the layer's output with few channels at more than one thread (see
+    /// `nn::CalibratedConv2d`).
+    Nchw,
+}
+
+/// [`deform_conv2d_planned`] with its output in `layout` for an input of any layout.
+/// Channels-last: an NCHW input of at most 4 channels (a first layer's
+/// image) goes to the native kernels as it is: they read it into their padded channels-last copy
+/// directly and write the output channels-last, so no converted copy of the image is made per
+/// call. Wider NCHW inputs are converted first (the backward pass then reads and returns
+/// channels-last tensors), as is every input of the ATen composition. NCHW: the native kernels
+/// write it from either input layout (a conversion after the op cost a copy of the output forward
+/// and one of its gradient backward); the ATen composition's output is made contiguous.
+pub(crate) fn deform_conv2d_planned_as(
     input: &Tensor,
     plan: &SamplingPlan,
     weight: &Tensor,
     bias: Option<&Tensor>,
     groups: i64,
+    layout: CpuLayout,
 ) -> Result<Tensor> {
     let image = input.dim() == 4 && input.size()[1] <= 4;
     #[cfg(calibconv_native)]
-    if input.device() == tch::Device::Cpu && image {
+    if input.device() == tch::Device::Cpu && (image || layout == CpuLayout::Nchw) {
+        let out = match layout {
+            CpuLayout::ChannelsLast => native::OutLayout::ChannelsLast,
+            CpuLayout::Nchw => native::OutLayout::Nchw,
+        };
         check_call(input, plan, weight, bias, groups)?;
-        return native::deform_conv2d_cpu(
-            input,
-            plan,
-            weight,
-            bias,
-            groups,
-            native::OutLayout::ChannelsLast,
-        );
+        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, out);
     }
     let _ = image;
-    deform_conv2d_planned(&channels_last(input), plan, weight, bias, groups)
-}
-
-/// [`deform_conv2d_planned`] with an NCHW output for a CPU input of any layout (the calibrated
-/// layer's output with few channels at more than one thread, see `nn::CalibratedConv2d`): the
-/// native kernels write it directly, where a conversion after the op cost a copy of the output
-/// forward and one of its gradient backward. Elsewhere the result is made contiguous.
-pub(crate) fn deform_conv2d_planned_nchw(
-    input: &Tensor,
-    plan: &SamplingPlan,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    groups: i64,
-) -> Result<Tensor> {
-    #[cfg(calibconv_native)]
-    if input.device() == tch::Device::Cpu {
-        check_call(input, plan, weight, bias, groups)?;
-        return native::deform_conv2d_cpu(
-            input,
-            plan,
-            weight,
-            bias,
-            groups,
-            native::OutLayout::Nchw,
-        );
+    match layout {
+        CpuLayout::ChannelsLast => {
+            deform_conv2d_planned(&channels_last(input), plan, weight, bias, groups)
+        }
+        CpuLayout::Nchw => {
+            Ok(deform_conv2d_planned(input, plan, weight, bias, groups)?.contiguous())
+        }
     }
-    Ok(deform_conv2d_planned(input, plan, weight, bias, groups)?.contiguous())
 }
 
 /// `x` `[B, C, H, W]` as a channels-last tensor (itself, as a view, if it already is one).

@@ -463,11 +463,12 @@ fn float32_layout_conversions_are_exact() {
     }
 }
 
-/// The calibrated layer's entry point (`deform_conv2d_planned_channels_last`) returns a
-/// channels-last output for NCHW and channels-last inputs alike, with the values and gradients of
-/// the plain call: an NCHW image of at most 4 channels (read as it is, the output written
-/// channels-last by the kernels; a first layer without input gradient and one with), and wider
-/// NCHW inputs (converted first, the input gradient coming back NCHW through the conversion).
+/// The calibrated layer's entry point (`deform_conv2d_planned_as`) returns a channels-last output,
+/// or an NCHW one when asked, for NCHW and channels-last inputs alike, with the values and
+/// gradients of the plain call: an NCHW image of at most 4 channels (read as it is, the output
+/// written channels-last by the kernels; a first layer without input gradient and one with), and
+/// wider NCHW inputs (converted first for channels-last, the input gradient coming back NCHW
+/// through the conversion); NCHW outputs written by the kernels from either input layout.
 #[test]
 fn channels_last_entry_point_matches_the_plain_call() {
     tch::manual_seed(13);
@@ -483,16 +484,15 @@ fn channels_last_entry_point_matches_the_plain_call() {
                 "B{b} {ci}->{co} {h}x{w}, input grad {input_grad}, channels-last input {}",
                 is_channels_last(&x)
             );
-            let run = |channels_last_out: bool| {
+            let run = |layout: Option<CpuLayout>| {
                 let x = x.detach().set_requires_grad(input_grad);
                 let (wt, bias) = (
                     p.w.detach().set_requires_grad(true),
                     p.bias.detach().set_requires_grad(true),
                 );
-                let out = if channels_last_out {
-                    deform_conv2d_planned_channels_last(&x, &p.plan, &wt, Some(&bias), 1)
-                } else {
-                    deform_conv2d_planned(&x, &p.plan, &wt, Some(&bias), 1)
+                let out = match layout {
+                    Some(l) => deform_conv2d_planned_as(&x, &p.plan, &wt, Some(&bias), 1, l),
+                    None => deform_conv2d_planned(&x, &p.plan, &wt, Some(&bias), 1),
                 }
                 .unwrap();
                 let loss = (&out * &p.probe).sum(Kind::Float);
@@ -503,21 +503,29 @@ fn channels_last_entry_point_matches_the_plain_call() {
                 let g = Tensor::run_backward(&[loss], &wrt, false, false);
                 (out.detach(), g)
             };
-            let ((plain, g_plain), (cl, g_cl)) = (run(false), run(true));
-            assert!(is_channels_last(&cl), "{what}: output not channels-last");
-            assert!(
-                max_rel(&plain, &cl) < F32_IMPL_TOL,
-                "{what}: outputs differ"
-            );
-            for (name, a, c) in [("weight", &g_plain[0], &g_cl[0])]
-                .into_iter()
-                .chain(input_grad.then(|| ("input", &g_plain[1], &g_cl[1])))
-            {
-                assert_eq!(a.size(), c.size(), "{what}: {name} gradient shape");
+            let (plain, g_plain) = run(None);
+            for layout in [CpuLayout::ChannelsLast, CpuLayout::Nchw] {
+                let (out, g) = run(Some(layout));
+                let what = format!("{what}, {layout:?} output");
+                if layout == CpuLayout::ChannelsLast {
+                    assert!(is_channels_last(&out), "{what}: output not channels-last");
+                } else {
+                    assert!(out.is_contiguous(), "{what}: output not NCHW");
+                }
                 assert!(
-                    max_rel(a, c) < F32_IMPL_TOL,
-                    "{what}: {name} gradients differ"
+                    max_rel(&plain, &out) < F32_IMPL_TOL,
+                    "{what}: outputs differ"
                 );
+                for (name, a, c) in [("weight", &g_plain[0], &g[0])]
+                    .into_iter()
+                    .chain(input_grad.then(|| ("input", &g_plain[1], &g[1])))
+                {
+                    assert_eq!(a.size(), c.size(), "{what}: {name} gradient shape");
+                    assert!(
+                        max_rel(a, c) < F32_IMPL_TOL,
+                        "{what}: {name} gradients differ"
+                    );
+                }
             }
         }
     }
