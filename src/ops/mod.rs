@@ -34,8 +34,8 @@
 //!     forward 1.16 -> 0.97-0.99x, U-Net training steps of the quick and study profiles
 //!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x); the gather is compiled
 //!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
-//!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32 and 64
-//!     channels in whole 64-byte vectors where the CPU has AVX-512). The kernels of 1, 2, 4
+//!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32, 64,
+//!     128 and 256 channels in whole 64-byte vectors where the CPU has AVX-512). The kernels of 1, 2, 4
 //!     and 8 channels read each sample's four corner weights, computed from the plan's
 //!     fractions once a call and kept for the backward pass (16 bytes a sample), instead of
 //!     computing them per sample and item (one thread, Intel Xeon: 8->8 at 64x64 B8 forward

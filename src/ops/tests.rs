@@ -1035,6 +1035,13 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
         (1, 64, 512, 24, 23),
         (1, 96, 512, 24, 23),
         (1, 32, 1024, 33, 32),
+        // the 128- and 256-channel gathers and scatters in 64-byte vectors (AVX-512; the same
+        // bits as the general loop of the AVX2 level, checked below), and large weights of 256
+        // and 512 channels in (slabs)
+        (2, 128, 16, 9, 8),
+        (1, 256, 32, 6, 7),
+        (1, 256, 128, 9, 8),
+        (1, 512, 64, 5, 6),
         // fewer pixels than outputs and a large weight: with more than one thread the first
         // goes through the GEMM library whole (`whole_rows`), the second (256 rows a thread at
         // two threads) through these kernels on every thread

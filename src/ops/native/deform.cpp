@@ -665,11 +665,12 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 CALIBCONV_TILE_KERNELS_ALL(float)
 CALIBCONV_TILE_KERNELS_ALL(double)
 
-// The gather and scatter of 32 and 64 float channels (and the scatter of 16) in whole 64-byte
-// vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
-// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone) and
-// picked where the CPU has it (tile_kernels). Each lane computes the same expression as the 32-byte
-// chunks (the same bits; few_output_channel_kernels_agree_across_isa_levels compares them). On an
+// The gather and scatter of 32, 64, 128 and 256 float channels (and the scatter of 16) in whole
+// 64-byte vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
+// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
+// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the
+// 32-byte chunks and the general loop (the same bits; few_output_channel_kernels_agree_across_isa_
+// levels compares them). On an
 // Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d
 // forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32
 // at 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x ->
@@ -678,12 +679,18 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // f+b 1.43-1.47 -> 1.38-1.39x, 16->16 at 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within
 // the spread; the 64-byte gather of 16 channels is no faster (16->8 at 64x64 forward 1.15-1.16 ->
 // 1.19-1.20x, f+b 1.24-1.25 -> 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 ->
-// 1.29-1.30x).
+// 1.29-1.30x). 128 and 256 channels (sixteenth session; before, the general loop over a runtime
+// channel count): 128->128 at 16x16 B8 forward 1.14-1.33 -> 1.11-1.24x, f+b 1.21-1.24 ->
+// 1.17-1.20x, 128->64 at 32x32 1.24 / 1.17-1.18x -> 1.20-1.21 / 1.11-1.12x, classic 128->128 at
+// 128x128 B2 1.17 / 1.18-1.20x -> 1.14 / 1.16-1.17x. (The slabs of large weights, whole taps of
+// 128-512 channels, through such a loop too: no change, at 256->128 on 16x16 1.25 -> 1.24x.)
 // (On an AMD Zen 4, which splits 64-byte operations in two, the thirteenth session measured such
 // chunks 4-5% faster as kernels and no change in a step.)
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 32, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 64, _v4, 16)
+CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 128, _v4, 16)
+CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 256, _v4, 16)
 CALIBCONV_SCATTER_AS(CALIBCONV_TARGET_V4, float, 16, _v4, 16)
 #endif
 
@@ -725,6 +732,8 @@ TileKernels<float> tile_kernels<float>(const Geo& g) {
     switch (g.C) {
       CALIBCONV_PICK_AS(float, 32, _v4)
       CALIBCONV_PICK_AS(float, 64, _v4)
+      CALIBCONV_PICK_AS(float, 128, _v4)
+      CALIBCONV_PICK_AS(float, 256, _v4)
       case 16:  // the 64-byte scatter only
         return {gather_float_16, scatter_float_16_v4};
       default:
