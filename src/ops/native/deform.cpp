@@ -319,14 +319,15 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
 // of at most CORNER_WEIGHTS_MAX_C channels in one group but 3 (NC 1, 2, 4, 8), the four
 // weights themselves, (1 - ly)(1 - lx), (1 - ly) lx, ly (1 - lx) and ly lx, computed once for
 // the forward pass and once for the backward (sample_coefficients: the same values, so the same
-// bits). At 8 channels a sample is one 32-byte
-// vector a corner, and the weights were half its instructions: with them from memory (F195 plans,
-// one thread, Intel Xeon, rdtsc per call) the forward's gather of 8->8 at 64x64 B8 took 1.32-1.34
-// -> 1.01-1.03 M TSC cycles, and calibrated / conv2d forward went 1.30-1.31 -> 1.08-1.18x, f+b
-// 1.07-1.09 -> 0.98-1.01x (2 processes each). With more channels the stream of weights (16 bytes a
-// sample instead of 8) cost more than it saved: the gather of 16->16 at 128x128 7.9-8.5 -> 9.4 M
-// cycles, of 64->32 at 64x64 5.6 -> 6.1-6.3 M; with 3 channels (first layers, whose gathers take
-// two samples a vector or four items a vector) 3->8 at 64x64 forward 1.06-1.12 -> 1.12-1.14x.
+// bits). At 8 channels a sample is one 32-byte vector a corner, and the weights were half its
+// instructions: with them from memory (F195 plans, one thread, Intel Xeon) the forward's gather
+// of 8->8 at 64x64 B8 took 1.32-1.34 -> 1.01-1.03 M TSC cycles a call (rdtsc), and calibrated /
+// conv2d went 1.31-1.36 -> 1.19-1.23x forward, 1.06-1.10 -> 0.99-1.03x f+b (3 processes each).
+// With more channels the stream of weights (16 bytes a sample instead of 8) cost more than it
+// saved: the gather of 16->16 at 128x128 7.9-8.5 -> 9.4 M cycles a call, of 64->32 at 64x64 5.6
+// -> 6.1-6.3 M; with 3 channels (first layers, whose gathers take two samples a vector or four
+// items a vector) 3->8 at 64x64 forward 1.06-1.12 -> 1.12-1.14x. (The scatter alone with them
+// at 16 and 32 channels: no change.)
 constexpr int64_t CORNER_WEIGHTS_MAX_C = 8;
 template <int NC>
 constexpr bool reads_corner_weights() {
@@ -669,8 +670,8 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // 64-byte vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
 // multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
 // and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the
-// 32-byte chunks and the general loop (the same bits; few_output_channel_kernels_agree_across_isa_
-// levels compares them). On an
+// 32-byte chunks and the general loop (the same bits, which
+// few_output_channel_kernels_agree_across_isa_levels checks). On an
 // Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d
 // forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32
 // at 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x ->
