@@ -35,12 +35,12 @@
 //!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x); the gather is compiled
 //!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
 //!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32, 64,
-//!     128 and 256 channels in whole 64-byte vectors where the CPU has AVX-512). The kernels of 1, 2, 4
-//!     and 8 channels read each sample's four corner weights, computed from the plan's
-//!     fractions once a call and kept for the backward pass (16 bytes a sample), instead of
-//!     computing them per sample and item (one thread, Intel Xeon: 8->8 at 64x64 B8 forward
-//!     1.31-1.36 -> 1.19-1.22x `conv2d`); with more channels the larger stream cost more than it
-//!     saved, so they take the fractions. Then one GEMM per
+//!     128 and 256 channels in whole 64-byte vectors where the CPU has AVX-512). The kernels
+//!     of 1, 2, 4 and 8 channels read each sample's four corner weights (16 bytes a sample),
+//!     computed from the plan's fractions once for the forward pass and again for the backward,
+//!     instead of per sample and item (one thread, Intel Xeon: 8->8 at 64x64 B8 forward
+//!     1.31-1.36 -> 1.19-1.23x `conv2d`); with more channels the larger stream cost more than
+//!     it saved, so they take the fractions. Then one GEMM per
 //!     group against the weight packed as `[G, C_out/G, K, C/G]`, through the BLAS (`at::mm`,
 //!     libtorch's MKL; oneDNN's 1x1 convolution, `at::mkldnn_convolution`, when asked for: see
 //!     [`GemmLibrary`]); the result is written into the output (NCHW, or channels-last for a
@@ -376,13 +376,13 @@ pub(crate) enum CpuLayout {
 }
 
 /// [`deform_conv2d_planned`] with its output in `layout` for an input of any layout.
-/// Channels-last: an NCHW input of at most 4 channels (a first layer's
-/// image) goes to the native kernels as it is: they read it into their padded channels-last copy
-/// directly and write the output channels-last, so no converted copy of the image is made per
-/// call. Wider NCHW inputs are converted first (the backward pass then reads and returns
-/// channels-last tensors), as is every input of the ATen composition. NCHW: the native kernels
-/// write it from either input layout (a conversion after the op cost a copy of the output forward
-/// and one of its gradient backward); the ATen composition's output is made contiguous.
+/// Channels-last: an NCHW input of at most 4 channels (a first layer's image) goes to the native
+/// kernels as it is: they read it into their padded channels-last copy directly and write the
+/// output channels-last, so no converted copy of the image is made per call. Wider NCHW inputs
+/// are converted first (the backward pass then reads and returns channels-last tensors), as is
+/// every input of the ATen composition. NCHW: the native kernels write it from either input
+/// layout (a conversion after the op cost a copy of the output forward and one of its gradient
+/// backward); the ATen composition's output is made contiguous.
 pub(crate) fn deform_conv2d_planned_as(
     input: &Tensor,
     plan: &SamplingPlan,

@@ -470,7 +470,7 @@ fn float32_layout_conversions_are_exact() {
 /// wider NCHW inputs (converted first for channels-last, the input gradient coming back NCHW
 /// through the conversion); NCHW outputs written by the kernels from either input layout.
 #[test]
-fn channels_last_entry_point_matches_the_plain_call() {
+fn layout_entry_point_matches_the_plain_call() {
     tch::manual_seed(13);
     for (b, ci, co, h, w, input_grad) in [
         (2, 3, 8, 11, 9, false),

@@ -329,14 +329,11 @@ Mat<T> out_block(const Geo& g, T* out, bool cl, int64_t b, int64_t gi, int64_t p
 // items a vector) 3->8 at 64x64 forward 1.06-1.12 -> 1.12-1.14x. (The scatter alone with them
 // at 16 and 32 channels: no change.)
 constexpr int64_t CORNER_WEIGHTS_MAX_C = 8;
-template <int NC>
-constexpr bool reads_corner_weights() {
-  return NC > 0 && NC <= CORNER_WEIGHTS_MAX_C && NC != 3;
+// (nc: the channel count the kernels are compiled for, 0 for the general ones)
+constexpr bool reads_corner_weights(int64_t nc) {
+  return nc > 0 && nc <= CORNER_WEIGHTS_MAX_C && nc != 3;
 }
-template <int NC>
-constexpr int64_t coef_stride() {
-  return reads_corner_weights<NC>() ? 4 : 2;
-}
+constexpr int64_t coef_stride(int64_t nc) { return reads_corner_weights(nc) ? 4 : 2; }
 // Sample i's four corner weights, from coef as the kernels of NC channels read it.
 template <typename T>
 struct Corners {
@@ -344,7 +341,7 @@ struct Corners {
 };
 template <typename T, int NC>
 CALIBCONV_ALWAYS_INLINE inline Corners<T> corners_at(const T* coef, int64_t i) {
-  if constexpr (reads_corner_weights<NC>()) {
+  if constexpr (reads_corner_weights(NC)) {
     const T* w = coef + 4 * i;
     return {w[0], w[1], w[2], w[3]};
   } else {
@@ -424,7 +421,7 @@ CALIBCONV_ALWAYS_INLINE inline int64_t gather3_quads(const float* xb, const int3
   using I8 = VecOf<int32_t, 8>::type;
   constexpr int NC = 3;
   int64_t i = 0;
-  static_assert(!reads_corner_weights<NC>());
+  static_assert(!reads_corner_weights(NC));
   for (; i + 4 < count; i += 4) {
     const V8 fr = load<V8>(f + 2 * i);
     for (int h = 0; h < 2; ++h) {
@@ -487,7 +484,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
   const T* xb = xp + (b * frame - shift) * C;
   const int64_t s_begin = (item * g.P + p0) * K;
   const int32_t* __restrict tl = top_left + s_begin;
-  const T* __restrict f = coef + coef_stride<NC>() * s_begin;
+  const T* __restrict f = coef + coef_stride(NC) * s_begin;
   if constexpr (NC > 0 && gather_lanes<T, NC>() > 0) {
     // One group: the columns are the samples' rows back to back.
     constexpr int L = gather_lanes<T, NC>(), CL = CLW;
@@ -600,7 +597,7 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
   const int64_t row = K * C;
   const int64_t s_begin = (item * g.P + p0) * K;
   const int32_t* __restrict tl = top_left + s_begin;
-  const T* __restrict f = coef + coef_stride<NC>() * s_begin;
+  const T* __restrict f = coef + coef_stride(NC) * s_begin;
   const int64_t corner[4] = {0, C, down, down + C};
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
@@ -704,11 +701,12 @@ struct TileKernels {
                            const T*);
   Gather gather;
   Scatter scatter;
+  int64_t nc;  // the channel count they are compiled for (0: any)
 };
 
 #define CALIBCONV_PICK_AS(T, NC, SUFFIX) \
   case NC:                               \
-    return {gather_##T##_##NC##SUFFIX, scatter_##T##_##NC##SUFFIX};
+    return {gather_##T##_##NC##SUFFIX, scatter_##T##_##NC##SUFFIX, NC};
 #define CALIBCONV_PICK(T, NC) CALIBCONV_PICK_AS(T, NC, )
 #define CALIBCONV_PICK_ALL(T)                                 \
   switch (g.G == 1 ? g.C : 0) {                               \
@@ -721,7 +719,7 @@ struct TileKernels {
     CALIBCONV_PICK(T, 32)                                     \
     CALIBCONV_PICK(T, 64)                                     \
     default:                                                  \
-      return {gather_##T##_0, scatter_##T##_0};               \
+      return {gather_##T##_0, scatter_##T##_0, 0};            \
   }
 
 template <typename T>
@@ -736,7 +734,7 @@ TileKernels<float> tile_kernels<float>(const Geo& g) {
       CALIBCONV_PICK_AS(float, 128, _v4)
       CALIBCONV_PICK_AS(float, 256, _v4)
       case 16:  // the 64-byte scatter only
-        return {gather_float_16, scatter_float_16_v4};
+        return {gather_float_16, scatter_float_16_v4, 16};
       default:
         break;
     }
@@ -766,7 +764,7 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
   constexpr int NC = 3;
   const int64_t K = g.K, B = g.B, pix = batch_items(B) * 4, down = g.Wp * pix;
   const int32_t* __restrict tl = top_left + p0 * K;
-  const float* __restrict f = coef + coef_stride<NC>() * p0 * K;
+  const float* __restrict f = coef + coef_stride(NC) * p0 * K;
   const int64_t count = n * K;
   for (int64_t i = 0; i < count; ++i) {
     const auto [w0, w1, w2, w3] = corners_at<float, NC>(f, i);
@@ -2028,14 +2026,14 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   return unpadded_gradient<T>(gx, g, memory_format(input));
 }
 
-// The coefficients that the kernels of layer g read (see reads_corner_weights) from the plan's
-// fractions frac [N * 2]: the fractions themselves, or for the kernels of one group that
-// tile_kernels picks by a channel count of 1, 2, 4 or 8 (reads_corner_weights) the corner weights
-// [N * 4], in the fractions' type.
+// The coefficients that the kernels of layer g read from the plan's fractions frac [N * 2] (in
+// the input's type): the fractions themselves, or where the kernels tile_kernels picks read
+// corner weights (reads_corner_weights; batch_gather's 3 channels do not) those weights [N * 4],
+// each sample's the same expression as where they are computed from fractions (corners_at).
 at::Tensor sample_coefficients(const at::Tensor& frac, const Geo& g) {
-  const bool fixed = g.C == 1 || g.C == 2 || g.C == 4 || g.C == 8;
-  if (g.G != 1 || !fixed) return frac;
-  static_assert(CORNER_WEIGHTS_MAX_C == 8, "the channel counts above");
+  const int64_t nc = frac.scalar_type() == at::kFloat ? tile_kernels<float>(g).nc
+                                                      : tile_kernels<double>(g).nc;
+  if (!reads_corner_weights(nc)) return frac;
   const at::Tensor f = frac.contiguous();
   const int64_t n = f.numel() / 2;
   at::Tensor w = at::empty({n * 4}, f.options());
@@ -2044,11 +2042,11 @@ at::Tensor sample_coefficients(const at::Tensor& frac, const Geo& g) {
     scalar_t* __restrict dst = w.mutable_data_ptr<scalar_t>();
     at::parallel_for(0, n, 4096, [&](int64_t i0, int64_t i1) {
       for (int64_t i = i0; i < i1; ++i) {
-        const scalar_t ly = src[2 * i], lx = src[2 * i + 1], hy = 1 - ly, hx = 1 - lx;
-        dst[4 * i] = hy * hx;
-        dst[4 * i + 1] = hy * lx;
-        dst[4 * i + 2] = ly * hx;
-        dst[4 * i + 3] = ly * lx;
+        const Corners<scalar_t> c = corners_at<scalar_t, 0>(src, i);  // (from fractions)
+        dst[4 * i] = c.w0;
+        dst[4 * i + 1] = c.w1;
+        dst[4 * i + 2] = c.w2;
+        dst[4 * i + 3] = c.w3;
       }
     });
   });
