@@ -32,11 +32,21 @@ namespace {
 // floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
 // accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
 // weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 1024 as passes of 64):
-//   AVX-512 (32 registers of 16 floats): forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4, all
-//                                        outputs at once; column gradient 4 rows x 4 vectors;
+//   AVX-512 (32 registers of 16 floats): forward R = 8 / 12 / 12 / 6, JB = 12 / 12 / 8 / 6,
+//                                        all outputs at once; column gradient 8 rows x 3
+//                                        vectors (4 x 4 at 8 and at 256 to 1024 outputs);
 //   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
 //                                        outputs; 64 and 128 go through the BLAS, which beat
 //                                        passes of 32); column gradient 4 x 3.
+// (Until the seventeenth session AVX-512 had forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4 and
+// column gradients of 4 x 4, chosen on an AMD Zen 4. On an Intel Xeon (Sapphire Rapids class,
+// L1d 48 KiB) the forward of 64 outputs with R = 4 streams its weight panel from L2 at 256 bytes
+// per 16 multiply-adds, which L2 does not sustain: in a standalone loop (24 rows, 1152
+// reduction steps, medians of 7) R = 4 / 6 ran 56-63 / 71-79 float operations per TSC cycle;
+// at 32 outputs R = 6 / 12 69 / 84, at 16 R = 8 / 12 73 / 83; the column gradient of 128
+// outputs 4 x 4 / 8 x 3 50 / 69, of 64 70 / 80, of 16 77 / 87; the weight gradient of 64
+// outputs JB = 4 / 6 53-75 / 63-78, of 256 48-65 / 69-70. Blocks of fewer rows than R finish
+// four rows at a time, then one.)
 // The arithmetic of every output element (one fused multiply-add per reduction step, in the
 // same order) is the same at both levels, so where both have kernels they give identical
 // results. CPUs without AVX2 and FMA (and other architectures) use the oneDNN / BLAS path.
@@ -102,7 +112,7 @@ CALIBCONV_ALWAYS_INLINE inline void tile_product(typename VecOf<float, L>::type 
     V w[NV];
 #pragma GCC unroll 4
     for (int v = 0; v < NV; ++v) w[v] = load<V>(b + k * brs + v * L);
-#pragma GCC unroll 8
+#pragma GCC unroll 16
     for (int r = 0; r < R; ++r) {
       const float s = a[r * ars + k * aks];
 #pragma GCC unroll 4
@@ -115,7 +125,7 @@ CALIBCONV_ALWAYS_INLINE inline void tile_product(typename VecOf<float, L>::type 
 template <int R, int NV, int L>
 CALIBCONV_ALWAYS_INLINE inline void tile_load(typename VecOf<float, L>::type (&acc)[R][NV],
                                               const float* p, int64_t rs) {
-#pragma GCC unroll 8
+#pragma GCC unroll 16
   for (int r = 0; r < R; ++r) {
 #pragma GCC unroll 4
     for (int v = 0; v < NV; ++v) {
@@ -126,7 +136,7 @@ CALIBCONV_ALWAYS_INLINE inline void tile_load(typename VecOf<float, L>::type (&a
 template <int R, int NV, int L>
 CALIBCONV_ALWAYS_INLINE inline void tile_store(const typename VecOf<float, L>::type (&acc)[R][NV],
                                                float* p, int64_t rs) {
-#pragma GCC unroll 8
+#pragma GCC unroll 16
   for (int r = 0; r < R; ++r) {
 #pragma GCC unroll 4
     for (int v = 0; v < NV; ++v) store(p + r * rs + v * L, acc[r][v]);
@@ -147,7 +157,7 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
   if (j0 > 0) {
     tile_load<R, NV, L>(acc, y + t * CS, CS);
   } else {
-#pragma GCC unroll 8
+#pragma GCC unroll 16
     for (int r = 0; r < R; ++r) {
 #pragma GCC unroll 4
       for (int v = 0; v < NV; ++v) acc[r][v] = bias ? load<V>(bias + v * L) : V{};
@@ -178,6 +188,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_range(const float* cols, int64
   int64_t t = 0;
   for (; t + R <= n; t += R) {
     small_forward_rows<CS, NV, L, R>(cols, ldc, s0, wt, bias, y, t, r0, r1);
+  }
+  if constexpr (R > 4) {
+    for (; t + 4 <= n; t += 4) small_forward_rows<CS, NV, L, 4>(cols, ldc, s0, wt, bias, y, t, r0, r1);
   }
   for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, ldc, s0, wt, bias, y, t, r0, r1);
 }
@@ -216,6 +229,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_column_chunk(const float* gy, int64_t 
                                                        const float* w, float* g, int64_t j0) {
   int64_t t = 0;
   for (; t + R <= n; t += R) small_column_rows<CO, L, R, J>(gy, kc, w, g, j0, t);
+  if constexpr (R > 4) {
+    for (; t + 4 <= n; t += 4) small_column_rows<CO, L, 4, J>(gy, kc, w, g, j0, t);
+  }
   for (; t < n; ++t) small_column_rows<CO, L, 1, J>(gy, kc, w, g, j0, t);
 }
 
@@ -259,6 +275,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* col
   int64_t j0 = r0;
   for (; j0 + JB <= r1; j0 += JB) {
     small_weight_columns<CS, NV, L, JB>(cols, n, ldc, s0, gy, acc, j0);
+  }
+  if constexpr (JB > 4) {
+    for (; j0 + 4 <= r1; j0 += 4) small_weight_columns<CS, NV, L, 4>(cols, n, ldc, s0, gy, acc, j0);
   }
   for (; j0 < r1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, ldc, s0, gy, acc, j0);
 }
@@ -325,14 +344,14 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 // 1.11-1.13 / 1.22-1.24x; hence the 1024-output kernels and SMALL_MAX_WEIGHT. An earlier session
 // had found 256 outputs slower than oneDNN, 1.6x against 1.4x at 256->256, 64x64 B2, on the
 // Zen 5 while oneDNN was the library.)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 8, 8, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 8, 8, 16, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 6, 8, 32, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 4, 4, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 4, 4, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 12, 8, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 12, 12, 16, 16, 8, 3)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 12, 8, 32, 16, 8, 3)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 6, 6, 64, 16, 8, 3)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 6, 6, 64, 16, 8, 3)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 6, 6, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 6, 6, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 6, 6, 64, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
