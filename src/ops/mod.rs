@@ -87,7 +87,8 @@
 //!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread on AMD CPUs; with more
 //!     threads a weight larger than the column matrix goes through the library; where the BLAS
 //!     is MKL on an Intel CPU, which runs its AVX-512 code there, the gradients of weights over 1
-//!     MiB and the forward of weights over 4 MiB go through it, [`LargeWeights`]). Their
+//!     MiB and the forward of weights over 4 MiB on fewer than 1024 output pixels a pass go through
+//!     it, [`LargeWeights`]). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
 //!     without AVX2 use the GEMM library. The forward keeps a row group's accumulators in
@@ -299,7 +300,8 @@ pub enum LargeWeights {
     /// with MKL).
     Kernels = 1,
     /// The BLAS computes the column and weight gradients of weights over 1 MiB (from 128->256 and
-    /// 256->128 on) and the forward of weights over 4 MiB (512->512 on): the default where the
+    /// 256->128 on) and the forward of weights over 4 MiB (512->512 on) on fewer than 1024 output
+    /// pixels of the batch (`classic`'s 16x16 maps at B2): the default where the
     /// BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
     /// "Performance").
     Blas = 2,

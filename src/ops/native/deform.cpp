@@ -804,10 +804,17 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
 // forward beat the kernels' from weights of 4 MiB (BLAS_FORWARD_WEIGHT) on (1024->1024 1.23 ->
 // 1.03x, 1024->512 1.39 -> 1.22x, 512->512 1.30 -> 1.22x) but not below (256->256 at 8x8 1.25
 // -> 1.26x, 128->256 1.16 -> 1.20x). Smaller weights keep the kernels there too (64->64 at 32x32
-// B8 forward 1.24x against 1.34x through MKL, 32->16 at 128x128 1.41x against 1.72x).
+// B8 forward 1.24x against 1.34x through MKL, 32->16 at 128x128 1.41x against 1.72x). Once the
+// kernels' register blocks were sized for this Xeon (seventeenth session, small_kernels.h), their
+// forward beat MKL's at weights over 4 MiB too where a pass has BLAS_FORWARD_MIN_ROWS rows or
+// more (BLAS -> kernels, two processes: 256->512 at 32x32 B2 1.18-1.19 -> 1.10x, 512->512
+// 1.19-1.22 -> 1.14x, 1024->512 1.24-1.25 -> 1.19-1.21x, 512->256 at 64x64 B2 1.28-1.29 ->
+// 1.14-1.15x) but not with fewer (1024->1024 at 16x16 B2, 512 rows, 1.02-1.03 -> 1.07x); the
+// gradients stay MKL's (through the kernels 1024->512 f+b 1.05 -> 1.79-1.81x).
 enum class LargeWeights : int32_t { Auto = 0, Kernels = 1, Blas = 2 };
 std::atomic<int32_t> large_weights_override{static_cast<int32_t>(LargeWeights::Auto)};
 constexpr int64_t BLAS_FORWARD_WEIGHT = 1 << 20;
+constexpr int64_t BLAS_FORWARD_MIN_ROWS = 1024;
 
 bool large_weights_to_blas() {
   switch (static_cast<LargeWeights>(large_weights_override.load())) {
@@ -848,7 +855,7 @@ SmallKernels small_kernels(const Geo& g) {
   SmallKernels s = small_kernels_for(g.Cout, kc);
   const int64_t weight = kc * g.Cout;
   if (s && weight > SMALL_LARGE_WEIGHT && large_weights_to_blas()) {
-    if (weight > BLAS_FORWARD_WEIGHT) return {};
+    if (weight > BLAS_FORWARD_WEIGHT && total < BLAS_FORWARD_MIN_ROWS) return {};
     s.column_gradient = nullptr;
     s.weight_gradient = nullptr;
   }
