@@ -34,19 +34,21 @@ namespace {
 // weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 1024 as passes of 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 12 / 12 / 6, JB = 12 / 12 / 8 / 6,
 //                                        all outputs at once; column gradient 8 rows x 3
-//                                        vectors (4 x 4 at 8 and at 256 to 1024 outputs);
+//                                        vectors (4 x 4 at 8 outputs, 6 x 4 at 256 to 1024);
 //   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
 //                                        outputs; 64 and 128 go through the BLAS, which beat
 //                                        passes of 32); column gradient 4 x 3.
 // (Until the seventeenth session AVX-512 had forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4 and
-// column gradients of 4 x 4, chosen on an AMD Zen 4. On an Intel Xeon (Sapphire Rapids class,
-// L1d 48 KiB) the forward of 64 outputs with R = 4 streams its weight panel from L2 at 256 bytes
-// per 16 multiply-adds, which L2 does not sustain: in a standalone loop (24 rows, 1152
-// reduction steps, medians of 7) R = 4 / 6 ran 56-63 / 71-79 float operations per TSC cycle;
-// at 32 outputs R = 6 / 12 69 / 84, at 16 R = 8 / 12 73 / 83; the column gradient of 128
-// outputs 4 x 4 / 8 x 3 50 / 69, of 64 70 / 80, of 16 77 / 87; the weight gradient of 64
-// outputs JB = 4 / 6 53-75 / 63-78, of 256 48-65 / 69-70. Blocks of fewer rows than R finish
-// four rows at a time, then one.)
+// column gradients of 4 x 4, chosen on an AMD Zen 4. On the Intel Xeon of sessions 14-17 (family
+// 6 model 167 as KVM reports it, AVX-512 and AMX, L1d 48 KiB) the forward of 64 outputs with R =
+// 4 streams its weight panel from L2 at 256 bytes per 16 multiply-adds, which L2 does not
+// sustain. In a standalone loop of each kernel (float operations per TSC cycle, medians of 7,
+// two runs): the forward of 64 outputs (24 rows, 1152 reduction steps) R = 4 / 6 56-63 / 71-79,
+// of 32 R = 6 / 12 69 / 84, of 16 R = 8 / 12 73 / 83; the column gradient of 128 outputs 4 x 4 /
+// 8 x 3 50 / 69, of 64 70 / 80, of 16 77 / 87, of 256 4 x 4 / 6 x 4 40-44 / 44-50 (8 x 3
+// 44-47), of 512 36 / 39; the weight gradient of 64 outputs JB = 4 / 6 53-75 / 63-78, of 256
+// 48-65 / 69-70, of 16 JB = 8 / 12 70 / 75. Blocks of fewer rows than R finish four rows at a
+// time, then one.)
 // The arithmetic of every output element (one fused multiply-add per reduction step, in the
 // same order) is the same at both levels, so where both have kernels they give identical
 // results. CPUs without AVX2 and FMA (and other architectures) use the oneDNN / BLAS path.
@@ -349,9 +351,9 @@ CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 12, 12, 16, 16, 8, 3)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 12, 8, 32, 16, 8, 3)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 64, 16, 6, 6, 64, 16, 8, 3)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 128, 16, 6, 6, 64, 16, 8, 3)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 6, 6, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 6, 6, 64, 16, 4, 4)
-CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 6, 6, 64, 16, 4, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 256, 16, 6, 6, 64, 16, 6, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 512, 16, 6, 6, 64, 16, 6, 4)
+CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 6, 6, 64, 16, 6, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
