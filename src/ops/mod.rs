@@ -300,9 +300,9 @@ pub enum LargeWeights {
     /// with MKL).
     Kernels = 1,
     /// The BLAS computes the column and weight gradients of weights over 1 MiB (from 128->256 and
-    /// 256->128 on) and the forward of weights over 4 MiB (512->512 on) on fewer than 1024 output
-    /// pixels of the batch (`classic`'s 16x16 maps at B2): the default where the
-    /// BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
+    /// 256->128 on) and the forward of weights over 4 MiB (256->512 on) on fewer than 1024 output
+    /// pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where
+    /// the BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
     /// "Performance").
     Blas = 2,
 }

@@ -192,7 +192,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_range(const float* cols, int64
     small_forward_rows<CS, NV, L, R>(cols, ldc, s0, wt, bias, y, t, r0, r1);
   }
   if constexpr (R > 4) {
-    for (; t + 4 <= n; t += 4) small_forward_rows<CS, NV, L, 4>(cols, ldc, s0, wt, bias, y, t, r0, r1);
+    for (; t + 4 <= n; t += 4) {
+      small_forward_rows<CS, NV, L, 4>(cols, ldc, s0, wt, bias, y, t, r0, r1);
+    }
   }
   for (; t < n; ++t) small_forward_rows<CS, NV, L, 1>(cols, ldc, s0, wt, bias, y, t, r0, r1);
 }
@@ -279,7 +281,9 @@ CALIBCONV_ALWAYS_INLINE inline void small_weight_gradient_chunk(const float* col
     small_weight_columns<CS, NV, L, JB>(cols, n, ldc, s0, gy, acc, j0);
   }
   if constexpr (JB > 4) {
-    for (; j0 + 4 <= r1; j0 += 4) small_weight_columns<CS, NV, L, 4>(cols, n, ldc, s0, gy, acc, j0);
+    for (; j0 + 4 <= r1; j0 += 4) {
+      small_weight_columns<CS, NV, L, 4>(cols, n, ldc, s0, gy, acc, j0);
+    }
   }
   for (; j0 < r1; ++j0) small_weight_columns<CS, NV, L, 1>(cols, n, ldc, s0, gy, acc, j0);
 }
