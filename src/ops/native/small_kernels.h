@@ -318,6 +318,7 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 // columns JB, both OC outputs at a time; column gradient CR rows x CJ vectors of CL floats.
 #define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
   static_assert(OC == small_panel(CO), "a pass is one panel of the weight");                  \
+  constexpr int64_t small_rows_##CO##_##SUFFIX = R;                                            \
   TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc,         \
                                             int64_t kc, int64_t s0, int64_t s1,                \
                                             const float* wt, const float* bias, float* y) {    \
@@ -401,6 +402,8 @@ struct SmallKernels {
   // forward, for the outputs [o0, o1) (whole panels: multiples of small_panel(C_out)).
   void (*weight_gradient)(const float*, int64_t, int64_t, int64_t, int64_t, int64_t, const float*,
                           float*, int64_t, int64_t) = nullptr;
+  // The forward's rows at a time (R): a block of a multiple of it multiplies no row alone.
+  int64_t rows = 1;
   explicit operator bool() const { return forward != nullptr; }
 };
 
@@ -422,6 +425,7 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
     s.forward = small_forward_##CO##_##SUFFIX;                 \
     s.column_gradient = small_column_gradient_##CO##_##SUFFIX; \
     s.weight_gradient = small_weight_gradient_##CO##_##SUFFIX; \
+    s.rows = small_rows_##CO##_##SUFFIX;                       \
     break;
   if (isa == SmallIsa::Avx512) {
     switch (cout) {
