@@ -1412,7 +1412,9 @@ struct BatchTiles {
 // multiply-add after the other. (Before: 144 rows / 8 items = 18, with 12 rows at a time 12 + 4
 // + 1 + 1; now 24. One thread, Intel Xeon, 3 processes each way alternating, calibrated /
 // conv2d forward: 3->16 at 128x128 B8 1.35-1.39 -> 1.22-1.24x, at 144x160 1.31-1.38 -> 1.25x,
-// 3->8 at 64x64 1.01-1.06 -> 0.90-0.93x; f+b 1.16-1.18 -> 1.11-1.15x, 1.21-1.23 -> 1.19-1.20x.)
+// 3->8 at 64x64 1.01-1.06 -> 0.90-0.93x; f+b 1.16-1.18 -> 1.11-1.15x, 1.21-1.23 -> 1.19-1.20x.
+// The forward's values did not change; the weight gradient (grad_weight_first) adds its rows
+// block by block, item by item, so its sums changed order: other rounding.)
 BatchTiles batch_tiles(const Geo& g) {
   const int64_t kc = g.K * g.C;
   const int64_t tile = tile_rows(g.B * g.P, kc, g.Cout * kc, sizeof(float));
