@@ -1415,11 +1415,11 @@ struct BatchTiles {
 // 3->8 at 64x64 1.01-1.06 -> 0.90-0.93x; f+b 1.16-1.18 -> 1.11-1.15x, 1.21-1.23 -> 1.19-1.20x.
 // The forward's values did not change; the weight gradient (grad_weight_first) adds its rows
 // block by block, item by item, so its sums changed order: other rounding.)
-BatchTiles batch_tiles(const Geo& g) {
+BatchTiles batch_tiles(const Geo& g, const SmallKernels& small) {
   const int64_t kc = g.K * g.C;
   const int64_t tile = tile_rows(g.B * g.P, kc, g.Cout * kc, sizeof(float));
   const int64_t per_task = std::max<int64_t>(1, tile / g.B);
-  const int64_t r = std::max<int64_t>(1, small_kernels<float>(g).rows);
+  const int64_t r = std::max<int64_t>(1, small.rows);
   const int64_t per_item = std::max<int64_t>(1, small_block_rows(kc, g.Cout, tile) / g.B);
   return {per_task, (per_item + r - 1) / r * r, (g.P + per_task - 1) / per_task};
 }
@@ -1454,7 +1454,7 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
   const SmallKernels small = small_kernels<float>(g);
   const TileKernels<float> kern = tile_kernels<float>(g);
   const int64_t kc = g.K * g.C;
-  const BatchTiles bt = batch_tiles(g);
+  const BatchTiles bt = batch_tiles(g, small);
   const int64_t chunks =
       std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), bt.tasks));
   at::Tensor gw = at::empty({g.Cout, g.C, g.K}, gy.options());
@@ -1524,7 +1524,7 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
   const int64_t kc = g.K * g.C;
   const at::Tensor wt = weight_columns(weight, g);
   const float* wtp = wt.const_data_ptr<float>();
-  const BatchTiles bt = batch_tiles(g);
+  const BatchTiles bt = batch_tiles(g, small);
   auto init = [&] {
     return Scratch<float>{Uninit<float>(g.B * bt.block * kc),
                           Uninit<float>(cl ? 0 : bt.block * g.Cout)};
