@@ -471,6 +471,48 @@ CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t 
   }
 }
 
+// Whether the gather and scatter of NC channels in chunks of CLW lanes compute the samples'
+// bilinear weights first, WEIGHT_CHUNK samples at a time into an L1 buffer (corner_weights), and
+// then read each weight from there as a broadcast operand: the 64-byte variants of 16 float
+// channels and more (AVX-512, tile_kernels). Computed per sample, the weights are six scalar
+// operations and four broadcasts from registers, and with 512-bit operations in flight (which leave
+// the vector units of two ports to them) those ten take the ports that the sample's four
+// multiply-adds need; from memory a broadcast is a load. Standalone (16 channels, 24-pixel blocks
+// of a 128x128 map, one thread, Intel Xeon, TSC cycles a sample): gather 4.7-4.9 -> 3.6-4.0,
+// scatter 6.3-7.1 -> 5.9-6.4. Each weight is the same expression (the same bits).
+constexpr int64_t WEIGHT_CHUNK = 64;
+template <typename T, int NC, int CLW>
+constexpr bool weights_first() {
+  return std::is_same_v<T, float> && NC >= 16 && CLW == 16 && !reads_corner_weights(NC);
+}
+
+// The four bilinear weights of samples [0, m) (m <= WEIGHT_CHUNK) from their fractions f (two a
+// sample), into w[c * WEIGHT_CHUNK + i] for corner c: corners_at's expressions, sixteen samples
+// a vector (the fractions de-interleaved by a shuffle), the rest one at a time.
+CALIBCONV_ALWAYS_INLINE inline void corner_weights(const float* __restrict f, int64_t m,
+                                                   float* __restrict w) {
+  using V = VecOf<float, 16>::type;
+  using I = VecOf<int32_t, 16>::type;
+  int64_t i = 0;
+  for (; i + 16 <= m; i += 16) {
+    const V a = load<V>(f + 2 * i), b = load<V>(f + 2 * i + 16);
+    constexpr I even{0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30};
+    const V ly = __builtin_shuffle(a, b, even), lx = __builtin_shuffle(a, b, even + 1);
+    const V hy = 1 - ly, hx = 1 - lx;
+    store(w + i, hy * hx);
+    store(w + WEIGHT_CHUNK + i, hy * lx);
+    store(w + 2 * WEIGHT_CHUNK + i, ly * hx);
+    store(w + 3 * WEIGHT_CHUNK + i, ly * lx);
+  }
+  for (; i < m; ++i) {
+    const Corners<float> c = corners_at<float, 16>(f, i);
+    w[i] = c.w0;
+    w[WEIGHT_CHUNK + i] = c.w1;
+    w[2 * WEIGHT_CHUNK + i] = c.w2;
+    w[3 * WEIGHT_CHUNK + i] = c.w3;
+  }
+}
+
 template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* xp,
                                                         const int32_t* top_left, const T* coef,
@@ -495,6 +537,25 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
     int64_t first = 0;
     if constexpr (NC == 3 && std::is_same_v<T, float>) {
       first = gather3_quads(xb, tl, f, down, count, cols);
+    }
+    if constexpr (weights_first<T, NC, CL>()) {
+      alignas(64) float w[4 * WEIGHT_CHUNK];
+      for (int64_t i0 = 0; i0 < count; i0 += WEIGHT_CHUNK) {
+        const int64_t m = std::min(WEIGHT_CHUNK, count - i0);
+        corner_weights(f + 2 * i0, m, w);
+        for (int64_t j = 0; j < m; ++j) {
+          const int64_t i = i0 + j;
+          const T* a = xb + int64_t{tl[i]} * NC;
+          for (int c0 = 0; c0 < L; c0 += CL) {
+            const T* ac = a + c0;
+            store(cols + i * NC + c0,
+                  w[j] * load<V>(ac) + w[WEIGHT_CHUNK + j] * load<V>(ac + NC) +
+                      w[2 * WEIGHT_CHUNK + j] * load<V>(ac + down) +
+                      w[3 * WEIGHT_CHUNK + j] * load<V>(ac + down + NC));
+          }
+        }
+      }
+      return;
     }
     for (int64_t i = first; i < whole; ++i) {
       if constexpr (L == CL) {
@@ -599,6 +660,29 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
   const int32_t* __restrict tl = top_left + s_begin;
   const T* __restrict f = coef + coef_stride(NC) * s_begin;
   const int64_t corner[4] = {0, C, down, down + C};
+  if constexpr (weights_first<T, NC, CLW>()) {  // one group: sample i's columns at i * NC
+    using V = typename VecOf<T, CLW>::type;
+    alignas(64) float w[4 * WEIGHT_CHUNK];
+    const int64_t count = n * K;
+    for (int64_t i0 = 0; i0 < count; i0 += WEIGHT_CHUNK) {
+      const int64_t m = std::min(WEIGHT_CHUNK, count - i0);
+      corner_weights(f + 2 * i0, m, w);
+      for (int64_t j = 0; j < m; ++j) {
+        const int64_t i = i0 + j;
+        if (tl[i] == blank) continue;
+        const T* __restrict src = gcols + i * NC;
+        T* const a = gxb + int64_t{tl[i]} * C;
+        for (int c = 0; c < 4; ++c) {
+          T* __restrict dst = a + corner[c];
+          const T wc = w[c * WEIGHT_CHUNK + j];
+          for (int c0 = 0; c0 < NC; c0 += CLW) {
+            store(dst + c0, load<V>(dst + c0) + wc * load<V>(src + c0));
+          }
+        }
+      }
+    }
+    return;
+  }
   for (int64_t t = 0; t < n; ++t) {
     for (int64_t k = 0; k < K; ++k) {
       const int64_t i = t * K + k;
@@ -663,33 +747,36 @@ CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
 CALIBCONV_TILE_KERNELS_ALL(float)
 CALIBCONV_TILE_KERNELS_ALL(double)
 
-// The gather and scatter of 32, 64, 128 and 256 float channels (and the scatter of 16) in whole
-// 64-byte vectors, compiled for AVX-512 only (x86-64-v4, as the few-output-channel kernels: in the
-// multiversioned bodies above GCC would lower such vectors through the stack in the AVX2 clone)
-// and picked where the CPU has it (tile_kernels). Each lane computes the same expression as the
-// 32-byte chunks and the general loop (the same bits, which
-// few_output_channel_kernels_agree_across_isa_levels checks). On an
-// Intel Xeon (AVX-512 and AMX, one thread, two processes each way alternating, calibrated / conv2d
-// forward and f+b): 32->16 at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32
-// at 64x64 1.26 / 1.24-1.25x -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x ->
-// 1.30-1.31 / 1.30-1.31x, 64->64 at 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16
-// channels the scatter only: once it had no branches (see scatter_columns_body), 16->16 at 128x128
-// f+b 1.43-1.47 -> 1.38-1.39x, 16->16 at 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within
-// the spread; the 64-byte gather of 16 channels is no faster (16->8 at 64x64 forward 1.15-1.16 ->
-// 1.19-1.20x, f+b 1.24-1.25 -> 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 ->
-// 1.29-1.30x). 128 and 256 channels (sixteenth session; before, the general loop over a runtime
-// channel count): 128->128 at 16x16 B8 forward 1.14-1.33 -> 1.11-1.24x, f+b 1.21-1.24 ->
-// 1.17-1.20x, 128->64 at 32x32 1.24 / 1.17-1.18x -> 1.20-1.21 / 1.11-1.12x, classic 128->128 at
-// 128x128 B2 1.17 / 1.18-1.20x -> 1.14 / 1.16-1.17x. (The slabs of large weights, whole taps of
-// 128-512 channels, through such a loop too: no change, at 256->128 on 16x16 1.25 -> 1.24x.)
-// (On an AMD Zen 4, which splits 64-byte operations in two, the thirteenth session measured such
-// chunks 4-5% faster as kernels and no change in a step.)
+// The gather and scatter of 16, 32, 64, 128 and 256 float channels in whole 64-byte vectors, each
+// chunk of samples' bilinear weights computed first (weights_first), compiled for AVX-512 only
+// (x86-64-v4, as the few-output-channel kernels: in the multiversioned bodies above GCC would lower
+// such vectors through the stack in the AVX2 clone) and picked where the CPU has it (tile_kernels).
+// Each lane computes the same expression as the 32-byte chunks and the general loop (the same bits,
+// which few_output_channel_kernels_agree_across_isa_levels checks). On an Intel Xeon (AVX-512 and
+// AMX, one thread, two processes each way alternating, calibrated / conv2d forward and f+b): 32->16
+// at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at 64x64 1.26 / 1.24-1.25x
+// -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31 / 1.30-1.31x, 64->64 at
+// 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16 channels the scatter only: once it had
+// no branches (see scatter_columns_body), 16->16 at 128x128 f+b 1.43-1.47 -> 1.38-1.39x, 16->16 at
+// 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within the spread; the 64-byte gather of 16
+// channels is no faster (16->8 at 64x64 forward 1.15-1.16 -> 1.19-1.20x, f+b 1.24-1.25 ->
+// 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 -> 1.29-1.30x); with the weights
+// computed first (eighteenth session) it is: one thread, base -> this, 2 processes each
+// alternating, 16->16 at 128x128 forward 1.33-1.34 -> 1.24-1.26x, f+b 1.33-1.34 -> 1.27-1.29x, at
+// 64x64 forward 1.19-1.22 -> 1.09-1.10x; --presets forward goals holding 29-31 -> 33-35 of 38; 32
+// channels and more within the spread (docs/bench/ eighteenth-session-ab.txt). 128 and 256 channels
+// (sixteenth session; before, the general loop over a runtime channel count): 128->128 at 16x16 B8
+// forward 1.14-1.33 -> 1.11-1.24x, f+b 1.21-1.24 -> 1.17-1.20x, 128->64 at 32x32 1.24 / 1.17-1.18x
+// -> 1.20-1.21 / 1.11-1.12x, classic 128->128 at 128x128 B2 1.17 / 1.18-1.20x -> 1.14 / 1.16-1.17x.
+// (The slabs of large weights, whole taps of 128-512 channels, through such a loop too: no change,
+// at 256->128 on 16x16 1.25 -> 1.24x.) (On an AMD Zen 4, which splits 64-byte operations in two,
+// the thirteenth session measured such chunks 4-5% faster as kernels and no change in a step.)
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 32, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 64, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 128, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 256, _v4, 16)
-CALIBCONV_SCATTER_AS(CALIBCONV_TARGET_V4, float, 16, _v4, 16)
+CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 16, _v4, 16)
 #endif
 
 // The kernels of one element type, picked by channel count (one group) once per call.
@@ -733,8 +820,7 @@ TileKernels<float> tile_kernels<float>(const Geo& g) {
       CALIBCONV_PICK_AS(float, 64, _v4)
       CALIBCONV_PICK_AS(float, 128, _v4)
       CALIBCONV_PICK_AS(float, 256, _v4)
-      case 16:  // the 64-byte scatter only
-        return {gather_float_16, scatter_float_16_v4, 16};
+      CALIBCONV_PICK_AS(float, 16, _v4)
       default:
         break;
     }
