@@ -20,10 +20,11 @@
 // - backward, weight: the column tiles are recomputed (never stored; the rows padded again) and
 //   acc_g[C_out/G, K*C/G] += gy_g^T @ cols_g, one accumulator per thread chunk, summed at the end.
 // - backward, input: per tile, grad_cols_g = gy_g @ WP_g, then every sample adds w * grad_cols
-//   to its four corners of a padded channels-last gradient buffer (a scatter; the padding is
-//   dropped at the end, or with Border::WrapX folded back into the first column). Tiles run in
-//   bands of output rows, in two phases (even bands, then odd bands) chosen so that the input
-//   rows that two bands of the same phase touch are disjoint: no atomics, no races, and the
+//   to its four corners of the padded channels-last rows the task touches (a scatter, into a
+//   per-thread buffer of one item's rows, GradientRows; the padding is dropped when the rows are
+//   written out, or with Border::WrapX folded back into the first column). Tiles run in bands
+//   of output rows, in two phases (even bands, then odd bands) chosen so that the input rows
+//   that two bands of the same phase touch are disjoint: no atomics, no races, and the
 //   summation order does not depend on the number of threads.
 // - bias: a sum of the output gradient (with the few-output-channel kernels, summed block by
 //   block in the weight gradient's pass, see grad_weight_impl).
@@ -50,6 +51,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <new>
 #include <string>
 #include <type_traits>
 #include <vector>
@@ -263,11 +265,15 @@ std::atomic<bool> poison_scratch{false};
 
 // n values, not initialised: for buffers that every pass writes before it reads them (a
 // std::vector zeroes its values first: at 256 -> 256 channels on 8x8 maps a block of columns is
-// 2.3 MiB, and the zeroing was 1.5-2% of a forward + backward's samples in perf).
+// 2.3 MiB, and the zeroing was 1.5-2% of a forward + backward's samples in perf). Aligned to a
+// cache line, as libtorch's tensors: a pixel of 16 float channels in a padded frame is one line,
+// not two. (With malloc's 16 bytes, where a buffer began depended on what the process had
+// allocated and freed before: at 16 -> 16 channels on 128x128 maps B8 the same gathers took
+// 9% or 13% of a forward + backward's perf samples from one build to the next.)
 template <typename T>
 class Uninit {
  public:
-  explicit Uninit(int64_t n) : p_(n > 0 ? new T[n] : nullptr) {  // (default-initialised)
+  explicit Uninit(int64_t n) : p_(n > 0 ? allocate(n) : nullptr) {
     if (p_ && poison_scratch.load(std::memory_order_relaxed)) {
       std::fill(p_.get(), p_.get() + n, std::numeric_limits<T>::quiet_NaN());
     }
@@ -275,7 +281,17 @@ class Uninit {
   T* data() const { return p_.get(); }
 
  private:
-  std::unique_ptr<T[]> p_;
+  static constexpr size_t LINE = 64;
+  struct Free {
+    void operator()(T* p) const { std::free(p); }
+  };
+  static T* allocate(int64_t n) {
+    const size_t bytes = (static_cast<size_t>(n) * sizeof(T) + LINE - 1) / LINE * LINE;
+    void* p = std::aligned_alloc(LINE, bytes);
+    if (!p) throw std::bad_alloc();
+    return static_cast<T*>(p);
+  }
+  std::unique_ptr<T, Free> p_;
 };
 
 // Per-thread buffers: a column tile [T, K*C] and an output-sized tile [T, C_out], each written
@@ -624,15 +640,15 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 }
 
 // Adds the column-gradient tile gcols [n, K*C] (layout as the columns) of output pixels
-// [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last buffer
-// gxp (as padded_input; unpadded_gradient folds it back). Corners off the input add into the
-// padding; samples wholly outside (the plan's zero block) are skipped, so no two tasks of a
-// phase write the same padding pixel. Every pixel of the input gets the same additions in the
-// same order as in the scatter into the unpadded input that came before (which skipped
-// out-of-range corners), the same bits (with Border::WrapX the first column's additions through
-// the right padding column come last). In one C++ process against that scatter (float32, F195
-// plans, B8, one thread, the zeroing and the copy out included): 8 channels 0.75x at 64x64 and
-// 0.87x at 128x128, 16 channels 0.84-0.87x.
+// [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last rows gxp (as
+// padded_input; GradientRows holds them and writes them out). Corners off the input add into the
+// padding; samples wholly outside (the plan's zero block) are skipped, so no two tasks of a phase
+// write the same padding pixel. Every pixel of the input gets the same additions in the same order
+// as in the scatter into the unpadded input that came before (which skipped out-of-range corners),
+// the same bits (with Border::WrapX the first column's additions through the right padding column
+// come last). In one C++ process against that scatter (float32, F195 plans, B8, one thread, the
+// zeroing and the copy out included): 8 channels 0.75x at 64x64 and 0.87x at 128x128, 16 channels
+// 0.84-0.87x.
 // A corner of zero weight adds w * g = +-0, which leaves every value but -0 as it is, and no
 // value here is -0 (the buffer starts at +0, and a sum is -0 only if both terms are): the same
 // bits as skipping it, for every finite gradient (an infinite or NaN one spreads NaN to its
@@ -1366,32 +1382,6 @@ at::Tensor padded_batch_input(const at::Tensor& input, const Geo& g) {
   return out;
 }
 
-// The input gradient [B, C, H, W] in layout fmt from the padded buffer the scatter added into:
-// the padding is dropped, except with Border::WrapX, where the right padding column holds
-// additions to the first column (the left one receives none: wrapped corners start at column 0).
-template <typename T>
-at::Tensor unpadded_gradient(const at::Tensor& padded, const Geo& g, at::MemoryFormat fmt) {
-  at::Tensor gx = at::empty({g.B, g.C, g.H, g.W},
-                            padded.options().memory_format(at::MemoryFormat::ChannelsLast));
-  const int64_t C = g.C, W = g.W, Wp = g.Wp;
-  const T* src = padded.const_data_ptr<T>();
-  T* dst = gx.mutable_data_ptr<T>();
-  const int64_t grain = std::max<int64_t>(1, (1 << 15) / std::max<int64_t>(1, W * C));
-  at::parallel_for(0, g.B * g.H, grain, [&](int64_t r0, int64_t r1) {
-    for (int64_t r = r0; r < r1; ++r) {
-      const int64_t b = r / g.H, y = r % g.H;
-      const T* s = src + ((b * g.Hp + y + 1) * Wp + 1) * C;  // column 0 of padded row y + 1
-      T* d = dst + r * W * C;
-      std::copy(s, s + W * C, d);
-      if (g.wrap) {
-        for (int64_t c = 0; c < C; ++c) d[c] += s[W * C + c];
-      }
-    }
-  });
-  if (fmt == at::MemoryFormat::ChannelsLast) return gx;
-  return nchw<T>(gx);
-}
-
 // Between a float32 weight [C_out, C, K] of one group and its panels [C_out / P, K*C, P] (P =
 // small_panel(C_out); rows in the columns' (tap, channel) order, see weight_columns), either way:
 // 8x8 register transposes of 8 outputs by 8 consecutive (channel, tap) values of their rows, each
@@ -1971,15 +1961,111 @@ int64_t band_rows(const Geo& g, const int32_t* rows) {
   return g.Ho;
 }
 
+// The input gradient as the scatter's tasks build it (grad_input_impl): each task adds into a
+// buffer of the padded rows it touches of one batch item at a time (the plan's `rows` of its
+// output rows, padded as padded_input), which stays in the caches, and writes them out when it
+// is done with the item. A row that only this task touches is final then: its padding columns
+// are dropped (Border::WrapX: the right one's additions folded into the first column) and it
+// goes to the gradient gx (channels-last [B, H, W, C]). A row that a band of the odd phase
+// touches after an even band did is saved whole to a side buffer (`shared`) by the even band and
+// loaded from there by the odd one, so every value receives the same additions in the same order
+// as in one batch-sized padded buffer (the same bits). Before, that buffer (B * Hp * Wp * C
+// values) was faulted in and zeroed row by row, and copied out once the scatter was done
+// (unpadded_gradient): at 32 -> 16 channels on 128x128 maps B8 17 MiB, its page faults and the
+// copy out of memory 3-4% of a forward + backward's perf samples.
+template <typename T>
+class GradientRows {
+ public:
+  // phases: [items * Hp] bit 0 where an even band of the plan item touches the padded row, bit 1
+  // where an odd band does; slot: [items * Hp] the row's index among its item's rows that both
+  // phases touch (shared: [B, slots, Wp, C]); rows: the plan's [items, H_out, 2]; max_rows: the
+  // most padded rows a task touches in one item.
+  GradientRows(const Geo& g, T* gx, T* shared, const uint8_t* phases, const int32_t* slot,
+               int64_t slots, const int32_t* rows, int64_t max_rows)
+      : g_(g), gx_(gx), shared_(shared), phases_(phases), slot_(slot), slots_(slots),
+        rows_(rows), row_(g.Wp * g.C), buf_(max_rows * g.Wp * g.C) {}
+
+  // Starts a task of phase `phase` over the flattened rows [q0, q1).
+  void task(int64_t phase, int64_t q0, int64_t q1) {
+    phase_ = phase;
+    q0_ = q0;
+    q1_ = q1;
+    item_ = -1;
+  }
+  // The padded gradient as the scatter takes it (gxp) for a piece of batch item b of the task:
+  // rows of b's frame, the rows the task touches held in the buffer (the scatter adds
+  // b * frame back).
+  T* piece(int64_t b) {
+    if (b != item_) {
+      finish();
+      open(b);
+    }
+    return reinterpret_cast<T*>(reinterpret_cast<uintptr_t>(buf_.data()) -
+                                static_cast<uintptr_t>((b * g_.Hp + r0_) * row_) * sizeof(T));
+  }
+  // Writes out the rows of the task's last item.
+  void finish() {
+    if (item_ < 0) return;
+    const int64_t it = g_.item(item_), C = g_.C, W = g_.W;
+    for (int64_t r = r0_; r <= r1_; ++r) {
+      const T* s = buf_.data() + (r - r0_) * row_;
+      if (phase_ == 0 && (phases_[it * g_.Hp + r] & 2)) {
+        std::copy(s, s + row_, shared_row(r));
+        continue;
+      }
+      if (r < 1 || r > g_.H) continue;  // a padding row
+      const T* col0 = s + C;
+      T* d = gx_ + ((item_ * g_.H + r - 1) * W) * C;
+      std::copy(col0, col0 + W * C, d);
+      if (g_.wrap) {
+        for (int64_t c = 0; c < C; ++c) d[c] += col0[W * C + c];
+      }
+    }
+    item_ = -1;
+  }
+
+ private:
+  void open(int64_t b) {
+    item_ = b;
+    const int64_t it = g_.item(b);
+    const int64_t p0 = std::max(q0_, b * g_.P) - b * g_.P;
+    const int64_t p1 = std::min(q1_, (b + 1) * g_.P) - b * g_.P;
+    const auto [lo, hi] = input_rows(g_, rows_, it, p0 / g_.Wo, (p1 - 1) / g_.Wo);
+    r0_ = lo + 1;  // input rows y are padded rows y + 1
+    r1_ = hi + 1;
+    for (int64_t r = r0_; r <= r1_; ++r) {
+      T* d = buf_.data() + (r - r0_) * row_;
+      if (phase_ == 1 && (phases_[it * g_.Hp + r] & 1)) {
+        const T* s = shared_row(r);
+        std::copy(s, s + row_, d);
+      } else {
+        std::fill(d, d + row_, T(0));
+      }
+    }
+  }
+  T* shared_row(int64_t r) const {
+    return shared_ + (item_ * slots_ + slot_[g_.item(item_) * g_.Hp + r]) * row_;
+  }
+  const Geo& g_;
+  T* gx_;
+  T* shared_;
+  const uint8_t* phases_;
+  const int32_t* slot_;
+  int64_t slots_;
+  const int32_t* rows_;
+  int64_t row_;
+  Uninit<T> buf_;
+  int64_t phase_ = 0, q0_ = 0, q1_ = 0, item_ = -1, r0_ = 0, r1_ = -1;
+};
+
 // Input gradient, in the input's memory format.
 template <typename T>
 at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tensor& wp,
                            const at::Tensor& gy, const at::Tensor& top_left,
                            const at::Tensor& coef, const at::Tensor& rows) {
   const bool cl_y = !gy.is_contiguous();  // else channels-last (see backward)
-  // Padded channels-last accumulation buffer (as padded_input), zeroed row by row (see zero_rows
-  // below).
-  at::Tensor gx = at::empty({g.B * g.Hp * g.Wp * g.C}, gy.options());
+  at::Tensor gx =
+      at::empty({g.B, g.C, g.H, g.W}, gy.options().memory_format(at::MemoryFormat::ChannelsLast));
   if (poison_scratch.load(std::memory_order_relaxed)) {
     gx.fill_(std::numeric_limits<T>::quiet_NaN());
   }
@@ -1987,49 +2073,40 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const T* wpp = wp.const_data_ptr<T>();
   const int32_t* tp_left = top_left.const_data_ptr<int32_t>();
   const T* cfp = coef.const_data_ptr<T>();
-  T* xp = gx.mutable_data_ptr<T>();
+  T* gxp = gx.mutable_data_ptr<T>();
   const int64_t kc = g.K * g.C, kcg = g.K * g.Cg;
   const int32_t* rows_p = rows.const_data_ptr<int32_t>();
   const int64_t r = band_rows(g, rows_p);
   const int64_t bands = (g.Ho + r - 1) / r;
   const int64_t band_pixels = std::min(g.P, r * g.Wo);
-  // The buffer is not zeroed up front (a pass over memory as large as the input's): every
-  // padded row is zeroed by the phase whose bands first add to it, each band just before its
-  // scatter (the row then in the caches), and the rows that no band adds to are zeroed here.
-  // zero_phase[it * Hp + row]: 1 where an even band (phase 0) of plan item `it` reads the row,
-  // else 2 where an odd band does, else 0. The bands of a phase read disjoint rows (band_rows),
-  // so each row is zeroed once, before its first addition, whatever the thread count.
+  // Which phases touch each padded row of each plan item (GradientRows), the slots of the rows
+  // that both touch, and the most rows a band touches.
   const int64_t plan_items = g.per_item ? g.B : 1;
-  std::vector<uint8_t> zero_phase(plan_items * g.Hp, 0);
+  std::vector<uint8_t> phases(plan_items * g.Hp, 0);
+  std::vector<int32_t> slot(plan_items * g.Hp, 0);
+  int64_t max_rows = 1, slots = 0;
   for (int64_t it = 0; it < plan_items; ++it) {
     for (int64_t band = 0; band < bands; ++band) {
       const auto [lo, hi] =
           input_rows(g, rows_p, it, band * r, std::min(g.Ho, (band + 1) * r) - 1);
-      for (int64_t y = lo; y <= hi; ++y) {
-        uint8_t& z = zero_phase[it * g.Hp + y + 1];
-        if (z != 1) z = band % 2 == 0 ? 1 : 2;
-      }
+      max_rows = std::max(max_rows, hi - lo + 1);
+      for (int64_t y = lo; y <= hi; ++y) phases[it * g.Hp + y + 1] |= band % 2 == 0 ? 1 : 2;
     }
-  }
-  const auto zero_row = [&](int64_t b, int64_t row) {
-    T* d = xp + (b * g.Hp + row) * g.Wp * g.C;
-    std::fill(d, d + g.Wp * g.C, T(0));
-  };
-  for (int64_t b = 0; b < g.B; ++b) {
+    int64_t n = 0;
     for (int64_t row = 0; row < g.Hp; ++row) {
-      if (zero_phase[g.item(b) * g.Hp + row] == 0) zero_row(b, row);
+      if (phases[it * g.Hp + row] == 3) slot[it * g.Hp + row] = static_cast<int32_t>(n++);
+    }
+    slots = std::max(slots, n);
+  }
+  // Input rows that no band touches get no additions: zeros.
+  for (int64_t b = 0; b < g.B; ++b) {
+    for (int64_t y = 0; y < g.H; ++y) {
+      if (phases[g.item(b) * g.Hp + y + 1] != 0) continue;
+      T* d = gxp + (b * g.H + y) * g.W * g.C;
+      std::fill(d, d + g.W * g.C, T(0));
     }
   }
-  // Zeroes the rows that phase `phase`'s task of the flattened rows [q0, q1) zeroes.
-  const auto zero_rows = [&](int64_t phase, int64_t q0, int64_t q1) {
-    for_items(g.P, q0, q1 - q0, [&](int64_t b, int64_t p0, int64_t len, int64_t) {
-      const int64_t it = g.item(b);
-      const auto [lo, hi] = input_rows(g, rows_p, it, p0 / g.Wo, (p0 + len - 1) / g.Wo);
-      for (int64_t y = lo; y <= hi; ++y) {
-        if (zero_phase[it * g.Hp + y + 1] == phase + 1) zero_row(b, y + 1);
-      }
-    });
-  };
+  const Uninit<T> shared(g.B * slots * g.Wp * g.C);
   // A task is one band of one item or, with one band per item, whole items (as many as fill a
   // tile, leaving a task per thread): tasks never share an item's band, so the scatter has no
   // race, and every input pixel receives its contributions in output-pixel order whatever the
@@ -2048,8 +2125,14 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   const at::Tensor wt = dnn ? wp.view({g.Cout, kc}).t().contiguous() : at::Tensor();
   // Rows of a column gradient at a time: a block (few output channels), else the whole tile.
   const int64_t block = small ? small_block_rows(kc, g.Cout, tile) : tile;
+  const auto gradient_rows = [&] {
+    return GradientRows<T>(g, gxp, shared.data(), phases.data(), slot.data(), slots, rows_p,
+                           max_rows);
+  };
   auto init = [&] {
-    return Scratch<T>{Uninit<T>(block * kc), Uninit<T>(cl_y ? 0 : tile * g.Cout)};
+    return std::make_pair(
+        Scratch<T>{Uninit<T>(block * kc), Uninit<T>(cl_y ? 0 : tile * g.Cout)},
+        gradient_rows());
   };
   // Rows [first, second) of the flattened (item, pixel) rows of task `task` of phase `phase`.
   const auto task_rows = [&](int64_t phase, int64_t task) {
@@ -2085,10 +2168,11 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     }
     return buf;
   };
-  // Adds the column gradient src [n, K*C] of rows [q0, q0 + n) to the corners they sampled.
-  const auto scatter_rows = [&](const T* src, int64_t q0, int64_t n) {
+  // Adds the column gradient src [n, K*C] of rows [q0, q0 + n) (of the task `dst` is on) to the
+  // corners they sampled.
+  const auto scatter_rows = [&](GradientRows<T>& dst, const T* src, int64_t q0, int64_t n) {
     for_items(g.P, q0, n, [&](int64_t b, int64_t p0, int64_t len, int64_t off) {
-      kern.scatter(g, xp, tp_left, cfp, b, p0, len, src + off * kc);
+      kern.scatter(g, dst.piece(b), tp_left, cfp, b, p0, len, src + off * kc);
     });
   };
   const int64_t total = g.B * g.P;
@@ -2100,32 +2184,37 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     const T* yt = rows_of(gp, cl_y, g.Cout, g.P, 0, total, ybuf.data());  // [total, C_out]
     at::Tensor hold;
     const T* src = column_gradient(yt, total, cols.data(), hold);
+    GradientRows<T> dst = gradient_rows();
     for (int64_t phase = 0; phase < 2; ++phase) {
       for (int64_t task = 0; task < groups_of_items * ((bands - phase + 1) / 2); ++task) {
         const auto [q_begin, q_end] = task_rows(phase, task);
-        zero_rows(phase, q_begin, q_end);
-        scatter_rows(src + q_begin * kc, q_begin, q_end - q_begin);
+        dst.task(phase, q_begin, q_end);
+        scatter_rows(dst, src + q_begin * kc, q_begin, q_end - q_begin);
+        dst.finish();
       }
     }
-    return unpadded_gradient<T>(gx, g, memory_format(input));
-  }
-  for (int64_t phase = 0; phase < 2; ++phase) {
-    const int64_t phase_bands = (bands - phase + 1) / 2;
-    parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, Scratch<T>& s) {
-      const auto [q_begin, q_end] = task_rows(phase, task);
-      zero_rows(phase, q_begin, q_end);
-      for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
-        const int64_t n = std::min(tile, q_end - q0);
-        const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
-        for (int64_t t0 = 0; t0 < n; t0 += block) {
-          const int64_t m = std::min(block, n - t0);
-          at::Tensor hold;
-          scatter_rows(column_gradient(yt + t0 * g.Cout, m, s.tile.data(), hold), q0 + t0, m);
+  } else {
+    for (int64_t phase = 0; phase < 2; ++phase) {
+      const int64_t phase_bands = (bands - phase + 1) / 2;
+      parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, auto& s) {
+        const auto [q_begin, q_end] = task_rows(phase, task);
+        s.second.task(phase, q_begin, q_end);
+        for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
+          const int64_t n = std::min(tile, q_end - q0);
+          const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.first.y.data());  // [n, C_out]
+          for (int64_t t0 = 0; t0 < n; t0 += block) {
+            const int64_t m = std::min(block, n - t0);
+            at::Tensor hold;
+            scatter_rows(s.second, column_gradient(yt + t0 * g.Cout, m, s.first.tile.data(), hold),
+                         q0 + t0, m);
+          }
         }
-      }
-    });
+        s.second.finish();
+      });
+    }
   }
-  return unpadded_gradient<T>(gx, g, memory_format(input));
+  if (memory_format(input) == at::MemoryFormat::ChannelsLast) return gx;
+  return nchw<T>(gx);
 }
 
 // The coefficients that the kernels of layer g read from the plan's fractions frac [N * 2] (in
