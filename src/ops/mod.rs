@@ -32,7 +32,10 @@
 //!     tiles read into a buffer of one item's frame, which stays in the caches, rather than the
 //!     whole batch up front: one thread, Intel Xeon, calibrated / conv2d, 64->64 at 256x256 B2
 //!     forward 1.16 -> 0.97-0.99x, U-Net training steps of the quick and study profiles
-//!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x); the gather is compiled
+//!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x; that buffer, like every scratch
+//!     buffer, begins on a cache line, so that a pixel of 16 float channels is one line, not
+//!     two: with malloc's 16-byte alignment 16->16 at 128x128 B8 ran its forward at 1.23x or
+//!     1.41x conv2d depending on where the allocator put it); the gather is compiled
 //!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
 //!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32, 64,
 //!     128 and 256 channels in whole 64-byte vectors where the CPU has AVX-512). The kernels
@@ -61,11 +64,14 @@
 //!     it is the GEMM library) from 32 output channels on (below, its reduction over pixels was
 //!     slower than MKL's).
 //!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
-//!     to its four corners of a padded channels-last buffer (from its top-left corner, as the
-//!     gather; the padding is dropped at the end; corners of zero weight too, which leaves
-//!     every finite value's bits as they are, rather than a branch a corner; each row of the
-//!     buffer zeroed by the band that first adds to it, just before, not the whole buffer up
-//!     front). Tiles run in bands of output rows in two
+//!     to its four corners of padded channels-last rows (from its top-left corner, as the
+//!     gather; corners of zero weight too, which leaves every finite value's bits as they are,
+//!     rather than a branch a corner). Each task adds into a per-thread buffer of the rows it
+//!     touches of one item (zeroed, or loaded where a band of the other phase added first) and
+//!     writes them out, padding dropped, when it is done with them; before, a batch-sized
+//!     padded buffer was faulted in, zeroed and copied out at the end (32->16 at 128x128 B8
+//!     f+b 1.29-1.30 -> 1.24-1.26x conv2d, one thread, Intel Xeon). Tiles run in bands of
+//!     output rows in two
 //!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
 //!     16 bands per batch up) for which the input rows read by two bands of the same phase are
 //!     disjoint (from the plan's row ranges); with one band per item a task takes whole items.
