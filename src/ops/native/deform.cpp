@@ -1545,9 +1545,10 @@ at::Tensor grad_weight_first(const Geo& g, const at::Tensor& xsrc, bool batched,
   const float* cfp = coef.const_data_ptr<float>();
   at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
     const Uninit<float> cols(g.B * bt.block * kc), ybuf(cl ? 0 : bt.block * g.Cout);
-    std::vector<float> acc_t(kc * g.Cout);  // panels, as weight_columns
+    const int64_t acc_len = kc * g.Cout;
+    const Uninit<float> acc_t(acc_len);  // panels, as weight_columns (on a cache line)
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
-      std::fill(acc_t.begin(), acc_t.end(), 0.0f);
+      std::fill(acc_t.data(), acc_t.data() + acc_len, 0.0f);
       for (int64_t task = chunk * bt.tasks / chunks; task < (chunk + 1) * bt.tasks / chunks;
            ++task) {
         const int64_t pa = task * bt.per_task, pb = std::min(g.P, pa + bt.per_task);
@@ -1860,10 +1861,12 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
     // Few output channels: the chunk's sum transposed, [K*C, C_out] as panels (weight_columns),
     // written to its accumulator at the end of the chunk in the final order, [C_out, C, K]
     // (panels_to_weight).
-    std::vector<T> acc_t(small ? kc * g.Cout : 0);
+    // (Aligned to a cache line, as Uninit: the kernels read and write it in 64-byte vectors.)
+    const int64_t acc_len = small ? kc * g.Cout : 0;
+    const Uninit<T> acc_t(acc_len);
     for (int64_t chunk = c0; chunk < c1; ++chunk) {
       T* accp = acc(chunk);
-      if (chunk > c0) std::fill(acc_t.begin(), acc_t.end(), T(0));  // (c0's: a new vector)
+      std::fill(acc_t.data(), acc_t.data() + acc_len, T(0));
       T* bt = with_bias ? bp + chunk * g.Cout : nullptr;
       if (bt) std::fill(bt, bt + g.Cout, T(0));
       for (int64_t task = chunk * tasks / chunks; task < (chunk + 1) * tasks / chunks; ++task) {
