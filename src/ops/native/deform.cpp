@@ -640,15 +640,15 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 }
 
 // Adds the column-gradient tile gcols [n, K*C] (layout as the columns) of output pixels
-// [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last rows gxp (as
-// padded_input; GradientRows holds them and writes them out). Corners off the input add into the
-// padding; samples wholly outside (the plan's zero block) are skipped, so no two tasks of a phase
-// write the same padding pixel. Every pixel of the input gets the same additions in the same order
-// as in the scatter into the unpadded input that came before (which skipped out-of-range corners),
-// the same bits (with Border::WrapX the first column's additions through the right padding column
-// come last). In one C++ process against that scatter (float32, F195 plans, B8, one thread, the
-// zeroing and the copy out included): 8 channels 0.75x at 64x64 and 0.87x at 128x128, 16 channels
-// 0.84-0.87x.
+// [p0, p0 + n) of batch item b to the corners they sampled, in the padded channels-last rows gxp
+// (as padded_input; GradientRows holds them and writes them out). Corners off the input add into
+// the padding; samples wholly outside (the plan's zero block) are skipped, so no two tasks of a
+// phase write the same padding pixel. Every pixel of the input gets the same additions in the same
+// order as in the scatter into the unpadded input that came before (which skipped out-of-range
+// corners), the same bits (with Border::WrapX the first column's additions through the right
+// padding column come last). In one C++ process against that scatter (float32, F195 plans, B8, one
+// thread, the zeroing and the copy out included): 8 channels 0.75x at 64x64 and 0.87x at 128x128,
+// 16 channels 0.84-0.87x.
 // A corner of zero weight adds w * g = +-0, which leaves every value but -0 as it is, and no
 // value here is -0 (the buffer starts at +0, and a sum is -0 only if both terms are): the same
 // bits as skipping it, for every finite gradient (an infinite or NaN one spreads NaN to its
@@ -2132,10 +2132,13 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
     return GradientRows<T>(g, gxp, shared.data(), phases.data(), slot.data(), slots, rows_p,
                            max_rows);
   };
+  struct Local {
+    Scratch<T> s;
+    GradientRows<T> dst;
+  };
   auto init = [&] {
-    return std::make_pair(
-        Scratch<T>{Uninit<T>(block * kc), Uninit<T>(cl_y ? 0 : tile * g.Cout)},
-        gradient_rows());
+    return Local{Scratch<T>{Uninit<T>(block * kc), Uninit<T>(cl_y ? 0 : tile * g.Cout)},
+                 gradient_rows()};
   };
   // Rows [first, second) of the flattened (item, pixel) rows of task `task` of phase `phase`.
   const auto task_rows = [&](int64_t phase, int64_t task) {
@@ -2199,20 +2202,21 @@ at::Tensor grad_input_impl(const Geo& g, const at::Tensor& input, const at::Tens
   } else {
     for (int64_t phase = 0; phase < 2; ++phase) {
       const int64_t phase_bands = (bands - phase + 1) / 2;
-      parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, auto& s) {
+      parallel_tasks(groups_of_items * phase_bands, init, [&](int64_t task, Local& local) {
+        Scratch<T>& s = local.s;
         const auto [q_begin, q_end] = task_rows(phase, task);
-        s.second.task(phase, q_begin, q_end);
+        local.dst.task(phase, q_begin, q_end);
         for (int64_t q0 = q_begin; q0 < q_end; q0 += tile) {
           const int64_t n = std::min(tile, q_end - q0);
-          const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.first.y.data());  // [n, C_out]
+          const T* yt = rows_of(gp, cl_y, g.Cout, g.P, q0, n, s.y.data());  // [n, C_out]
           for (int64_t t0 = 0; t0 < n; t0 += block) {
             const int64_t m = std::min(block, n - t0);
             at::Tensor hold;
-            scatter_rows(s.second, column_gradient(yt + t0 * g.Cout, m, s.first.tile.data(), hold),
+            scatter_rows(local.dst, column_gradient(yt + t0 * g.Cout, m, s.tile.data(), hold),
                          q0 + t0, m);
           }
         }
-        s.second.finish();
+        local.dst.finish();
       });
     }
   }
