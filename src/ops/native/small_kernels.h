@@ -103,24 +103,44 @@ int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
 // a[r * ars + k * aks] * b[k * brs + v * L], R rows of a (one scalar each, broadcast) against
 // NV vectors of L floats of a row of b, all R x NV accumulators in registers. Each element adds
 // its products in the order of k (one fused multiply-add each), whatever R, NV and L: the
-// results do not depend on the register blocking.
+// results do not depend on the register blocking. tile_step is one step k.
+//
+// Four steps an iteration: GCC does not unroll the loop over k by itself, and one step an
+// iteration (with R = 6, NV = 4: 4 loads, 6 broadcasts, 24 multiply-adds, then the loop's
+// add, compare and branch) ran at 78 float operations per TSC cycle where this Xeon's two FMA
+// units do 91 (a loop of independent multiply-adds), 84 with four (a standalone loop of the
+// forward of 512 outputs over 4608 steps, 256 rows, -O3; 16 outputs, R = 12: 76 -> 80-82; 64
+// and 128 outputs: 88-89 either way). In the layer (calibconv bench, one thread, 2 rounds
+// alternating, forward, one step -> four): 512->512 at 32x32 B2 1.18 -> 1.09x conv2d, 1024->512
+// 1.18-1.19 -> 1.12-1.15x, 256->128 at 128x128 B2 1.08-1.09 -> 1.01-1.02x, 32->16 at 128x128 B8
+// 1.12-1.13 -> 1.04-1.06x (f+b 1.24-1.26 -> 1.20-1.22x), 16->16 1.21-1.25 -> 1.18x; the same
+// bits (docs/bench/twentieth-session-ab.txt).
+template <int R, int NV, int L>
+CALIBCONV_ALWAYS_INLINE inline void tile_step(typename VecOf<float, L>::type (&acc)[R][NV],
+                                              const float* a, int64_t ars, int64_t aks,
+                                              const float* b, int64_t brs, int64_t k) {
+  using V = typename VecOf<float, L>::type;
+  V w[NV];
+#pragma GCC unroll 4
+  for (int v = 0; v < NV; ++v) w[v] = load<V>(b + k * brs + v * L);
+#pragma GCC unroll 16
+  for (int r = 0; r < R; ++r) {
+    const float s = a[r * ars + k * aks];
+#pragma GCC unroll 4
+    for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
+  }
+}
 template <int R, int NV, int L>
 CALIBCONV_ALWAYS_INLINE inline void tile_product(typename VecOf<float, L>::type (&acc)[R][NV],
                                                  const float* a, int64_t ars, int64_t aks,
                                                  const float* b, int64_t brs, int64_t k0,
                                                  int64_t k1) {
-  using V = typename VecOf<float, L>::type;
-  for (int64_t k = k0; k < k1; ++k) {
-    V w[NV];
+  int64_t k = k0;
+  for (; k + 4 <= k1; k += 4) {
 #pragma GCC unroll 4
-    for (int v = 0; v < NV; ++v) w[v] = load<V>(b + k * brs + v * L);
-#pragma GCC unroll 16
-    for (int r = 0; r < R; ++r) {
-      const float s = a[r * ars + k * aks];
-#pragma GCC unroll 4
-      for (int v = 0; v < NV; ++v) acc[r][v] += s * w[v];
-    }
+    for (int u = 0; u < 4; ++u) tile_step<R, NV, L>(acc, a, ars, aks, b, brs, k + u);
   }
+  for (; k < k1; ++k) tile_step<R, NV, L>(acc, a, ars, aks, b, brs, k);
 }
 
 // acc[r][v] = p[r * rs + v * L] (load), or the reverse (store).
