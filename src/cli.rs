@@ -322,7 +322,7 @@ pub struct BenchArgs {
     #[arg(long, value_enum)]
     pub gemm: Option<GemmChoice>,
     /// The library of the products of large weights where the few-output-channel kernels exist
-    /// (column and weight gradients of weights over 1 MiB, forward over 4 MiB on fewer than 1024
+    /// (column and weight gradients of weights over 4 MiB, and their forward on fewer than 1024
     /// output pixels): `kernels`, `blas`,
     /// or `auto` (the default: the BLAS where it is MKL on an Intel CPU). For A/B timings.
     #[arg(long, value_enum)]

@@ -92,9 +92,9 @@
 //!     shapes a GEMM call costs more in overhead than in arithmetic (at
 //!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread on AMD CPUs; with more
 //!     threads a weight larger than the column matrix goes through the library; where the BLAS
-//!     is MKL on an Intel CPU, which runs its AVX-512 code there, the gradients of weights over 1
-//!     MiB and the forward of weights over 4 MiB on fewer than 1024 output pixels a pass go through
-//!     it, [`LargeWeights`]). Their
+//!     is MKL on an Intel CPU, which runs its AVX-512 code there, the gradients of weights over 4
+//!     MiB and their forward on fewer than 1024 output pixels a pass go through it,
+//!     [`LargeWeights`]). Their
 //!     register blocking is compiled separately for AVX-512 and AVX2 and
 //!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
 //!     without AVX2 use the GEMM library. The forward keeps a row group's accumulators in
@@ -305,9 +305,9 @@ pub enum LargeWeights {
     /// The few-output-channel kernels multiply every product (the default except on Intel CPUs
     /// with MKL).
     Kernels = 1,
-    /// The BLAS computes the column and weight gradients of weights over 1 MiB (from 128->256 and
-    /// 256->128 on) and the forward of weights over 4 MiB (256->512 on) on fewer than 1024 output
-    /// pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where
+    /// The BLAS computes the column and weight gradients of weights over 4 MiB (256->512 and
+    /// 512->256 on; over 1 MiB until the twentieth session) and the forward of such weights on
+    /// fewer than 1024 output pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where
     /// the BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
     /// "Performance").
     Blas = 2,

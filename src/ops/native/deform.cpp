@@ -892,8 +892,8 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
   }
 }
 
-// Which library multiplies large weights (more than SMALL_LARGE_WEIGHT values, 1 MiB: from
-// 128->256 and 256->128 on) where the few-output-channel kernels exist: 0 the CPU's default, 1
+// Which library multiplies large weights (more than BLAS_GRADIENT_WEIGHT values, 4 MiB: from
+// 256->512 and 512->256 on) where the few-output-channel kernels exist: 0 the CPU's default, 1
 // the kernels, 2 the BLAS (calibconv_native_large_weights; `calibconv bench --large-weights`).
 // The default is the BLAS where it is MKL on an Intel CPU, the kernels elsewhere. MKL runs its
 // AVX-512 code on Intel CPUs only (on AMD ones its AVX2 code, which the kernels beat at every
@@ -912,11 +912,20 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
 // more (BLAS -> kernels, two processes: 256->512 at 32x32 B2 1.18-1.19 -> 1.10x, 512->512
 // 1.19-1.22 -> 1.14x, 1024->512 1.24-1.25 -> 1.19-1.21x, 512->256 at 64x64 B2 1.28-1.29 ->
 // 1.14-1.15x) but not with fewer (1024->1024 at 16x16 B2, 512 rows, 1.02-1.03 -> 1.07x); the
-// gradients stay MKL's (through the kernels 1024->512 f+b 1.05 -> 1.79-1.81x).
+// gradients stay MKL's (through the kernels 1024->512 f+b 1.05 -> 1.79-1.81x). Once the loop
+// over k of the kernels' products ran four steps an iteration (twentieth session, tile_product),
+// their gradients beat MKL's at weights of 1-4 MiB, where they had gone to MKL since the
+// fourteenth session (MKL -> kernels, two processes alternating, f+b: one thread 128->256 at 8x8
+// B8 1.11-1.13 -> 1.03-1.04x, 256->128 at 16x16 1.14-1.15 -> 1.10-1.13x, 256->256 at 8x8 1.11 ->
+// 1.11-1.12x, 128->256 at 64x64 B2 1.01 -> 0.97-0.98x, 256->128 at 128x128 1.00-1.01 ->
+// 0.98-1.00x, 256->256 at 64x64 1.01-1.03 -> 1.04-1.05x; two threads 256->256 at 8x8 1.19-1.20 ->
+// 1.15x, 128->256 1.10-1.12 -> 1.02x): BLAS_GRADIENT_WEIGHT. Above 4 MiB MKL's stay far ahead
+// (512->512 at 32x32 B2 1.00 -> 1.28x, 1024->1024 at 16x16 1.06 -> 1.67x).
 enum class LargeWeights : int32_t { Auto = 0, Kernels = 1, Blas = 2 };
 std::atomic<int32_t> large_weights_override{static_cast<int32_t>(LargeWeights::Auto)};
 constexpr int64_t BLAS_FORWARD_WEIGHT = 1 << 20;
 constexpr int64_t BLAS_FORWARD_MIN_ROWS = 1024;
+constexpr int64_t BLAS_GRADIENT_WEIGHT = 1 << 20;
 
 bool large_weights_to_blas() {
   switch (static_cast<LargeWeights>(large_weights_override.load())) {
@@ -956,7 +965,7 @@ SmallKernels small_kernels(const Geo& g) {
   }
   SmallKernels s = small_kernels_for(g.Cout, kc);
   const int64_t weight = kc * g.Cout;
-  if (s && weight > SMALL_LARGE_WEIGHT && large_weights_to_blas()) {
+  if (s && weight > BLAS_GRADIENT_WEIGHT && large_weights_to_blas()) {
     if (weight > BLAS_FORWARD_WEIGHT && total < BLAS_FORWARD_MIN_ROWS) return {};
     s.column_gradient = nullptr;
     s.weight_gradient = nullptr;
