@@ -16,7 +16,7 @@
 //! - [`ops`]: the deformable convolution with fixed offsets, with torchvision `deform_conv2d`
 //!   semantics, from a precomputed (and cached) sampling plan: native C++ kernels on the CPU (a
 //!   custom autograd function; 0.8-1.4x `conv2d` per layer and 1.0-1.1x a U-Net training step
-//!   on one thread on an AMD Zen 4, 0.3-1.3x and 1.00-1.10x on an Intel Xeon, see the README's
+//!   on one thread on an AMD Zen 4, 0.6-1.3x and 1.02-1.06x on an Intel Xeon, see the README's
 //!   "Performance"), differentiable ATen ops elsewhere (CUDA, untested on hardware).
 //! - [`nn`]: layers: [`nn::CalibratedConv2d`] (same parameter names and shapes as a standard
 //!   convolution), the conv-kind factory the networks use, and [`nn::UNet`], the paper's
