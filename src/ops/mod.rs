@@ -307,9 +307,9 @@ pub enum LargeWeights {
     Kernels = 1,
     /// The BLAS computes the column and weight gradients of weights over 4 MiB (256->512 and
     /// 512->256 on; over 1 MiB until the twentieth session) and the forward of such weights on
-    /// fewer than 1024 output pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where
-    /// the BLAS is MKL on an Intel CPU, which runs its AVX-512 code there only (README,
-    /// "Performance").
+    /// fewer than 1024 output pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps
+    /// at B2): the default where the BLAS is MKL on an Intel CPU, which runs its AVX-512 code
+    /// there only (README, "Performance").
     Blas = 2,
 }
 

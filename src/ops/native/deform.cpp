@@ -892,7 +892,7 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
   }
 }
 
-// Which library multiplies large weights (more than BLAS_GRADIENT_WEIGHT values, 4 MiB: from
+// Which library multiplies large weights (more than BLAS_WEIGHT values, 4 MiB: from
 // 256->512 and 512->256 on) where the few-output-channel kernels exist: 0 the CPU's default, 1
 // the kernels, 2 the BLAS (calibconv_native_large_weights; `calibconv bench --large-weights`).
 // The default is the BLAS where it is MKL on an Intel CPU, the kernels elsewhere. MKL runs its
@@ -903,7 +903,7 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
 // BLAS for both gradients: 1024->1024 at 16x16 B2 f+b 1.72 -> 1.10x, 1024->512 at 32x32 B2
 // 1.79 -> 1.07x, 512->512 1.23 -> 1.04x, 256->256 at 64x64 B2 1.50 -> 1.07x, 256->128 at 16x16
 // B8 1.51 -> 1.21x, 256->256 at 8x8 B8 1.23 -> 1.15x, 128->256 at 8x8 1.22 -> 1.15x; its
-// forward beat the kernels' from weights of 4 MiB (BLAS_FORWARD_WEIGHT) on (1024->1024 1.23 ->
+// forward beat the kernels' from weights of 4 MiB (BLAS_WEIGHT) on (1024->1024 1.23 ->
 // 1.03x, 1024->512 1.39 -> 1.22x, 512->512 1.30 -> 1.22x) but not below (256->256 at 8x8 1.25
 // -> 1.26x, 128->256 1.16 -> 1.20x). Smaller weights keep the kernels there too (64->64 at 32x32
 // B8 forward 1.24x against 1.34x through MKL, 32->16 at 128x128 1.41x against 1.72x). Once the
@@ -919,13 +919,14 @@ CALIBCONV_CLONES void batch_gather(const Geo& g, const float* xq, const int32_t*
 // B8 1.11-1.13 -> 1.03-1.04x, 256->128 at 16x16 1.14-1.15 -> 1.10-1.13x, 256->256 at 8x8 1.11 ->
 // 1.11-1.12x, 128->256 at 64x64 B2 1.01 -> 0.97-0.98x, 256->128 at 128x128 1.00-1.01 ->
 // 0.98-1.00x, 256->256 at 64x64 1.01-1.03 -> 1.04-1.05x; two threads 256->256 at 8x8 1.19-1.20 ->
-// 1.15x, 128->256 1.10-1.12 -> 1.02x): BLAS_GRADIENT_WEIGHT. Above 4 MiB MKL's stay far ahead
+// 1.15x, 128->256 1.10-1.12 -> 1.02x): BLAS_WEIGHT. Above 4 MiB MKL's stay far ahead
 // (512->512 at 32x32 B2 1.00 -> 1.28x, 1024->1024 at 16x16 1.06 -> 1.67x).
 enum class LargeWeights : int32_t { Auto = 0, Kernels = 1, Blas = 2 };
 std::atomic<int32_t> large_weights_override{static_cast<int32_t>(LargeWeights::Auto)};
-constexpr int64_t BLAS_FORWARD_WEIGHT = 1 << 20;
+// Weights over BLAS_WEIGHT values go to the BLAS: their gradients always, their forward on
+// fewer than BLAS_FORWARD_MIN_ROWS rows a pass.
+constexpr int64_t BLAS_WEIGHT = 1 << 20;
 constexpr int64_t BLAS_FORWARD_MIN_ROWS = 1024;
-constexpr int64_t BLAS_GRADIENT_WEIGHT = 1 << 20;
 
 bool large_weights_to_blas() {
   switch (static_cast<LargeWeights>(large_weights_override.load())) {
@@ -965,8 +966,8 @@ SmallKernels small_kernels(const Geo& g) {
   }
   SmallKernels s = small_kernels_for(g.Cout, kc);
   const int64_t weight = kc * g.Cout;
-  if (s && weight > BLAS_GRADIENT_WEIGHT && large_weights_to_blas()) {
-    if (weight > BLAS_FORWARD_WEIGHT && total < BLAS_FORWARD_MIN_ROWS) return {};
+  if (s && weight > BLAS_WEIGHT && large_weights_to_blas()) {
+    if (total < BLAS_FORWARD_MIN_ROWS) return {};
     s.column_gradient = nullptr;
     s.weight_gradient = nullptr;
   }
