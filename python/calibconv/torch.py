@@ -33,6 +33,16 @@ __all__ = ["CalibratedConv2d", "calibrate", "export_onnx", "MIN_DEFORM_CONV_OPSE
 #: ``DeformConv`` entered the ONNX standard domain in opset 19.
 MIN_DEFORM_CONV_OPSET = 19
 
+#: Elements of torchvision's column buffer (``C_in * kh * kw`` for every output pixel of every
+#: item it processes at once) that one ``deform_conv2d`` call may have. torchvision 0.26's CUDA
+#: kernel fails with an illegal memory access in the backward pass above some such size (H200:
+#: 64->64 at 960x1088, batch 8, 2.24 * 2^31 elements, fails; batch 4, 1.12 * 2^31, works; the
+#: forward works at both): the classic U-Net at the paper's input size and batch. The forward
+#: splits the batch into chunks of at most this many elements (whole items; one item always
+#: goes alone) and concatenates the outputs, which is the same computation (items are
+#: independent; the weight gradient sums over the chunks). ``tools/cuda_check.py`` measures it.
+MAX_COLUMN_ELEMENTS = 2**31 - 1
+
 
 def _pair(v) -> Tuple[int, int]:
     if isinstance(v, (tuple, list)):
@@ -137,15 +147,22 @@ class CalibratedConv2d(nn.Conv2d):
                 f"offsets were made for {self.input_size}: calibrate the model for this input size"
             )
         off = self.offsets if self.offsets.dtype == x.dtype else self.offsets.to(x.dtype)
-        return deform_conv2d(
-            x,
-            off.expand(x.shape[0], -1, -1, -1),
-            self.weight,
-            self.bias,
-            stride=self.stride,
-            padding=_numeric_padding(self),
-            dilation=self.dilation,
-        )
+        kh, kw = self.kernel_size
+        per_item = self.in_channels * kh * kw * off.shape[2] * off.shape[3]
+        chunk = max(1, MAX_COLUMN_ELEMENTS // per_item)
+        pieces = [
+            deform_conv2d(
+                part,
+                off.expand(part.shape[0], -1, -1, -1),
+                self.weight,
+                self.bias,
+                stride=self.stride,
+                padding=_numeric_padding(self),
+                dilation=self.dilation,
+            )
+            for part in (x.split(chunk) if x.shape[0] > chunk else (x,))
+        ]
+        return pieces[0] if len(pieces) == 1 else torch.cat(pieces)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", input_size={self.input_size}"

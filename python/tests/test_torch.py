@@ -1,5 +1,6 @@
 """calibconv.torch: CalibratedConv2d and calibrate() on torchvision's resnet18 and a
-milesial-style U-Net (CPU; the CUDA path is the same code but untested here)."""
+milesial-style U-Net, on the CPU (test_devices.py repeats the numerical cases on CUDA where
+torch sees a GPU)."""
 
 import numpy as np
 import pytest
