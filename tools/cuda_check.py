@@ -4,20 +4,22 @@
     python tools/cuda_check.py --out DIR --device cpu --small   # the same script, CPU, small
 
 Needs torch, torchvision, numpy, pytest, safetensors and the calibconv wheel installed (the
-README's "The Python package on a GPU" gives the commands used on the device machine, which has
-no Rust toolchain: the abi3 wheel is built here and carried there).
+README's "From Python" section gives the commands used on a GPU machine without a Rust
+toolchain: the abi3 wheel is built elsewhere and installed there with ``--no-deps``).
 
 1. pytest ``python/tests/test_devices.py`` (CPU float32; CUDA float32 and float64; all against
    a float64 CPU reference) and ``python/tests/test_torch.py``; JUnit XML to DIR/pytest.xml.
    Skipped with ``--no-tests``.
-2. Timings on ``--device``, one process, interleaved (A, B, A, B, ...), medians of ``--reps``
+2. Timings on ``--device``, each case in its own child process (a CUDA fault such as an illegal
+   memory access leaves a process's CUDA context unusable: the case is recorded as failed with
+   the error's line and the next one runs), interleaved (A, B, A, B, ...), medians of ``--reps``
    after one warm-up each, the device synchronised around every call:
    - one layer, ``torchvision.ops.deform_conv2d`` with F195 offsets (what ``CalibratedConv2d``
      runs) against ``conv2d``, forward and forward+backward, at the 3x3 layers of the classic
      U-Net (base 64, batch 8) at the paper's 960x1088 input;
    - the whole classic U-Net (``tools/reference_unet.py``, transposed up-sampling), one training
      step (forward, cross-entropy over 2 classes, backward, SGD step), calibrated by
-     ``calibconv.torch.calibrate`` against standard, batch 8 at 960x1088 and at 128x144.
+     ``calibconv.torch.calibrate`` against standard, batch 8 at 960x1088, 480x544 and 128x144.
 3. Peak memory of each U-Net step in its own pass after the timings
    (``torch.cuda.max_memory_allocated``; CUDA only).
 Writes DIR/cuda-check.json (environment, test counts, every median and ratio) and prints a table.
@@ -176,7 +178,12 @@ def one_case(case: list, common: list) -> dict:
     lines = r.stdout.strip().splitlines()
     if r.returncode == 0 and lines:
         return json.loads(lines[-1])
-    errors = [ln for ln in r.stderr.splitlines() if "Error" in ln] or r.stderr.splitlines()[-1:]
+    # The exception's own line ("torch.AcceleratorError: CUDA error: an illegal memory access
+    # was encountered"), not the hints printed after it.
+    import re
+
+    errors = [ln for ln in r.stderr.splitlines() if re.match(r"[\w.]+(Error|Exception): ", ln)]
+    errors = errors or r.stderr.strip().splitlines()[-1:]
     key = "layer" if kind == "layer" else "input"
     return {key: name, "batch": args[-1] if kind == "layer" else args[2],
             "error": errors[-1] if errors else f"exit status {r.returncode}"}

@@ -32,3 +32,12 @@ def test_small_cpu_run_writes_every_ratio(tmp_path):
         assert set(r["forward_s"]) == {"conv2d", "calibrated"}
     (unet,) = report["unet"]
     assert unet["input"] == "64x72" and unet["ratio"] > 0 and "peak_bytes" not in unet
+
+
+def test_a_failing_case_is_recorded_with_its_exception_line(tmp_path):
+    # F195 needs a map at least 4 px wide for a 3x3 kernel: the child process raises, the row
+    # names the layer and the exception, and the caller goes on.
+    row = cuda_check.one_case(["layer", 3, 4, 2, 3, 2],
+                              ["--out", str(tmp_path), "--device", "cpu", "--reps", "1"])
+    assert row["layer"] == "3->4@2x3" and row["batch"] == 2
+    assert row["error"].startswith("ValueError: ") and "field of view" in row["error"]
