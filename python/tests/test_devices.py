@@ -75,8 +75,12 @@ def run(module, x, upstream):
     return out.detach(), grads
 
 
+def layer_id(c):
+    return f"{c[0]}to{c[1]}-{c[2][0]}x{c[2][1]}-k{c[3]}s{c[4]}d{c[5]}g{c[6]}"
+
+
 @pytest.mark.parametrize("device,dtype", DEVICES, ids=ids(DEVICES))
-@pytest.mark.parametrize("case", LAYERS, ids=lambda c: f"{c[0]}to{c[1]}-{c[2][0]}x{c[2][1]}-k{c[3]}s{c[4]}d{c[5]}g{c[6]}")
+@pytest.mark.parametrize("case", LAYERS, ids=layer_id)
 def test_layer_matches_float64_cpu(device, dtype, case):
     torch.manual_seed(1)
     ref = calibrated_layer(*case)
