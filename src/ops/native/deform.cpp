@@ -1361,7 +1361,7 @@ at::Tensor padded_input(const at::Tensor& input, const Geo& g) {
 // its three channels' four values are loaded as vectors and transposed into four pixels of
 // [c0, c1, c2, 0], each one 16-byte store. (Before: a whole-row fill with zeros, then each
 // item's channel copied at a stride of pix values, one scalar store a value: tiny's first layer,
-// 3->8 at 64x64 B8, 61 -> 43 us a call at one thread, 37 -> 27 us at two; the same values.)
+// 3->8 at 64x64 B8, 61 -> 43 us a call at one thread, 44-46 -> 27 us at two; the same values.)
 CALIBCONV_CLONES void pad_batch_row(const float* __restrict row, int64_t sb, int64_t sc, int64_t sw,
                                     int64_t B, int64_t W, int64_t pix, float* __restrict o) {
   typedef float v4 __attribute__((vector_size(16)));
@@ -1665,7 +1665,8 @@ at::Tensor forward_batch(const Geo& g, const at::Tensor& input, const at::Tensor
   // out as threads come free (parallel_tasks): padded_batch_input split its rows between the
   // threads the same way, so a thread's tasks (output rows) mostly read the padded rows it wrote,
   // from its own L2. (tiny's first layer, 3->8 at 64x64 B8, two threads, forward: the tasks took
-  // 322 us a call handed out, 280 us in ranges; calibrated / conv2d 1.25-1.37 -> 1.12-1.19x.)
+  // 322 us a call handed out, 280 us in ranges; with pad_batch_row, calibrated / conv2d 1.29-1.34
+  // -> 1.08-1.10x, docs/bench/twenty-first-session-ab.txt.)
   at::parallel_for(0, bt.tasks, 1, [&](int64_t t0, int64_t t1) {
     Scratch<float> s = init();
     for (int64_t task = t0; task < t1; ++task) {
