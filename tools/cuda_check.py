@@ -84,6 +84,10 @@ def classic_layers(h: int, w: int, base: int = 64):
     return list(dict.fromkeys(layers))
 
 
+def layer_name(cin, cout, h, w) -> str:
+    return f"{cin}->{cout}@{h}x{w}"
+
+
 def time_layer(cin, cout, h, w, batch, device, reps):
     import calibconv
 
@@ -109,7 +113,7 @@ def time_layer(cin, cout, h, w, batch, device, reps):
         fwd = interleaved({"conv2d": conv, "calibrated": calibrated}, device, reps)
     both = interleaved({"conv2d": fb(conv), "calibrated": fb(calibrated)}, device, reps)
     return {
-        "layer": f"{cin}->{cout}@{h}x{w}",
+        "layer": layer_name(cin, cout, h, w),
         "batch": batch,
         "forward_s": fwd,
         "forward_backward_s": both,
@@ -158,9 +162,6 @@ def time_unet(h, w, batch, base, device, reps):
             peak[k] = torch.cuda.max_memory_allocated(device)
         row["peak_bytes"] = peak
         row["peak_ratio"] = peak["calibrated"] / peak["standard"]
-    del steps
-    if device.type == "cuda":
-        torch.cuda.empty_cache()
     return row
 
 
@@ -171,8 +172,7 @@ def one_case(case: list, common: list) -> dict:
     import subprocess
 
     kind, *args = case
-    name = (f"{args[0]}->{args[1]}@{args[2]}x{args[3]}" if kind == "layer"
-            else f"{args[0]}x{args[1]}")
+    name = layer_name(*args[:4]) if kind == "layer" else f"{args[0]}x{args[1]}"
     r = subprocess.run([sys.executable, __file__, "--case", json.dumps(case), *common],
                        capture_output=True, text=True)
     lines = r.stdout.strip().splitlines()
@@ -217,6 +217,7 @@ def main(argv=None) -> int:
     ap.add_argument("--case", help=argparse.SUPPRESS)  # one timing case (a child process)
     a = ap.parse_args(argv)
     device = torch.device(a.device)
+    torch.backends.cudnn.benchmark = False  # the default, stated: cases time fixed algorithms
     if a.case:
         kind, *args = json.loads(a.case)
         row = (time_layer(*args, device, a.reps) if kind == "layer"
@@ -224,7 +225,6 @@ def main(argv=None) -> int:
         print(json.dumps(row))
         return 0
     a.out.mkdir(parents=True, exist_ok=True)
-    torch.backends.cudnn.benchmark = False
     env = {
         "python": platform.python_version(), "torch": torch.__version__,
         "torchvision": torchvision.__version__, "device": a.device,
