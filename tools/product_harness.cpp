@@ -36,10 +36,8 @@ namespace {
 struct Layer {
   int64_t cin, cout, rows, block;
   int64_t kc() const { return 9 * cin; }
-  // The columns a slab buffer holds (column_slabs in deform.cpp).
-  int64_t width() const {
-    return small_large_weight(kc(), cout) ? std::min(kc(), SMALL_SLAB) : kc();
-  }
+  // The columns a slab buffer holds (as deform.cpp's column_slabs).
+  int64_t width() const { return small_slab_width(kc(), cout); }
 };
 
 // y [rows, cout] = bias + columns [rows, kc] @ W^T, W [cout, kc] stored as panels wt (see

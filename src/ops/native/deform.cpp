@@ -1121,7 +1121,7 @@ struct ColumnSlabs {
 ColumnSlabs column_slabs(const Geo& g, bool small, bool kept) {
   const int64_t kc = g.K * g.C;
   const bool on = small && small_large_weight(kc, g.Cout) && !kept;
-  return {on, on ? std::min(kc, SMALL_SLAB) : kc};
+  return {on, on ? small_slab_width(kc, g.Cout) : kc};
 }
 
 // For column_slabs layers: gathers the slabs of the rows [q0, q0 + m) one after the other into

@@ -84,6 +84,11 @@ constexpr int64_t SMALL_SLAB = 512;
 constexpr bool small_large_weight(int64_t kc, int64_t cout) {
   return kc * cout > SMALL_LARGE_WEIGHT;
 }
+// The columns a block's gathered row holds for the few-output-channel kernels (its row stride):
+// a slab of a large weight's, else all kc (deform.cpp's column_slabs, tools/product_harness.cpp).
+constexpr int64_t small_slab_width(int64_t kc, int64_t cout) {
+  return small_large_weight(kc, cout) ? std::min(kc, SMALL_SLAB) : kc;
+}
 // The end of the slab that column a is in (slabs counted from column 0), at most s1.
 constexpr int64_t slab_end(int64_t a, int64_t s1) {
   return std::min(s1, (a / SMALL_SLAB + 1) * SMALL_SLAB);
