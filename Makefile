@@ -7,7 +7,7 @@ REQ_HASH := $(shell sha256sum requirements.txt | cut -c1-16)
 VENV_CACHE ?= $(HOME)/.cache/calibconv/venv-$(REQ_HASH)
 STAMP := $(VENV_CACHE)/.complete
 
-.PHONY: setup test demo study bench fixtures lint
+.PHONY: setup test demo study bench fixtures lint gpu-build
 
 # Always runs: builds the venv of this requirements.txt's hash if the cache lacks it, and points
 # .venv at it (a checkout whose .venv links an older venv switches when requirements.txt changes).
@@ -67,6 +67,12 @@ study: setup
 
 bench: setup
 	cargo run --release -- bench
+
+# calibconv for the GPU machine's torch 2.11 (tch 0.24), in target/gpu/ (binary + CUDA test
+# executable); its own venv and lock file (tools/gpu/Cargo.lock), main's build untouched.
+# Not part of `make test` (it downloads 4.6 GB the first time). See tools/gpu/build.sh.
+gpu-build:
+	bash tools/gpu/build.sh
 
 fixtures: setup
 	.venv/bin/python tools/make_fixtures.py tests/golden

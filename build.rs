@@ -1,5 +1,9 @@
 //! Embeds an rpath to libtorch (from torch-sys's `DEP_TCH_LIBTORCH_LIB`) so binaries and tests
-//! run without `LD_LIBRARY_PATH`, checks that the venv's torch is the version tch expects, and
+//! run without `LD_LIBRARY_PATH`, checks that the venv's torch is the version tch expects (the
+//! tch version read from `Cargo.lock`: 0.26 needs torch 2.13, 0.24 torch 2.11), links
+//! libtorch's CUDA backend where the libtorch has one (`libtorch_cuda.so`: rustc links with
+//! `--as-needed`, and nothing in the crate references a CUDA symbol, so without
+//! `--no-as-needed` the library is dropped and the CUDA backend never registers), and
 //! compiles the native CPU kernels (`src/ops/native/deform.cpp`) against the same libtorch
 //! headers (C++17, the ABI torch-sys uses, OpenMP for `at::parallel_for`); on success it sets
 //! `cfg(calibconv_native)`, on failure it warns and the crate uses the ATen composition (and the
@@ -8,7 +12,8 @@
 
 use std::path::PathBuf;
 
-const TORCH_VERSION: &str = "2.13.0";
+/// The libtorch release each tch release is built for (tch's own table, per minor version).
+const TORCH_FOR_TCH: [(&str, &str); 2] = [("0.26", "2.13.0"), ("0.24", "2.11.0")];
 
 /// The native kernels' source.
 const NATIVE_SRC: &str = "src/ops/native/deform.cpp";
@@ -18,12 +23,30 @@ const NATIVE_HEADERS: [&str; 2] = ["src/ops/native/simd.h", "src/ops/native/smal
 fn main() {
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
     println!("cargo:rustc-check-cfg=cfg(calibconv_native)");
+    let tch = tch_version();
+    println!("cargo:rustc-env=CALIBCONV_TCH_VERSION={tch}");
     let Ok(lib) = std::env::var("DEP_TCH_LIBTORCH_LIB") else {
+        println!("cargo:rustc-env=CALIBCONV_LIBTORCH_VERSION=unknown");
+        println!("cargo:rustc-env=CALIBCONV_CUDA_LINKED=0");
         return;
     };
     let lib = PathBuf::from(&lib);
     let lib = lib.canonicalize().unwrap_or(lib);
     println!("cargo:rustc-link-arg=-Wl,-rpath,{}", lib.display());
+    let cuda = lib.join("libtorch_cuda.so").is_file();
+    if cuda {
+        // Every binary and test executable of the package (rustc-link-arg reaches them all).
+        println!(
+            "cargo:rustc-link-arg=-Wl,-L{},--no-as-needed,-ltorch_cuda,--as-needed",
+            lib.display()
+        );
+    }
+    println!("cargo:rustc-env=CALIBCONV_CUDA_LINKED={}", u8::from(cuda));
+    let want = TORCH_FOR_TCH
+        .iter()
+        .find(|(t, _)| tch.starts_with(&format!("{t}.")))
+        .map(|(_, torch)| *torch)
+        .unwrap_or_else(|| panic!("calibconv does not know which torch tch {tch} needs"));
     // The pip wheel has no `build-version` file, so torch-sys cannot check it: do it here.
     let version_py = lib.join("..").join("version.py");
     if let Ok(text) = std::fs::read_to_string(&version_py) {
@@ -33,14 +56,38 @@ fn main() {
             .find_map(|l| l.strip_prefix("__version__ = "))
             .map(|v| v.trim_matches(|c| c == '\'' || c == '"').to_string())
             .unwrap_or_default();
-        if !found.starts_with(TORCH_VERSION) {
+        if !found.starts_with(want) {
             panic!(
-                "calibconv needs torch=={TORCH_VERSION} (tch 0.26), found {found:?} in {}; run `make setup`",
+                "calibconv needs torch=={want} (tch {tch}), found {found:?} in {}; run `make setup`",
                 version_py.display()
             );
         }
+        println!("cargo:rustc-env=CALIBCONV_LIBTORCH_VERSION={found}");
+    } else {
+        println!("cargo:rustc-env=CALIBCONV_LIBTORCH_VERSION={want}");
     }
     compile_native(&lib);
+}
+
+/// The version of `tch` in the workspace's `Cargo.lock` (beside the manifest).
+fn tch_version() -> String {
+    let lock = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").expect("cargo sets it"))
+        .join("Cargo.lock");
+    println!("cargo:rerun-if-changed={}", lock.display());
+    let text = std::fs::read_to_string(&lock)
+        .unwrap_or_else(|e| panic!("cannot read {}: {e}", lock.display()));
+    let mut lines = text.lines();
+    while let Some(line) = lines.next() {
+        if line.trim() == "name = \"tch\"" {
+            if let Some(v) = lines
+                .next()
+                .and_then(|l| l.trim().strip_prefix("version = "))
+            {
+                return v.trim_matches('"').to_string();
+            }
+        }
+    }
+    panic!("no tch package in {}", lock.display())
 }
 
 /// Compiles [`NATIVE_SRC`] into a static library linked into the crate and sets

@@ -31,6 +31,11 @@ pub enum Command {
     /// presets), offsets + plans for the camera's U-Net pyramid, and a U-Net training step; peak
     /// memory afterwards in a second process.
     Bench(BenchArgs),
+    /// Benchmark on a device (the GPU check): the calibrated layers of U-Net presets against
+    /// `conv2d` (cuDNN on CUDA) and U-Net training steps standard against calibrated,
+    /// synchronised, interleaved, medians with 95% intervals of the ratios; peak memory per
+    /// step in child processes.
+    BenchDevice(BenchDeviceArgs),
     /// Camera files: import a calibration from another tool.
     Camera(CameraArgs),
     /// Write data sets of fisheye / perspective / rectified views (RGB, depth, labels, mask)
@@ -52,9 +57,49 @@ pub enum Command {
     /// order (fine-tunings after their baseline): complete runs are skipped, interrupted ones
     /// resumed, failures reported at the end (exit status 1) without stopping the others.
     Sweep(SweepArgs),
+    /// What this build runs on: libtorch (version, folder), tch, whether libtorch's CUDA backend
+    /// is linked, CUDA devices, cuDNN, the native CPU kernels and threads.
+    Info(InfoArgs),
     /// Tables (Markdown, CSV), radial plots, qualitative grids, a point cloud and REPORT.md from
     /// the run directories of a sweep's output folder (e.g. results/quick).
     Report(ReportArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct BenchDeviceArgs {
+    /// `cpu`, `cuda` or `cuda:N`.
+    #[arg(long, default_value = "cuda")]
+    pub device: String,
+    /// Camera whose calibrated offsets the layers use.
+    #[arg(long, default_value = "data/cameras/f195.toml")]
+    pub camera: PathBuf,
+    /// Time every distinct 3x3 layer of a U-Net preset at an input size and batch,
+    /// `PRESET:HxW:B` (e.g. `classic:1088x960:8`, the paper's). Repeatable.
+    #[arg(long = "layers", value_name = "PRESET:HxW:B")]
+    pub layers: Vec<String>,
+    /// Time training steps of a U-Net preset, standard against calibrated, `PRESET:HxW:B`.
+    /// Repeatable.
+    #[arg(long = "step", value_name = "PRESET:HxW:B")]
+    pub steps: Vec<String>,
+    /// Paired repetitions per row.
+    #[arg(long, default_value_t = 15)]
+    pub reps: usize,
+    /// Skip the peak-memory children of the steps.
+    #[arg(long)]
+    pub no_memory: bool,
+    /// Write the results as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Internal: the memory child, `KERNEL` standard or calibrated, for the one `--step`.
+    #[arg(long, hide = true, value_name = "KERNEL")]
+    pub memory_child: Option<String>,
+}
+
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// Print JSON (one object) instead of lines.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Debug, Args)]

@@ -51,6 +51,8 @@
 //!   `REPORT.md`).
 //! - [`bench`](mod@bench): the benchmark `calibconv bench` runs (paired, interleaved timings of the
 //!   calibrated convolution against `conv2d`, and a peak-memory pass).
+//! - [`device`]: what the process runs on (libtorch, its CUDA backend, GPUs, CPU kernels), as
+//!   `calibconv info` prints it, and the check of an experiment's `device` field.
 //! - [`io`]: atomic file output used by every writer.
 //! - [`plots`]: line plots with bands (radial metrics, validation curves, the FOV gain), drawn
 //!   by evaluations and reports alike.
@@ -60,6 +62,7 @@
 pub mod bench;
 pub mod camera;
 pub mod data;
+pub mod device;
 pub mod error;
 pub mod eval;
 pub mod experiment;

@@ -44,6 +44,7 @@
 //! real on Linux only (elsewhere they report nothing). The CLI wrapper
 //! (`src/commands/bench.rs`) parses flags, loads the camera and runs the memory child.
 
+pub mod device;
 mod measure;
 mod proc;
 

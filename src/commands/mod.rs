@@ -2,11 +2,13 @@
 //! wire files and output). Shared helpers live here.
 
 mod bench;
+mod bench_device;
 mod camera;
 pub(crate) mod convert;
 mod demo;
 mod eval;
 pub(crate) mod export;
+mod info;
 mod kernels;
 mod offsets;
 mod report;
@@ -32,10 +34,12 @@ pub fn run(command: Command) -> Result<()> {
         Command::Kernels(args) => kernels::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::BenchDevice(args) => bench_device::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Camera(args) => camera::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Info(args) => info::run(args),
         Command::Convert(args) => convert::run(args),
         Command::Export(args) => export::run(args),
         Command::Sweep(args) => sweep::run(args),

@@ -64,6 +64,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
     if args.dry_run {
         return Ok(());
     }
+    announce_devices(&plan)?;
     write_study()?;
     let start = std::time::Instant::now();
     let outcomes = sweep::run_sweep(
@@ -100,6 +101,23 @@ fn print_plan(plan: &[Planned]) -> Result<()> {
             } else {
                 format!(" (after {})", p.deps.join(", "))
             }
+        );
+    }
+    Ok(())
+}
+
+/// Checks every run's `device` before any work (`cuda` without CUDA is an error naming the
+/// file), and says on stderr what each distinct setting resolved to.
+fn announce_devices(plan: &[Planned]) -> Result<()> {
+    let mut seen = std::collections::BTreeMap::new();
+    for p in plan {
+        let device = p.exp.device()?;
+        seen.entry(p.exp.device.clone()).or_insert((device, 0)).1 += 1;
+    }
+    for (spec, (device, runs)) in seen {
+        eprintln!(
+            "device = \"{spec}\" -> {} ({runs} run(s))",
+            calibconv::device::describe(device)
         );
     }
     Ok(())

@@ -123,7 +123,7 @@ fn record_invocation(exp: &Experiment, command: &str, details: InvocationDetails
         git: git_revision(),
         calibconv_version: env!("CARGO_PKG_VERSION").into(),
         device: exp.device.clone(),
-        resolved_device: exp.device().ok().map(|d| format!("{d:?}")),
+        resolved_device: exp.device().ok().map(crate::device::describe),
         torch_threads: i64::from(tch::get_num_threads()),
         args: std::env::args().collect(),
         pid: Some(std::process::id()),
@@ -305,6 +305,8 @@ fn open_validation_source(
 /// Trains `exp` (from scratch, from its initial checkpoint, or resumed), then runs its
 /// evaluations on the best checkpoint, holding the run directory's lock.
 pub fn train(exp: &Experiment, opts: &RunOptions<'_>) -> Result<TrainOutcome> {
+    // An unavailable device is refused before the run directory is made.
+    exp.device()?;
     let lock = run_dir(exp).lock()?;
     train_locked(exp, opts, &lock)
 }
@@ -455,7 +457,7 @@ fn checkpoint_info(exp: &Experiment) -> CheckpointInfo {
 /// The status line before training `exp` on `train_len` (and `val_len`) samples.
 fn announce_training(exp: &Experiment, train_len: usize, val_len: Option<usize>, device: Device) {
     eprintln!(
-        "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {:?} in {}",
+        "training {} ({}, {} kernels, {}x{} input, {} train samples{}) on {} (device = \"{}\") in {}",
         exp.name,
         checkpoint::describe(&exp.model),
         exp.kernel.as_str(),
@@ -463,7 +465,8 @@ fn announce_training(exp: &Experiment, train_len: usize, val_len: Option<usize>,
         exp.input.size[1],
         train_len,
         val_len.map(|n| format!(", {n} val")).unwrap_or_default(),
-        device,
+        crate::device::describe(device),
+        exp.device,
         exp.run_dir.display()
     );
 }

@@ -11,7 +11,7 @@ use tch::Device;
 use super::{KernelName, SourceSpec};
 use crate::camera::{Camera, PixelConvention};
 use crate::data::loader::Augment;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::eval::metrics::Metric;
 use crate::kernel::InputFrame;
 use crate::loss::DepthLoss;
@@ -141,26 +141,11 @@ pub struct Experiment {
 }
 
 impl Experiment {
-    /// The device named by `device`.
+    /// The device named by `device`, checked against this process (`cuda` without CUDA is an
+    /// error naming the file and the field: see [`crate::device::resolve`]).
     pub fn device(&self) -> Result<Device> {
-        parse_device(&self.device)
+        crate::device::resolve(&self.device, &self.file, "device")
     }
 }
 
-/// `auto` | `cpu` | `cuda` | `cuda:N`.
-pub fn parse_device(s: &str) -> Result<Device> {
-    match s {
-        "auto" => Ok(Device::cuda_if_available()),
-        "cpu" => Ok(Device::Cpu),
-        "cuda" => Ok(Device::Cuda(0)),
-        other => other
-            .strip_prefix("cuda:")
-            .and_then(|n| n.parse::<usize>().ok())
-            .map(Device::Cuda)
-            .ok_or_else(|| {
-                Error::InvalidArgument(format!(
-                    "unknown device `{other}` (expected auto, cpu, cuda or cuda:N)"
-                ))
-            }),
-    }
-}
+pub use crate::device::parse as parse_device;
