@@ -128,8 +128,9 @@ pub(super) fn radtan(
 ) -> PinholeRadTan {
     PinholeRadTan::unchecked(
         Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
-        k,
+        [k[0], k[1], k[2], 0.0, 0.0, 0.0],
         p,
+        0.0,
     )
 }
 

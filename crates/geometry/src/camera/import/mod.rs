@@ -358,6 +358,8 @@ fn principal_row(camera: &Camera) -> f64 {
         Camera::DoubleSphere(m) => m.cy,
         Camera::Unified(m) => m.cy,
         Camera::ExtendedUnified(m) => m.cy,
+        Camera::Mei(m) => m.cy,
+        Camera::Fov(m) => m.cy,
         Camera::Scaramuzza(m) => m.cy,
         Camera::Equirectangular(m) => m.cv,
     }
