@@ -274,14 +274,16 @@ fn command_line_names_parse_and_list_the_choices() {
     assert_eq!(
         "x".parse::<Format>(),
         Err(
-            "unknown format `x` (expected kalibr, opencv, basalt, colmap or ocamcalib)".to_string()
+            "unknown format `x` (expected kalibr, opencv, basalt, colmap, ocamcalib, ros or \
+             orbslam3)"
+                .to_string()
         )
     );
     assert_eq!(
         "x".parse::<OpenCvModel>(),
         Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
     );
-    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib", "ros", "orbslam3"] {
         assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
     }
 }
