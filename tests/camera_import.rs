@@ -202,7 +202,10 @@ fn opencv_four_coefficients_need_the_model() {
         "[ -0.1, 0.01, 0., 0., 0., 0., 0., 0., 0.003, 0., 0., 0. ]",
     );
     let e = import_text(Format::OpenCv, &prism, path, &ImportOptions::default()).unwrap_err();
-    assert_contains(&e.to_string(), &["thin-prism", "distortion_coefficients[8]"]);
+    assert_contains(
+        &e.to_string(),
+        &["thin-prism", "distortion_coefficients[8]"],
+    );
     // Skew is refused, naming the entry.
     let skew = AMBIGUOUS.replace("[ 300., 0., 320.", "[ 300., 0.5, 320.");
     let e = import_text(Format::OpenCv, &skew, path, &with(OpenCvModel::Standard)).unwrap_err();
@@ -254,7 +257,10 @@ fn fov_mei_and_rational_models_import() {
     let Camera::Mei(mei) = import(Format::Kalibr, kalibr, Some(6), Some(180.0)).camera else {
         panic!("cam6 is not mei")
     };
-    assert_eq!((mei.xi, mei.fx, mei.k, mei.p), (0.9, 350.0, [-0.1, 0.02], [0.0, 0.0]));
+    assert_eq!(
+        (mei.xi, mei.fx, mei.k, mei.p),
+        (0.9, 350.0, [-0.1, 0.02], [0.0, 0.0])
+    );
     let basalt = import(Format::Basalt, "basalt_calibration.json", Some(5), None).camera;
     let Camera::PinholeRadTan(r8) = basalt else {
         panic!("{basalt:?}")
@@ -421,7 +427,11 @@ fn import_cli(format: &str, source: &Path, camera: &str, out: &Path) -> Output {
 fn cli_unsupported_model_fails_naming_it_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let source = dir.path().join("cameras.txt");
-    std::fs::write(&source, "7 THIN_PRISM_FISHEYE 64 48 1 1 1 1 0 0 0 0 0 0 0 0 0 0\n").unwrap();
+    std::fs::write(
+        &source,
+        "7 THIN_PRISM_FISHEYE 64 48 1 1 1 1 0 0 0 0 0 0 0 0 0 0\n",
+    )
+    .unwrap();
     let out = dir.path().join("prism.toml");
     let err = failed(import_cli("colmap", &source, "7", &out));
     assert_contains(&err, &["`THIN_PRISM_FISHEYE`", "cameras.txt"]);
@@ -472,7 +482,10 @@ fn cli_folding_camera_reports_the_image_outside() {
     )));
     assert!(stdout.contains("outside the model"), "{stdout}");
     let text = std::fs::read_to_string(&out).unwrap();
-    assert!(text.contains("% of the image lies outside the model"), "{text}");
+    assert!(
+        text.contains("% of the image lies outside the model"),
+        "{text}"
+    );
     let cam = camera::load(&out).unwrap();
     assert_eq!(cam.unproject([0.0, 0.0]), None);
 }

@@ -58,8 +58,22 @@ fn fixtures() -> Vec<(Format, String)> {
 
 /// Tokens that stress number parsing and the models' checks.
 const NASTY: [&str; 16] = [
-    "nan", ".nan", "inf", "-inf", "1e308", "-1e308", "1e-320", "0", "-0.0", "99999999999",
-    "-1", "3.5e+002", "1.", "[", "{", "\"",
+    "nan",
+    ".nan",
+    "inf",
+    "-inf",
+    "1e308",
+    "-1e308",
+    "1e-320",
+    "0",
+    "-0.0",
+    "99999999999",
+    "-1",
+    "3.5e+002",
+    "1.",
+    "[",
+    "{",
+    "\"",
 ];
 
 /// One random edit of `bytes`.
@@ -108,7 +122,15 @@ fn mutate(rng: &mut Rng, bytes: &mut Vec<u8>) {
 fn options(rng: &mut Rng) -> ImportOptions {
     ImportOptions {
         camera: [None, None, None, None, Some(0), Some(1), Some(2), Some(3)][rng.below(8)],
-        fov_deg: [None, None, None, None, Some(150.0), Some(359.0), Some(f64::NAN)][rng.below(7)],
+        fov_deg: [
+            None,
+            None,
+            None,
+            None,
+            Some(150.0),
+            Some(359.0),
+            Some(f64::NAN),
+        ][rng.below(7)],
         opencv_model: None,
     }
 }
@@ -150,7 +172,10 @@ fn mutated_files_of_every_format_never_panic() {
     }
     // About one mutated file in nine still imports (403 of 3600), so the models' constructors
     // are exercised too.
-    assert!(cases >= 3000 && imported > cases / 20, "{imported} of {cases} imported");
+    assert!(
+        cases >= 3000 && imported > cases / 20,
+        "{imported} of {cases} imported"
+    );
 }
 
 #[test]

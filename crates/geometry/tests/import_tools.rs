@@ -25,7 +25,9 @@ const ROUND_TRIP_PX_TOL: f64 = 1e-6;
 const GRID: usize = 64;
 
 fn golden(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/golden").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/golden")
+        .join(name)
 }
 
 #[derive(serde::Deserialize)]
@@ -83,7 +85,12 @@ fn every_tool_projects_like_its_own_model() {
         // A pinhole's pixels are outside the model only past a fold (a fisheye's may also lie
         // outside its projection's domain, such as beyond Mei's disc for xi > 1).
         if case.model == "pinhole-radtan" {
-            assert_eq!(imported.outside > 0.0, case.folds, "{what}: {}", imported.outside);
+            assert_eq!(
+                imported.outside > 0.0,
+                case.folds,
+                "{what}: {}",
+                imported.outside
+            );
         }
     }
 }
@@ -109,7 +116,10 @@ fn round_trips_inside_the_domain(cam: &Camera, what: &str) {
             assert!(err <= ROUND_TRIP_PX_TOL, "{what} {px:?}: {err} px");
         }
     }
-    assert!(inside > GRID * GRID / 4, "{what}: only {inside} pixels unproject");
+    assert!(
+        inside > GRID * GRID / 4,
+        "{what}: only {inside} pixels unproject"
+    );
 }
 
 /// The fold of COLMAP camera 2 (FULL_OPENCV): the import succeeds with its domain, says how much
@@ -130,7 +140,10 @@ fn a_fold_inside_the_image_imports_with_its_domain() {
         imported.outside
     );
     assert!(
-        imported.notes.iter().any(|n| n.contains("outside the model")),
+        imported
+            .notes
+            .iter()
+            .any(|n| n.contains("outside the model")),
         "{:?}",
         imported.notes
     );
@@ -139,7 +152,10 @@ fn a_fold_inside_the_image_imports_with_its_domain() {
     assert!(cam.unproject([960.0, 540.0]).is_some());
     // The field of view ends at the fold: 2 atan(r_fold) with r_fold = 0.941.
     let fov = cam.fov().to_degrees();
-    assert!((fov - 2.0 * 0.941f64.atan().to_degrees()).abs() < 0.1, "{fov}");
+    assert!(
+        (fov - 2.0 * 0.941f64.atan().to_degrees()).abs() < 0.1,
+        "{fov}"
+    );
 }
 
 /// The same camera, spelt by OpenCV's calibration sample in YAML and in XML, imports the same.
@@ -158,7 +174,14 @@ fn opencv_yaml_and_xml_of_the_old_sample_are_the_same_camera() {
     };
     // 6.5746697944293521e+002 and -5.7843597214487474e-001, bit for bit.
     assert_eq!(r.fx, 657.46697944293521);
-    assert_eq!(r.k, [-0.41802327176423804, 0.50715244063187526, -0.57843597214487474]);
+    assert_eq!(
+        r.k,
+        [
+            -0.41802327176423804,
+            0.50715244063187526,
+            -0.57843597214487474
+        ]
+    );
 }
 
 /// `text` imported as `format` from `name` fails naming the file and `field`.
@@ -185,7 +208,13 @@ fn refusals_name_the_file_and_the_field() {
     let ros = read("ros_ost.yaml");
     let skewed = ros.replacen(", 0.0, 366.304669", ", 0.75, 366.304669", 1);
     assert_ne!(skewed, ros);
-    refused(Format::Ros, &skewed, &none, "camera_matrix[0][1]", &["skew"]);
+    refused(
+        Format::Ros,
+        &skewed,
+        &none,
+        "camera_matrix[0][1]",
+        &["skew"],
+    );
     refused(
         Format::Ros,
         &ros.replace("plumb_bob", "fisheye_ext"),
@@ -213,7 +242,13 @@ fn refusals_name_the_file_and_the_field() {
         camera: Some(1),
         ..Default::default()
     };
-    refused(Format::OrbSlam3, &orb, &second, "Camera2.fx", &["second camera"]);
+    refused(
+        Format::OrbSlam3,
+        &orb,
+        &second,
+        "Camera2.fx",
+        &["second camera"],
+    );
     // ost.txt without its distortion line; OpenCV thin-prism terms.
     let txt = read("ros_ost.txt");
     let broken = txt.replacen("distortion\n", "distortion_x\n", 1);
@@ -225,9 +260,10 @@ fn refusals_name_the_file_and_the_field() {
         &["missing"],
     );
     let xml = read("opencv_rational.xml");
-    let prism = xml
-        .replace("<rows>8</rows>", "<rows>12</rows>")
-        .replace("</data></distortion_coefficients>", " 0. 0.01 0. 0.</data></distortion_coefficients>");
+    let prism = xml.replace("<rows>8</rows>", "<rows>12</rows>").replace(
+        "</data></distortion_coefficients>",
+        " 0. 0.01 0. 0.</data></distortion_coefficients>",
+    );
     refused(
         Format::OpenCv,
         &prism,

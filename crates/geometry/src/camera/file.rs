@@ -671,7 +671,10 @@ mod tests {
         // The rational model's fields are optional and read back; a negative bound is refused.
         let rational = format!("{text}k4 = 0.1\nk5 = 0.0\nk6 = 0.01\nrpmax = 1.5\n");
         let cam = parse(&rational, Path::new("rational.toml")).unwrap();
-        assert_eq!(parse(&to_toml(&cam, &[], None, None), Path::new("back")).unwrap(), cam);
+        assert_eq!(
+            parse(&to_toml(&cam, &[], None, None), Path::new("back")).unwrap(),
+            cam
+        );
         let negative = rational.replace("rpmax = 1.5", "rpmax = -1.0");
         assert_refused(&negative, "rpmax", &[">= 0"]);
     }

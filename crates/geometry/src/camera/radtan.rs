@@ -67,11 +67,7 @@ impl RadTan {
     /// The distortion with its domain: the radial fold, limited to `bound` when `bound > 0`
     /// (Basalt's `rpmax`; 0 means none).
     pub fn new(k: [f64; 6], p: [f64; 2], bound: f64) -> Self {
-        let mut d = RadTan {
-            k,
-            p,
-            r_max: 0.0,
-        };
+        let mut d = RadTan { k, p, r_max: 0.0 };
         d.r_max = d.find_r_max();
         if bound > 0.0 {
             d.r_max = d.r_max.min(bound);
@@ -243,7 +239,11 @@ mod tests {
                 for r in 0..2 {
                     let fd = (fa[r] - fb[r]) / (2.0 * h);
                     // Truncation ~h^2 |f'''| ~ 1e-12, cancellation ~1e-16 / 1e-6 = 1e-10.
-                    assert!((fd - j[r][c]).abs() < 1e-8, "{m:?} {r}{c}: {fd} vs {}", j[r][c]);
+                    assert!(
+                        (fd - j[r][c]).abs() < 1e-8,
+                        "{m:?} {r}{c}: {fd} vs {}",
+                        j[r][c]
+                    );
                 }
             }
         }

@@ -143,7 +143,10 @@ mod tests {
     fn a_bracket_without_a_root_is_none_not_its_end() {
         // x^3 + 1 > 0 on [0, 2]: the bracket shrinks onto 0, where the residual is 1.
         let shifted = |x: f64| (x * x * x + 1.0, 3.0 * x * x);
-        assert_eq!(increasing_root(shifted, [0.0, 2.0], 1.0, [1e-14, 1e-9]), None);
+        assert_eq!(
+            increasing_root(shifted, [0.0, 2.0], 1.0, [1e-14, 1e-9]),
+            None
+        );
     }
 
     #[test]

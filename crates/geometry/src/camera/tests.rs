@@ -283,7 +283,15 @@ fn command_line_names_parse_and_list_the_choices() {
         "x".parse::<OpenCvModel>(),
         Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
     );
-    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib", "ros", "orbslam3"] {
+    for name in [
+        "kalibr",
+        "opencv",
+        "basalt",
+        "colmap",
+        "ocamcalib",
+        "ros",
+        "orbslam3",
+    ] {
         assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
     }
 }

@@ -124,7 +124,9 @@ fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> 
             count(12, "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6")?;
             Model::RadTan {
                 f: [params[0], params[1], params[2] - c, params[3] - c],
-                k: [params[4], params[5], params[8], params[9], params[10], params[11]],
+                k: [
+                    params[4], params[5], params[8], params[9], params[10], params[11],
+                ],
                 p: [params[6], params[7]],
                 rpmax: 0.0,
             }

@@ -183,7 +183,9 @@ impl Entry<'_> {
                 return Err(camera_error(
                     path,
                     &field("camera_model"),
-                    format!("Kalibr model `{name}` is not supported (supported: {KALIBR_SUPPORTED})"),
+                    format!(
+                        "Kalibr model `{name}` is not supported (supported: {KALIBR_SUPPORTED})"
+                    ),
                 ));
             }
         })

@@ -319,9 +319,7 @@ fn probe(model: &Model, size: [usize; 2]) -> Option<Camera> {
         Model::DoubleSphere { f, xi, alpha } => {
             Camera::DoubleSphere(DoubleSphere::unchecked(intrinsics(f), xi, alpha, fov_deg))
         }
-        Model::Mei { f, xi, k, p } => {
-            Camera::Mei(Mei::unchecked(intrinsics(f), xi, k, p, fov_deg))
-        }
+        Model::Mei { f, xi, k, p } => Camera::Mei(Mei::unchecked(intrinsics(f), xi, k, p, fov_deg)),
         Model::Fov { f, w } => Camera::Fov(Fov::unchecked(intrinsics(f), w, fov_deg)),
         Model::Unified { f, alpha } => {
             Camera::Unified(Unified::unchecked(intrinsics(f), alpha, fov_deg))
@@ -489,7 +487,15 @@ mod tests {
 
     #[test]
     fn formats_and_models_parse_from_their_names() {
-        for f in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib", "ros", "orbslam3"] {
+        for f in [
+            "kalibr",
+            "opencv",
+            "basalt",
+            "colmap",
+            "ocamcalib",
+            "ros",
+            "orbslam3",
+        ] {
             assert_eq!(f.parse::<Format>().unwrap().to_string(), f);
         }
         assert!("matlab".parse::<Format>().unwrap_err().contains("kalibr"));

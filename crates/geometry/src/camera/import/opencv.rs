@@ -264,10 +264,12 @@ fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
             "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
                 Some(OpenCvModel::Fisheye)
             }
-            "plumb_bob" | "rational_polynomial" | "radtan" | "radial-tangential" | "standard"
-            | "pinhole" => {
-                Some(OpenCvModel::Standard)
-            }
+            "plumb_bob"
+            | "rational_polynomial"
+            | "radtan"
+            | "radial-tangential"
+            | "standard"
+            | "pinhole" => Some(OpenCvModel::Standard),
             other => {
                 return Err(camera_error(
                     path,

@@ -58,9 +58,8 @@ fn read_yaml(text: &str, path: &Path) -> Result<Parsed> {
             ))
         }
     };
-    let (d_key, d_value) = first_key(&tree, &["distortion_coefficients"]).ok_or_else(|| {
-        camera_error(path, "distortion_coefficients", "missing".to_string())
-    })?;
+    let (d_key, d_value) = first_key(&tree, &["distortion_coefficients"])
+        .ok_or_else(|| camera_error(path, "distortion_coefficients", "missing".to_string()))?;
     let d = matrix(d_value, path, d_key)?;
     let model_name = match first_key(&tree, &["distortion_model"]) {
         Some((_, Value::String(s))) => s.clone(),
@@ -143,7 +142,9 @@ fn read_txt(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> 
         let names: Vec<&str> = blocks.iter().map(|b| b.name.as_str()).collect();
         format_error(
             path,
-            format!("no camera {n} in the file (its camera sections: {names:?}); choose with --camera"),
+            format!(
+                "no camera {n} in the file (its camera sections: {names:?}); choose with --camera"
+            ),
         )
     })?;
     let section = |key: &str| format!("[{}] {key}", block.name);
