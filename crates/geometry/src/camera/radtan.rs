@@ -61,16 +61,34 @@ pub(crate) struct RadTan {
     pub p: [f64; 2],
     /// End of the monotonic radial range (or the source's bound), may be infinite.
     pub r_max: f64,
+    /// No point of the domain distorts farther than this from the centre (see
+    /// [`RadTan::new`]); infinite with `r_max`.
+    rd_bound: f64,
 }
 
 impl RadTan {
     /// The distortion with its domain: the radial fold, limited to `bound` when `bound > 0`
     /// (Basalt's `rpmax`; 0 means none).
     pub fn new(k: [f64; 6], p: [f64; 2], bound: f64) -> Self {
-        let mut d = RadTan { k, p, r_max: 0.0 };
+        let mut d = RadTan {
+            k,
+            p,
+            r_max: 0.0,
+            rd_bound: f64::INFINITY,
+        };
         d.r_max = d.find_r_max();
         if bound > 0.0 {
             d.r_max = d.r_max.min(bound);
+        }
+        // The radial part r R(r^2) increases up to r_max, and the tangential part is at most
+        // 3 (|p1| + |p2|) r^2 long: a target beyond their sum at r_max (plus round-off) has no
+        // preimage in the domain, so `undistort` refuses it without iterating (past a fold, a
+        // damped Newton would otherwise halve its way through every iteration first).
+        if d.r_max.is_finite() {
+            let (s, [p1, p2]) = (d.r_max * d.r_max, d.p);
+            let (radial, _, _) = d.radial(s);
+            let reach = d.r_max * radial.abs() + 3.0 * (p1.abs() + p2.abs()) * s;
+            d.rd_bound = reach * (1.0 + 1e-9) + 1e-12;
         }
         d
     }
@@ -151,6 +169,9 @@ impl RadTan {
     /// [`RESIDUAL_TOL`] in [`MAX_ITER`] steps or the iteration stalls first.
     pub fn undistort(&self, target: [f64; 2]) -> Option<([f64; 2], usize)> {
         if !(target[0].is_finite() && target[1].is_finite()) {
+            return None;
+        }
+        if target[0].hypot(target[1]) > self.rd_bound {
             return None;
         }
         let residual = |m: [f64; 2]| {
