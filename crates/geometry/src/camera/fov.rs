@@ -73,8 +73,8 @@ impl Fov {
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None`. With `u = fx x g + cx`, `g = alpha / (w q)`:
-    /// `dalpha/dq = T z / (z^2 + T^2 q^2)`, `dalpha/dz = -T q / (z^2 + T^2 q^2)` (`T = 2 tan(w/2)`),
+    /// `project` is `None`. With `u = fx x g + cx`, `g = alpha / (w q)`, `T = 2 tan(w/2)`:
+    /// `dalpha/dq = T z / (z^2 + T^2 q^2)`, `dalpha/dz = -T q / (z^2 + T^2 q^2)`,
     /// `dg/dq = (q dalpha/dq - alpha) / (w q^2)`, `dg/dz = dalpha/dz / (w q)`; on the axis
     /// `g = T / (w z)` with zero derivatives.
     pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
