@@ -12,8 +12,8 @@
 //! Section 3.1), [`Pinhole`], [`PinholeRadTan`] (OpenCV's 5- and 8-coefficient distortion),
 //! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Mei`] (Mei's
 //! unified model with radial-tangential distortion), [`Fov`] (Devernay and Faugeras),
-//! [`Scaramuzza`] (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model whose kernels wrap
-//! horizontally). [`import`] reads the calibration files of other tools.
+//! [`Scaramuzza`] (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model
+//! whose kernels wrap horizontally). [`import`] reads the calibration files of other tools.
 //!
 //! A model's file also owns its camera-file schema: its `Raw` fields, its `validate()` (which its
 //! `new` calls, so every camera in the program is checked) and its fields for [`to_toml`]. What
