@@ -276,8 +276,15 @@ mod tests {
     fn a_stalled_newton_is_none_not_a_wrong_point() {
         let d = RadTan::new([-0.5, 0.0, 0.0, 0.0, 0.0, 0.0], [0.002, -0.001], 0.0);
         let edge = d.distort([d.r_max, 0.0])[0];
-        for scale in [1.001, 1.05, 1.5, 3.0] {
+        // Just past the fold (within the quick reach bound, so Newton runs) and far past it.
+        for scale in [1.001, 1.005, 1.5, 3.0] {
             assert_eq!(d.undistort([edge * scale, 0.01]), None, "{scale}");
+        }
+        // Targets where the halved steps stalled next to the fold: without the residual check
+        // these came back as points whose distortion misses them by 0.0025 to 0.0035
+        // (~1.5 px at fx = 500).
+        for target in [[-0.5487, -0.0302], [-0.5487, -0.0181], [-0.5487, -0.0060]] {
+            assert_eq!(d.undistort(target), None, "{target:?}");
         }
         for scale in [0.2, 0.6, 0.9] {
             let (m, _) = d.undistort([edge * scale, 0.01]).unwrap();
