@@ -179,21 +179,23 @@ pub struct CameraArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum CameraCommand {
-    /// Convert a calibration of Kalibr (camchain YAML), OpenCV (FileStorage YAML / JSON), Basalt
-    /// (calibration JSON), COLMAP (cameras.txt) or OCamCalib (calib_results.txt) into a camera
-    /// file (TOML with named fields), checked like any camera file.
+    /// Convert a calibration of Kalibr (camchain YAML), OpenCV (FileStorage YAML / XML / JSON),
+    /// Basalt (calibration JSON), COLMAP (cameras.txt), OCamCalib (calib_results.txt), ROS
+    /// camera_calibration (ost.yaml / ost.txt) or ORB-SLAM3 (settings YAML) into a camera file
+    /// (TOML with named fields), checked like any camera file.
     Import(ImportArgs),
 }
 
 #[derive(Debug, Args)]
 pub struct ImportArgs {
-    /// Source tool: kalibr, opencv, basalt, colmap or ocamcalib.
+    /// Source tool: kalibr, opencv, basalt, colmap, ocamcalib, ros or orbslam3.
     #[arg(long = "from")]
     pub from: Format,
     /// The calibration file.
     pub file: PathBuf,
-    /// Which camera: Kalibr camN and Basalt intrinsics[N] (default 0), COLMAP CAMERA_ID
-    /// (default: the first listed).
+    /// Which camera: Kalibr camN, Basalt intrinsics[N], the N-th camera of a ROS ost.txt,
+    /// ORB-SLAM3 0 (Camera1) or 1 (Camera2) (default 0); COLMAP CAMERA_ID (default: the first
+    /// listed).
     #[arg(long)]
     pub camera: Option<usize>,
     /// Full field of view of a fisheye lens in degrees (default: the angle the image width

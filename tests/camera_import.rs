@@ -187,17 +187,29 @@ fn opencv_four_coefficients_need_the_model() {
         panic!("not Kannala-Brandt")
     };
     assert_eq!(k.k, [-0.1, 0.01, 0.0, 0.0]);
-    // The rational model is refused, naming it.
+    // The rational model (8 coefficients) reads; thin-prism terms are refused, naming them.
     let rational = AMBIGUOUS.replace("cols: 4", "cols: 8").replace(
         "[ -0.1, 0.01, 0., 0. ]",
         "[ -0.1, 0.01, 0., 0., 0., 0.2, 0., 0. ]",
     );
-    let e = import_text(Format::OpenCv, &rational, path, &ImportOptions::default()).unwrap_err();
-    assert!(e.to_string().contains("rational"), "{e}");
-    // Skew is refused.
+    let imported = import_text(Format::OpenCv, &rational, path, &ImportOptions::default());
+    let Camera::PinholeRadTan(r) = imported.unwrap().camera else {
+        panic!("not radtan")
+    };
+    assert_eq!((r.k, r.k_den), ([-0.1, 0.01, 0.0], [0.2, 0.0, 0.0]));
+    let prism = AMBIGUOUS.replace("cols: 4", "cols: 12").replace(
+        "[ -0.1, 0.01, 0., 0. ]",
+        "[ -0.1, 0.01, 0., 0., 0., 0., 0., 0., 0.003, 0., 0., 0. ]",
+    );
+    let e = import_text(Format::OpenCv, &prism, path, &ImportOptions::default()).unwrap_err();
+    assert_contains(
+        &e.to_string(),
+        &["thin-prism", "distortion_coefficients[8]"],
+    );
+    // Skew is refused, naming the entry.
     let skew = AMBIGUOUS.replace("[ 300., 0., 320.", "[ 300., 0.5, 320.");
     let e = import_text(Format::OpenCv, &skew, path, &with(OpenCvModel::Standard)).unwrap_err();
-    assert!(e.to_string().contains("skew"), "{e}");
+    assert_contains(&e.to_string(), &["skew", "camera_matrix[0][1]"]);
 }
 
 /// The cameras of the Basalt and COLMAP fixtures that are shipped camera files.
@@ -232,7 +244,37 @@ fn basalt_and_colmap_cameras_are_the_shipped_files() {
     }
 }
 
-/// Models a camera file cannot hold, and cameras a file does not have: errors naming them.
+/// The models these fixtures once held as unsupported examples: Kalibr pinhole-fov and
+/// omni-radtan, Basalt pinhole-radtan8, COLMAP FOV (their projections are checked against
+/// the tools' models in crates/geometry/tests/import_tools.rs).
+#[test]
+fn fov_mei_and_rational_models_import() {
+    let kalibr = "kalibr_camchain.yaml";
+    let Camera::Fov(fov) = import(Format::Kalibr, kalibr, Some(5), None).camera else {
+        panic!("cam5 is not fov")
+    };
+    assert_eq!((fov.w, fov.fx, fov.cx), (0.93, 300.0, 320.0));
+    let Camera::Mei(mei) = import(Format::Kalibr, kalibr, Some(6), Some(180.0)).camera else {
+        panic!("cam6 is not mei")
+    };
+    assert_eq!(
+        (mei.xi, mei.fx, mei.k, mei.p),
+        (0.9, 350.0, [-0.1, 0.02], [0.0, 0.0])
+    );
+    let basalt = import(Format::Basalt, "basalt_calibration.json", Some(5), None).camera;
+    let Camera::PinholeRadTan(r8) = basalt else {
+        panic!("{basalt:?}")
+    };
+    assert_eq!((r8.k, r8.rpmax), ([0.1, 0.0, 0.0], 2.0));
+    let colmap = import(Format::Colmap, "colmap_cameras.txt", Some(7), None).camera;
+    let Camera::Fov(fov) = colmap else {
+        panic!("{colmap:?}")
+    };
+    // COLMAP's centre of the top-left pixel is (0.5, 0.5).
+    assert_eq!((fov.w, fov.cx, fov.cy), (0.9, 319.5, 239.5));
+}
+
+/// Models no camera file can hold, and cameras a file does not have: errors naming them.
 #[test]
 fn unsupported_models_and_missing_cameras_are_named() {
     let kalibr = "kalibr_camchain.yaml";
@@ -241,27 +283,34 @@ fn unsupported_models_and_missing_cameras_are_named() {
         (
             Format::Kalibr,
             kalibr,
-            5,
-            &["pinhole-fov", "not supported", "cam5"][..],
-        ),
-        (Format::Kalibr, kalibr, 6, &["omni-radtan", "non-zero"]),
-        (
-            Format::Kalibr,
-            kalibr,
             9,
-            &["cam9", "cam0", "kalibr_camchain.yaml"],
-        ),
-        (
-            Format::Basalt,
-            basalt,
-            5,
-            &["pinhole-radtan8", "not supported"],
+            &["cam9", "cam0", "kalibr_camchain.yaml"][..],
         ),
         (Format::Basalt, basalt, 6, &["6 camera(s)"]),
-        (Format::Colmap, colmap, 7, &["`FOV`", "not supported"]),
         (Format::Colmap, colmap, 42, &["CAMERA_ID 42"]),
     ] {
         assert_contains(&import_err(format, name, Some(camera)), parts);
+    }
+    let path = Path::new("inline/unsupported");
+    for (format, text, parts) in [
+        (
+            Format::Kalibr,
+            "cam0:\n  camera_model: ds\n  distortion_model: radtan\n  intrinsics: [0, 0.5, 1, 1, 1, 1]\n  distortion_coeffs: [0.1, 0, 0, 0]\n  resolution: [64, 48]\n",
+            &["`ds-radtan`", "not supported", "cam0.camera_model"][..],
+        ),
+        (
+            Format::Colmap,
+            "1 THIN_PRISM_FISHEYE 64 48 1 1 1 1 0 0 0 0 0 0 0 0 0 0\n",
+            &["`THIN_PRISM_FISHEYE`", "not supported"],
+        ),
+        (
+            Format::Basalt,
+            r#"{"value0": {"intrinsics": [{"camera_type": "bal", "intrinsics": {"fx": 1.0}}], "resolution": [[64, 48]]}}"#,
+            &["`bal`", "not supported"],
+        ),
+    ] {
+        let e = import_text(format, text, path, &ImportOptions::default()).unwrap_err();
+        assert_contains(&e.to_string(), &[&["inline/unsupported"][..], parts].concat());
     }
 }
 
@@ -377,15 +426,66 @@ fn import_cli(format: &str, source: &Path, camera: &str, out: &Path) -> Output {
 #[test]
 fn cli_unsupported_model_fails_naming_it_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("fov.toml");
-    let source = calib("colmap_cameras.txt");
+    let source = dir.path().join("cameras.txt");
+    std::fs::write(
+        &source,
+        "7 THIN_PRISM_FISHEYE 64 48 1 1 1 1 0 0 0 0 0 0 0 0 0 0\n",
+    )
+    .unwrap();
+    let out = dir.path().join("prism.toml");
     let err = failed(import_cli("colmap", &source, "7", &out));
-    assert_contains(&err, &["`FOV`", "colmap_cameras.txt"]);
+    assert_contains(&err, &["`THIN_PRISM_FISHEYE`", "cameras.txt"]);
     assert!(!out.exists());
-    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     // An unknown source format is a usage error listing the formats.
     let err = failed(calibconv(&[
         "camera", "import", "--from", "matlab", "x", "--out", "y.toml",
     ]));
-    assert!(err.contains("ocamcalib"), "{err}");
+    assert_contains(&err, &["ocamcalib", "ros", "orbslam3"]);
+}
+
+/// `--from ros` and `--from orbslam3` with `--camera 1`: the second camera, with its own
+/// coefficients, as a camera file that reads back.
+#[test]
+fn cli_ros_and_orbslam3_second_cameras() {
+    let dir = tempfile::tempdir().unwrap();
+    for (from, file, want_fx) in [
+        ("ros", "ros_ost.txt", 457.59),
+        ("orbslam3", "orbslam3_kb8_stereo.yaml", 190.442369),
+    ] {
+        let out = dir.path().join(format!("{from}.toml"));
+        let stdout = common::stdout(&ok(import_cli(from, &calib(file), "1", &out)));
+        assert!(stdout.contains(from), "{stdout}");
+        let cam = camera::load(&out).unwrap();
+        let fx = match &cam {
+            Camera::PinholeRadTan(m) => m.fx,
+            Camera::KannalaBrandt(m) => m.fx,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(fx, want_fx, "{file}");
+        let text = std::fs::read_to_string(&out).unwrap();
+        assert!(text.contains(&format!("--from {from}")), "{text}");
+    }
+}
+
+/// A COLMAP FULL_OPENCV camera whose distortion folds inside the image imports; the written
+/// file's header and the command's output say how much of the image is outside the model.
+#[test]
+fn cli_folding_camera_reports_the_image_outside() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("fold.toml");
+    let stdout = common::stdout(&ok(import_cli(
+        "colmap",
+        &calib("colmap_full_opencv.txt"),
+        "2",
+        &out,
+    )));
+    assert!(stdout.contains("outside the model"), "{stdout}");
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        text.contains("% of the image lies outside the model"),
+        "{text}"
+    );
+    let cam = camera::load(&out).unwrap();
+    assert_eq!(cam.unproject([0.0, 0.0]), None);
 }

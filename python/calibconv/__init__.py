@@ -4,8 +4,8 @@ The camera models and the calibrated kernel offsets are the Rust crate ``calibco
 (the same code as the ``calibconv`` command line), compiled into ``calibconv._native``:
 
 - :class:`Camera`: ``Camera.load(path)`` reads a camera file (``data/cameras/*.toml``),
-  ``Camera.import_(tool, path, ...)`` a calibration of Kalibr, OpenCV, Basalt, COLMAP or
-  OCamCalib; ``project`` / ``unproject`` work on ``[N, 3]`` / ``[N, 2]`` float64 arrays.
+  ``Camera.import_(tool, path, ...)`` a calibration of Kalibr, OpenCV, Basalt, COLMAP,
+  OCamCalib, ROS camera_calibration or ORB-SLAM3; ``project`` / ``unproject`` work on ``[N, 3]`` / ``[N, 2]`` float64 arrays.
 - :func:`offsets`: one layer's offsets, float32 ``[2*kh*kw, H_out, W_out]`` in torchvision's
   layout, bit-identical to ``calibconv offsets``.
 

@@ -93,9 +93,10 @@ impl Camera {
         Ok(Camera { inner })
     }
 
-    /// Imports another tool's calibration: `tool` is `kalibr`, `opencv`, `basalt`, `colmap` or
-    /// `ocamcalib` (as `calibconv camera import --from`). `camera` picks one camera of a
-    /// multi-camera file (Kalibr `camN`, Basalt `intrinsics[N]`, COLMAP `CAMERA_ID`), `fov_deg`
+    /// Imports another tool's calibration: `tool` is `kalibr`, `opencv`, `basalt`, `colmap`,
+    /// `ocamcalib`, `ros` or `orbslam3` (as `calibconv camera import --from`). `camera` picks one
+    /// camera of a multi-camera file (Kalibr `camN`, Basalt `intrinsics[N]`, the N-th camera of a
+    /// ROS `ost.txt`, ORB-SLAM3 0 or 1, COLMAP `CAMERA_ID`), `fov_deg`
     /// sets a fisheye's field of view (default: the angle spanned by the image width),
     /// `opencv_model` is `fisheye` or `standard` for OpenCV files that do not say.
     #[staticmethod]

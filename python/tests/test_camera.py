@@ -6,6 +6,7 @@ theta^8)` independently. OpenCV's model takes `theta = atan(r / z)`, so it is co
 front of the camera (theta < 90 deg) only.
 """
 
+import json
 import math
 
 import cv2
@@ -154,6 +155,18 @@ def test_invalid_field_names_file_and_field(tmp_path):
         ("basalt", "basalt_calibration.json", {}),
         ("colmap", "colmap_cameras.txt", {}),
         ("ocamcalib", "ocam_calib_results.txt", {}),
+        ("kalibr", "kalibr_omni_fov.yaml", {}),
+        ("kalibr", "kalibr_omni_fov.yaml", {"camera": 1}),
+        ("basalt", "basalt_radtan8.json", {}),
+        ("colmap", "colmap_full_opencv.txt", {"camera": 2}),
+        ("opencv", "opencv_rational.xml", {}),
+        ("opencv", "opencv_old_sample.yaml", {}),
+        ("opencv", "opencv_old_sample.xml", {}),
+        ("ros", "ros_ost.yaml", {}),
+        ("ros", "ros_ost.txt", {"camera": 1}),
+        ("ros", "ros_equidistant_ost.yaml", {}),
+        ("orbslam3", "orbslam3_old_pinhole.yaml", {}),
+        ("orbslam3", "orbslam3_kb8_stereo.yaml", {"camera": 1}),
     ],
 )
 def test_import(tool, name, kwargs, tmp_path):
@@ -169,6 +182,28 @@ def test_import(tool, name, kwargs, tmp_path):
         cam.model, cam.width, cam.height, cam.fov_deg)
     px = np.array([[cam.width / 2, cam.height / 2], [cam.width / 4, cam.height / 3]])
     assert np.array_equal(back.unproject(px), cam.unproject(px))
+
+
+def oracle_cases():
+    with open(GOLDEN / "calib_oracle.json") as f:
+        return json.load(f)["cases"]
+
+
+@pytest.mark.parametrize("case", oracle_cases(), ids=lambda c: f"{c['file']}-{c['camera']}")
+def test_import_projects_like_the_tool(case):
+    """Every tool's camera projects the oracle's rays (OpenCV, or the reference formulas of
+    tools/make_calib_fixtures.py) onto their pixels, through the Python API."""
+    kwargs = {} if case["camera"] is None else {"camera": case["camera"]}
+    cam = calibconv.Camera.import_(case["format"], GOLDEN / "calib" / case["file"], **kwargs)
+    assert cam.model == case["model"]
+    px = cam.project(np.array(case["rays"]))
+    assert np.abs(px - np.array(case["pixels"])).max() <= PX_TOL
+
+
+def test_import_of_a_folding_camera_leaves_the_fold_outside():
+    cam = calibconv.Camera.import_("colmap", GOLDEN / "calib" / "colmap_full_opencv.txt", camera=2)
+    rays = cam.unproject(np.array([[0.0, 0.0], [960.0, 540.0]]))
+    assert np.isnan(rays[0]).all() and np.isfinite(rays[1]).all()
 
 
 def test_import_errors():

@@ -52,5 +52,11 @@ fn import(args: ImportArgs) -> Result<()> {
         imported.camera.fov().to_degrees(),
         imported.source
     );
+    if imported.outside > 0.0 {
+        println!(
+            "{:.2} % of the image lies outside the model (its pixels do not unproject)",
+            100.0 * imported.outside
+        );
+    }
     Ok(())
 }

@@ -428,7 +428,7 @@ fn input_size(input: InputSize, [h, w]: [usize; 2]) -> Result<[usize; 2]> {
 fn check_flippable(camera: &Camera, camera_path: &Path) -> Result<()> {
     let [w, _] = camera.size();
     // Radially symmetric models mirror onto themselves about the vertical line through
-    // the principal point; radial-tangential (p2) and Scaramuzza (affine c, d, e) in
+    // the principal point; radial-tangential (p2, also in Mei's) and Scaramuzza (affine c, d, e) in
     // general do not.
     let symmetric = match camera {
         Camera::KannalaBrandt(_)
@@ -436,8 +436,9 @@ fn check_flippable(camera: &Camera, camera_path: &Path) -> Result<()> {
         | Camera::DoubleSphere(_)
         | Camera::Unified(_)
         | Camera::ExtendedUnified(_)
+        | Camera::Fov(_)
         | Camera::Equirectangular(_) => true,
-        Camera::PinholeRadTan(_) | Camera::Scaramuzza(_) => false,
+        Camera::PinholeRadTan(_) | Camera::Mei(_) | Camera::Scaramuzza(_) => false,
     };
     if !symmetric {
         return Err(Error::data(

@@ -25,8 +25,8 @@ pub enum Error {
         field: String,
         message: String,
     },
-    /// A calibration file of another tool (Kalibr, OpenCV, Basalt, COLMAP, OCamCalib) did not
-    /// parse as that tool writes it.
+    /// A calibration file of another tool (Kalibr, OpenCV, Basalt, COLMAP, OCamCalib, ROS,
+    /// ORB-SLAM3) did not parse as that tool writes it.
     #[error("{path}: {message}")]
     Format { path: PathBuf, message: String },
     /// A camera built in code (not read from a file) has an invalid parameter.

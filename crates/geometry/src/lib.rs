@@ -5,8 +5,8 @@
 //!
 //! - [`vec3`]: the 3-vector math (normalise, cross, matrix-vector) the floors above share.
 //! - [`camera`]: camera models in `f64` (Kannala-Brandt, pinhole, radial-tangential, double
-//!   sphere, (extended) unified, Scaramuzza, equirectangular) behind one trait, read from TOML
-//!   camera files (`data/cameras/`) or imported from other tools' calibrations
+//!   sphere, (extended) unified, Mei, FOV, Scaramuzza, equirectangular) behind one trait, read
+//!   from TOML camera files (`data/cameras/`) or imported from other tools' calibrations
 //!   ([`camera::import`]). Each model's file owns its formulas, its camera-file schema and its
 //!   checks; constructors validate.
 //! - [`kernel`]: the paper's "fisheye calibrated kernel" (Section 3.2): for a layer geometry and

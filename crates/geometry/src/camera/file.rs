@@ -24,10 +24,12 @@
 //! |---|---|
 //! | `kannala-brandt` | `fov_deg fx fy cx cy k1 k2 k3 k4` |
 //! | `pinhole` | `fx fy cx cy` (field of view derived) |
-//! | `pinhole-radtan` | `fx fy cx cy k1 k2 p1 p2 k3` (OpenCV order and meaning; fov derived) |
+//! | `pinhole-radtan` | `fx fy cx cy k1 k2 p1 p2 k3`, optional `k4 k5 k6` (OpenCV's rational model) and `rpmax` (a bound on the undistorted radius, Basalt's) (OpenCV order and meaning; fov derived) |
 //! | `double-sphere` | `fov_deg fx fy cx cy xi alpha` |
 //! | `unified` | `fov_deg fx fy cx cy alpha` |
 //! | `extended-unified` | `fov_deg fx fy cx cy alpha beta` |
+//! | `mei` | `fov_deg fx fy cx cy xi k1 k2 p1 p2` (Kalibr `omni-radtan`: `fx` is Mei's gamma) |
+//! | `fov` | `fov_deg fx fy cx cy w` (Devernay and Faugeras) |
 //! | `scaramuzza` | `fov_deg cx cy c d e poly`, optional `inv_poly` (OCamCalib; `cx` is the column) |
 //! | `equirectangular` | none |
 //!
@@ -35,8 +37,9 @@
 //! `deny_unknown_fields`, so a misspelt key is an error naming it; each model file declares its
 //! own) -> the model's validating constructor. Checks: every float finite, `fx, fy > 0`,
 //! `width, height > 0`, `0 < fov_deg < 360`; Kannala-Brandt: a polynomial that increases on
-//! `[0, fov_deg / 2]`; radial-tangential: every pixel of the image border unprojects (the
-//! distortion does not fold inside the image); double sphere: `xi in (-1, 1]`, `alpha in [0, 1]`;
+//! `[0, fov_deg / 2]`; radial-tangential: `rpmax >= 0` (a distortion that folds inside the image
+//! is valid: pixels past the fold are outside the model); Mei: `xi >= 0`; FOV: `0 < w < pi`;
+//! double sphere: `xi in (-1, 1]`, `alpha in [0, 1]`;
 //! unified: `alpha in [0, 1)`; extended unified: `alpha in [0, 1]`, `beta > 0`; Scaramuzza:
 //! `a0 < 0`, `c - d e > 0`; every fisheye model: `fov_deg / 2` below the model's largest
 //! projectable angle. Errors name the file and the field.
@@ -271,6 +274,8 @@ mod tests {
             Camera::DoubleSphere(m) => [m.cx, m.cy],
             Camera::Unified(m) => [m.cx, m.cy],
             Camera::ExtendedUnified(m) => [m.cx, m.cy],
+            Camera::Mei(m) => [m.cx, m.cy],
+            Camera::Fov(m) => [m.cx, m.cy],
             Camera::Scaramuzza(m) => [m.cx, m.cy],
             Camera::Equirectangular(m) => [m.cu, m.cv],
         }
@@ -285,6 +290,8 @@ mod tests {
             Camera::DoubleSphere(m) => m.fx,
             Camera::Unified(m) => m.fx,
             Camera::ExtendedUnified(m) => m.fx,
+            Camera::Mei(m) => m.fx / (1.0 + m.xi),
+            Camera::Fov(m) => m.fx * 2.0 * (m.w / 2.0).tan() / m.w,
             Camera::Scaramuzza(m) => -m.poly[0],
             Camera::Equirectangular(m) => m.fu,
         }
@@ -415,6 +422,8 @@ mod tests {
             Camera::DoubleSphere(m) => Some(m.theta_max()),
             Camera::Unified(m) => Some(m.theta_max()),
             Camera::ExtendedUnified(m) => Some(m.theta_max()),
+            Camera::Mei(m) => Some(m.theta_max()),
+            Camera::Fov(_) => Some(std::f64::consts::PI),
             Camera::Scaramuzza(m) => {
                 assert_eq!(cam.unproject([cx + 1.01 * m.rho_max(), cy]), None, "{name}");
                 Some(m.theta_max())
@@ -649,12 +658,24 @@ mod tests {
     }
 
     #[test]
-    fn radtan_folding_inside_the_image_is_rejected() {
+    fn radtan_folding_inside_the_image_reads_with_its_domain() {
         // k1 = -0.5 folds at r = sqrt(2/3) = 0.816 on the z = 1 plane; the EuRoC image corner
-        // is at r ~ 0.98, so the distortion folds inside the image.
+        // is at r ~ 0.98, so the distortion folds inside the image: the corner is outside the
+        // model, the centre is not.
         let text = shipped_text("radtan_example.toml")
             .replace("k1 = -0.28340811", "k1 = -0.5")
             .replace("k2 = 0.07395907", "k2 = 0.0");
-        assert_refused(&text, "k1, k2, p1, p2, k3", &["folds inside the image"]);
+        let cam = parse(&text, Path::new("fold.toml")).unwrap();
+        assert_eq!(cam.unproject([0.0, 0.0]), None);
+        assert!(cam.unproject([376.0, 240.0]).is_some());
+        // The rational model's fields are optional and read back; a negative bound is refused.
+        let rational = format!("{text}k4 = 0.1\nk5 = 0.0\nk6 = 0.01\nrpmax = 1.5\n");
+        let cam = parse(&rational, Path::new("rational.toml")).unwrap();
+        assert_eq!(
+            parse(&to_toml(&cam, &[], None, None), Path::new("back")).unwrap(),
+            cam
+        );
+        let negative = rational.replace("rpmax = 1.5", "rpmax = -1.0");
+        assert_refused(&negative, "rpmax", &[">= 0"]);
     }
 }

@@ -33,6 +33,11 @@ use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 /// `d(theta)`, so the test can actually fire.
 pub const EPS: f64 = 1e-12;
 
+/// The largest residual `|d(theta) - r_d|` (normalised units) a solved angle may leave: times a
+/// focal length up to 1e4 px it is 1e-6 px, the accuracy the imports are checked to; a
+/// converged Newton leaves ~1e-15.
+pub const RESIDUAL_TOL: f64 = 1e-10;
+
 /// Grid points used to scan `d'(theta)` over `[0, pi]` for its first non-positive value (step
 /// about 3e-4 rad; a sign change between two grid points narrower than that would be missed, which
 /// no realistic degree-9 lens polynomial produces).
@@ -191,7 +196,7 @@ impl KannalaBrandt {
         // d(theta) ~ theta for realistic lenses: r_d itself is an excellent first guess.
         let g = |l: usize, t: f64| (self.distort(t) - r_d[l], self.distort_derivative(t));
         let newton = std::array::from_fn(|l| in_range[l] && r_d[l] != 0.0);
-        let mut thetas = increasing_roots(g, [[0.0, hi]; L], r_d, newton, EPS);
+        let mut thetas = increasing_roots(g, [[0.0, hi]; L], r_d, newton, [EPS, RESIDUAL_TOL]);
         for l in 0..L {
             if in_range[l] && r_d[l] == 0.0 {
                 thetas[l] = Some((0.0, 0));

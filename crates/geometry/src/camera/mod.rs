@@ -9,22 +9,25 @@
 //! - angles are radians everywhere except in camera files (`fov_deg`).
 //!
 //! Models, one file each, each documenting its formula and source: [`KannalaBrandt`] (paper
-//! Section 3.1), [`Pinhole`], [`PinholeRadTan`] (OpenCV's 5-parameter distortion),
-//! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Scaramuzza`]
-//! (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model whose kernels wrap
-//! horizontally). [`import`] reads the calibration files of other tools.
+//! Section 3.1), [`Pinhole`], [`PinholeRadTan`] (OpenCV's 5- and 8-coefficient distortion),
+//! [`DoubleSphere`], [`Unified`] and [`ExtendedUnified`] (Usenko et al. 2018), [`Mei`] (Mei's
+//! unified model with radial-tangential distortion), [`Fov`] (Devernay and Faugeras),
+//! [`Scaramuzza`] (OCamCalib) and [`Equirectangular`] (360-degree panoramas, the only model
+//! whose kernels wrap horizontally). [`import`] reads the calibration files of other tools.
 //!
 //! A model's file also owns its camera-file schema: its `Raw` fields, its `validate()` (which its
 //! `new` calls, so every camera in the program is checked) and its fields for [`to_toml`]. What
 //! the models share is written once: [`Intrinsics`] (`fx fy cx cy width height`: checks, size,
 //! rescaling), `schema` (the [`Invalid`] error, the checks, the header keys every file carries),
-//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan). `file` only reads
+//! `solve` (the safeguarded 1-D Newton and the monotonic-range scan), `radtan` (the
+//! radial-tangential distortion and its checked 2-D Newton inverse). `file` only reads
 //! `model =` and hands the text to the model; the list of models is one table here
 //! (`camera_models!`): a new model is its file plus its line in that table (see the crate docs).
 
 mod file;
 pub mod import;
 mod intrinsics;
+mod radtan;
 mod schema;
 mod solve;
 
@@ -290,6 +293,10 @@ camera_models! {
     Unified(unified::Unified),
     /// `model = "extended-unified"`.
     ExtendedUnified(extended_unified::ExtendedUnified),
+    /// `model = "mei"` (Kalibr `omni-radtan`).
+    Mei(mei::Mei),
+    /// `model = "fov"` (Devernay and Faugeras).
+    Fov(fov::Fov),
     /// `model = "scaramuzza"`.
     Scaramuzza(scaramuzza::Scaramuzza),
     /// `model = "equirectangular"`.

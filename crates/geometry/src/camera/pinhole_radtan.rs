@@ -1,75 +1,62 @@
-//! The pinhole camera with radial-tangential ("plumb bob", Brown-Conrady) distortion, in OpenCV's
-//! 5-parameter form `k1, k2, p1, p2, k3` (OpenCV `calib3d` documentation, "Detailed
-//! description"; Kalibr's `pinhole-radtan` with `k3 = 0`; COLMAP's `OPENCV`).
+//! The pinhole camera with radial-tangential ("plumb bob", Brown-Conrady) distortion: OpenCV's
+//! standard model with 5 or 8 coefficients `k1, k2, p1, p2, k3[, k4, k5, k6]` (OpenCV `calib3d`
+//! documentation, "Detailed description"; Kalibr's `pinhole-radtan` with `k3 = 0`; COLMAP's
+//! `OPENCV` and `FULL_OPENCV`; Basalt's `pinhole-radtan8`, whose `rpmax` bounds the domain).
 //!
 //! Projection of a ray `[x, y, z]` with `z > 0` (camera frame: x right, y down, z forward):
 //!
 //! ```text
-//! x' = x / z,  y' = y / z,  r^2 = x'^2 + y'^2
-//! radial = 1 + k1 r^2 + k2 r^4 + k3 r^6
-//! x'' = x' radial + 2 p1 x' y' + p2 (r^2 + 2 x'^2)
-//! y'' = y' radial + p1 (r^2 + 2 y'^2) + 2 p2 x' y'
+//! x' = x / z,  y' = y / z,  s = r^2 = x'^2 + y'^2
+//! R = (1 + k1 s + k2 s^2 + k3 s^3) / (1 + k4 s + k5 s^2 + k6 s^3)
+//! x'' = x' R + 2 p1 x' y' + p2 (s + 2 x'^2)
+//! y'' = y' R + p1 (s + 2 y'^2) + 2 p2 x' y'
 //! u = fx x'' + cx,   v = fy y'' + cy
 //! ```
 //!
-//! The distortion is only invertible where it does not fold. Its domain here is
-//! `r <= r_max`, where `r_max` is the first radius at which the radial part `r radial(r)` stops
-//! increasing (`1 + 3 k1 r^2 + 5 k2 r^4 + 7 k3 r^6 <= 0`, infinite if it never does), and where
-//! the determinant of the 2x2 Jacobian `d(x'', y'') / d(x', y')` is positive.
-//!
-//! Unprojection solves `distort(x', y') = (x'', y'')` by Newton's method on the 2x2 system from
-//! `(x'', y'')` (OpenCV's `undistortPoints` uses a fixed-point iteration instead), halving any step
-//! that would leave the domain or not reduce the residual; converged when the step is below
-//! `EPS` within `MAX_ITER` iterations, else `None`.
+//! The distortion and its inverse are the shared [`super::radtan`] module's: the model is
+//! defined where the distortion does not fold (`r <= r_max` and a positive Jacobian
+//! determinant, `r_max` also bounded by `rpmax` when that is > 0). A distortion that folds
+//! inside the image is a valid camera whose pixels past the fold are outside the model
+//! (`unproject` is `None` there, as outside a fisheye's field of view); `calibconv camera
+//! import` reports how much of the image that is. Unprojection is Newton's method with a
+//! residual check: a pixel it cannot invert is `None`, never a wrong ray.
 //!
 //! The field of view is derived: the angle between the rays of the left and right image edges
-//! (`u = -0.5` and `u = width - 0.5`) on the principal row. Pixels are `[u, v]` = (column, row),
+//! (`u = -0.5` and `u = width - 0.5`) on the principal row, or, where an edge lies past the
+//! fold, of the last pixel towards it that unprojects. Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
 use super::intrinsics::deref_intrinsics;
+use super::radtan::RadTan;
 use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 use crate::vec3::{finite3, normalize};
 
-/// Newton iterations allowed when undistorting. Newton converges quadratically from `(x'', y'')`
-/// in 3 to 6 steps for realistic lenses (measured on the test cameras); halved steps near the
-/// domain edge converge linearly, and 100 leaves room for that.
-pub const MAX_ITER: usize = 100;
+/// Points on the principal row between the principal point and an image edge past the fold,
+/// scanned for the last one that unprojects before bisecting to it.
+const EDGE_SCAN_STEPS: usize = 64;
 
-/// Convergence threshold on the Newton step, in normalised image units (`x/z`): `fx * EPS` is
-/// ~5e-10 px for `fx ~ 500`, and it stays above the ~1e-16 round-off of the coordinates, so the
-/// test can fire.
-pub const EPS: f64 = 1e-12;
-
-/// Grid points on `log10(r^2) in [-6, 12]` scanned for the first fold of the radial part; the
-/// polynomial `1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3` in `s = r^2` has at most three roots, so a
-/// sign change narrower than one grid step (2.1 %) would take a near-double root.
-const SCAN_STEPS: usize = 2000;
-
-/// Beyond `r^2 = 1e12` (89.99994 deg off-axis) the radial range is treated as unbounded.
-const SCAN_MAX_LOG10_R2: f64 = 12.0;
-
-/// Below `r^2 = 1e-6` the radial derivative is `1 + O(1e-6 k1)`: positive for any real lens.
-const SCAN_MIN_LOG10_R2: f64 = -6.0;
-
-/// Pixels checked along each edge of the image for invertibility (plus the corners): a fold
-/// narrower than 1/256 of an edge between two checked pixels is not realistic.
-const BORDER_SAMPLES: usize = 256;
-
-/// A pinhole camera with OpenCV radial-tangential distortion.
+/// A pinhole camera with OpenCV radial-tangential distortion (5 or 8 coefficients).
 ///
-/// Build it with [`PinholeRadTan::new`], which finds the radial range `r_max` and the field of
-/// view. Equality compares the public fields only (the derived values are functions of them).
+/// Build it with [`PinholeRadTan::new`] or [`PinholeRadTan::rational`], which find the radial
+/// range `r_max` and the field of view. Equality compares the public fields only (the derived
+/// values are functions of them).
 #[derive(Clone, Debug)]
 pub struct PinholeRadTan {
     intrinsics: Intrinsics,
-    /// Radial coefficients `[k1, k2, k3]` (of `r^2`, `r^4`, `r^6`).
+    /// Radial numerator coefficients `[k1, k2, k3]` (of `r^2`, `r^4`, `r^6`).
     pub k: [f64; 3],
     /// Tangential coefficients `[p1, p2]`.
     pub p: [f64; 2],
-    /// End of the monotonic radial range on the `z = 1` plane (may be infinite).
-    r_max: f64,
+    /// Radial denominator coefficients `[k4, k5, k6]` (OpenCV's rational model; zero for the
+    /// 5-coefficient model).
+    pub k_den: [f64; 3],
+    /// A bound on the undistorted radius `x'^2 + y'^2 <= rpmax^2` given by the source (Basalt's
+    /// `rpmax`); 0 for none.
+    pub rpmax: f64,
+    /// The distortion with its domain.
+    distortion: RadTan,
     /// Edge-to-edge horizontal field of view, radians.
     fov: f64,
 }
@@ -78,57 +65,88 @@ deref_intrinsics!(PinholeRadTan);
 
 impl PartialEq for PinholeRadTan {
     fn eq(&self, other: &Self) -> bool {
-        self.intrinsics == other.intrinsics && self.k == other.k && self.p == other.p
+        self.intrinsics == other.intrinsics
+            && self.k == other.k
+            && self.p == other.p
+            && self.k_den == other.k_den
+            && self.rpmax == other.rpmax
     }
 }
 
 raw_camera_file! {
-    /// A pinhole camera with OpenCV radial-tangential distortion, as written.
+    /// A pinhole camera with OpenCV radial-tangential distortion, as written; `k4 k5 k6` and
+    /// `rpmax` are optional (0 when absent).
     pinhole struct Raw {
         k1: f64,
         k2: f64,
         p1: f64,
         p2: f64,
         k3: f64,
+        #[serde(default)]
+        k4: f64,
+        #[serde(default)]
+        k5: f64,
+        #[serde(default)]
+        k6: f64,
+        #[serde(default)]
+        rpmax: f64,
     }
 }
 
 impl CameraFile for PinholeRadTan {
     const MODEL: &'static str = "pinhole-radtan";
     type Raw = Raw;
+    /// `fx fy cx cy k1 k2 p1 p2 k3`, then `k4 k5 k6` when any is non-zero and `rpmax` when
+    /// non-zero (so 5-coefficient files stay as they were).
     fn fields(&self) -> Vec<(&'static str, f64)> {
-        let ([k1, k2, k3], [p1, p2]) = (self.k, self.p);
+        let ([k1, k2, k3], [p1, p2], [k4, k5, k6]) = (self.k, self.p, self.k_den);
         let mut fields = self.intrinsics.fields().to_vec();
         fields.extend([("k1", k1), ("k2", k2), ("p1", p1), ("p2", p2), ("k3", k3)]);
+        if self.k_den != [0.0; 3] {
+            fields.extend([("k4", k4), ("k5", k5), ("k6", k6)]);
+        }
+        if self.rpmax != 0.0 {
+            fields.push(("rpmax", self.rpmax));
+        }
         fields
     }
     fn from_raw(r: Raw) -> Result<Self, Invalid> {
-        PinholeRadTan::new(r.intrinsics(), [r.k1, r.k2, r.k3], [r.p1, r.p2])
+        let k = [r.k1, r.k2, r.k3, r.k4, r.k5, r.k6];
+        PinholeRadTan::rational(r.intrinsics(), k, [r.p1, r.p2], r.rpmax)
     }
 }
 
 impl PinholeRadTan {
-    /// A checked camera (see [`PinholeRadTan::validate`]) with `k = [k1, k2, k3]`,
-    /// `p = [p1, p2]`; computes `r_max` and the field of view.
+    /// A checked camera (see [`PinholeRadTan::validate`]) with OpenCV's 5 coefficients
+    /// `k = [k1, k2, k3]`, `p = [p1, p2]`; computes `r_max` and the field of view.
     pub fn new(intrinsics: Intrinsics, k: [f64; 3], p: [f64; 2]) -> Result<Self, Invalid> {
-        checked(Self::unchecked(intrinsics, k, p), Self::validate)
+        Self::rational(intrinsics, [k[0], k[1], k[2], 0.0, 0.0, 0.0], p, 0.0)
     }
 
-    /// The camera without the checks; computes `r_max` and the field of view. If an image edge
-    /// does not unproject (the distortion folds inside the image, which [`PinholeRadTan::new`]
-    /// rejects) the field of view falls back to the undistorted pinhole's
-    /// `2 atan(width / (2 fx))`.
-    pub(crate) fn unchecked(intrinsics: Intrinsics, k: [f64; 3], p: [f64; 2]) -> Self {
+    /// A checked camera with the rational model's `k = [k1, .., k6]`, `p = [p1, p2]` and a
+    /// radius bound `rpmax` (0: none).
+    pub fn rational(
+        intrinsics: Intrinsics,
+        k: [f64; 6],
+        p: [f64; 2],
+        rpmax: f64,
+    ) -> Result<Self, Invalid> {
+        checked(Self::unchecked(intrinsics, k, p, rpmax), Self::validate)
+    }
+
+    /// The camera without the checks; computes `r_max` and the field of view.
+    pub(crate) fn unchecked(intrinsics: Intrinsics, k: [f64; 6], p: [f64; 2], rpmax: f64) -> Self {
         let mut cam = PinholeRadTan {
             intrinsics,
-            k,
+            k: [k[0], k[1], k[2]],
             p,
-            r_max: 0.0,
+            k_den: [k[3], k[4], k[5]],
+            rpmax,
+            distortion: RadTan::new(k, p, rpmax),
             fov: 0.0,
         };
-        let Intrinsics { fx, cy, width, .. } = intrinsics;
-        cam.r_max = cam.find_r_max();
-        let edges = [-0.5, width as f64 - 0.5].map(|u| cam.unproject([u, cy]));
+        let Intrinsics { cx, cy, width, .. } = intrinsics;
+        let edges = [-0.5, width as f64 - 0.5].map(|u| cam.edge_ray(cx, u, cy));
         cam.fov = match edges {
             [Some(l), Some(r)] => {
                 let dot = l[0] * r[0] + l[1] * r[1] + l[2] * r[2];
@@ -139,161 +157,64 @@ impl PinholeRadTan {
                 ];
                 cross[0].hypot(cross[1]).hypot(cross[2]).atan2(dot)
             }
-            _ => 2.0 * (width as f64 / (2.0 * fx)).atan(),
+            _ => 0.0, // only for invalid cameras (non-finite values), which `validate` refuses
         };
         cam
     }
 
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), and every pixel of the
-    /// image border unprojects (the distortion does not fold inside the image); the error names
-    /// the field.
+    /// The ray of the image edge `(u, v)`, or where it lies past the fold, of the last point on
+    /// the row from `(cx, v)` towards it that unprojects.
+    fn edge_ray(&self, cx: f64, u: f64, v: f64) -> Option<[f64; 3]> {
+        if let Some(ray) = self.unproject([u, v]) {
+            return Some(ray);
+        }
+        let at = |t: f64| self.unproject([cx + t * (u - cx), v]);
+        let ok = |t: f64| at(t).is_some();
+        let grid = (1..=EDGE_SCAN_STEPS).map(|i| i as f64 / EDGE_SCAN_STEPS as f64);
+        at(last_ok(ok, 0.0, grid)?)
+    }
+
+    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `rpmax >= 0`; the error
+    /// names the field. A distortion that folds inside the image is valid (module docs).
     pub fn validate(&self) -> Checked {
         check_finite(self.fields())?;
         self.intrinsics.validate()?;
-        // The outer pixel edges, BORDER_SAMPLES + 1 points per side (corners included).
-        let (w, h) = (self.width as f64, self.height as f64);
-        let border = (0..=BORDER_SAMPLES).flat_map(|i| {
-            let t = i as f64 / BORDER_SAMPLES as f64;
-            let (u, v) = (-0.5 + t * w, -0.5 + t * h);
-            [[u, -0.5], [u, h - 0.5], [-0.5, v], [w - 0.5, v]]
-        });
-        for px in border {
-            if self.unproject(px).is_none() {
-                return Err(Invalid::new(
-                    "k1, k2, p1, p2, k3",
-                    format!(
-                        "the distortion folds inside the image: pixel ({}, {}) has no inverse \
-                         (the radial part stops increasing at r = {:.4} on the z = 1 plane)",
-                        px[0],
-                        px[1],
-                        self.r_max()
-                    ),
-                ));
-            }
+        if self.rpmax < 0.0 {
+            return Err(Invalid::new(
+                "rpmax",
+                format!("must be >= 0 (0: no bound), found {}", self.rpmax),
+            ));
+        }
+        if self.unproject([self.cx, self.cy]).is_none() {
+            return Err(Invalid::new(
+                "k4, k5, k6",
+                "the distortion has no inverse at the principal point".to_string(),
+            ));
         }
         Ok(())
     }
 
-    /// End of the monotonic radial range on the `z = 1` plane: the first `r > 0` where
-    /// `1 + 3 k1 r^2 + 5 k2 r^4 + 7 k3 r^6 <= 0`, or infinity if none below `r^2 = 1e12`.
+    /// End of the invertible radial range on the `z = 1` plane: the first `r > 0` where the
+    /// radial part `r R(r^2)` stops increasing or its denominator vanishes, bounded by `rpmax`
+    /// when that is > 0; infinity if none below `r^2 = 1e12`.
     pub fn r_max(&self) -> f64 {
-        self.r_max
-    }
-
-    fn radial_derivative(&self, s: f64) -> f64 {
-        let [k1, k2, k3] = self.k;
-        1.0 + s * (3.0 * k1 + s * (5.0 * k2 + s * 7.0 * k3))
-    }
-
-    /// Scans `s = r^2` on a log grid for the first non-positive radial derivative, then bisects.
-    fn find_r_max(&self) -> f64 {
-        let ok = |s: f64| self.radial_derivative(s) > 0.0;
-        let s_at = |i: usize| {
-            let t = i as f64 / SCAN_STEPS as f64;
-            10f64.powf(SCAN_MIN_LOG10_R2 + t * (SCAN_MAX_LOG10_R2 - SCAN_MIN_LOG10_R2))
-        };
-        if !ok(0.0) {
-            return 0.0; // only with non-finite coefficients
-        }
-        last_ok(ok, 0.0, (0..=SCAN_STEPS).map(s_at)).map_or(f64::INFINITY, f64::sqrt)
+        self.distortion.r_max
     }
 
     /// `(x'', y'')` of a normalised point `(x', y')` (module docs).
     pub fn distort(&self, m: [f64; 2]) -> [f64; 2] {
-        let [x, y] = m;
-        let [k1, k2, k3] = self.k;
-        let [p1, p2] = self.p;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        [
-            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
-        ]
+        self.distortion.distort(m)
     }
 
-    /// The Jacobian `d(x'', y'') / d(x', y')`, row-major:
-    ///
-    /// ```text
-    /// dradial/dx' = 2 x' (k1 + 2 k2 r^2 + 3 k3 r^4)        (likewise for y')
-    /// dx''/dx' = radial + x' dradial/dx' + 2 p1 y' + 6 p2 x'
-    /// dx''/dy' = x' dradial/dy' + 2 p1 x' + 2 p2 y'
-    /// dy''/dx' = y' dradial/dx' + 2 p1 x' + 2 p2 y'
-    /// dy''/dy' = radial + y' dradial/dy' + 6 p1 y' + 2 p2 x'
-    /// ```
+    /// The Jacobian `d(x'', y'') / d(x', y')`, row-major (see [`super::radtan`]).
     pub fn distort_jacobian(&self, m: [f64; 2]) -> [[f64; 2]; 2] {
-        let [x, y] = m;
-        let [k1, k2, k3] = self.k;
-        let [p1, p2] = self.p;
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-        let g = 2.0 * (k1 + r2 * (2.0 * k2 + r2 * 3.0 * k3));
-        let (drx, dry) = (g * x, g * y);
-        [
-            [
-                radial + x * drx + 2.0 * p1 * y + 6.0 * p2 * x,
-                x * dry + 2.0 * p1 * x + 2.0 * p2 * y,
-            ],
-            [
-                y * drx + 2.0 * p1 * x + 2.0 * p2 * y,
-                radial + y * dry + 6.0 * p1 * y + 2.0 * p2 * x,
-            ],
-        ]
+        self.distortion.jacobian(m)
     }
 
-    /// Whether a normalised point lies in the invertible domain (`r <= r_max`, `det J > 0`).
-    fn in_domain(&self, m: [f64; 2]) -> bool {
-        let j = self.distort_jacobian(m);
-        m[0].hypot(m[1]) <= self.r_max && j[0][0] * j[1][1] - j[0][1] * j[1][0] > 0.0
-    }
-
-    /// Solves `distort(m) = target` by damped Newton (module docs). Returns `(m, iterations)`,
-    /// or `None` without convergence in `MAX_ITER` steps.
+    /// Solves `distort(m) = target` (see [`super::radtan`]). Returns `(m, iterations)`, or
+    /// `None` where no point of the domain has a residual below its tolerance.
     pub(crate) fn undistort(&self, target: [f64; 2]) -> Option<([f64; 2], usize)> {
-        if !(target[0].is_finite() && target[1].is_finite()) {
-            return None;
-        }
-        let residual = |m: [f64; 2]| {
-            let d = self.distort(m);
-            [d[0] - target[0], d[1] - target[1]]
-        };
-        let norm = |v: [f64; 2]| v[0].hypot(v[1]);
-        let mut m = target;
-        if !self.in_domain(m) {
-            m = [0.0, 0.0];
-        }
-        let mut f = residual(m);
-        for iter in 1..=MAX_ITER {
-            if f == [0.0, 0.0] {
-                return Some((m, iter));
-            }
-            let j = self.distort_jacobian(m);
-            let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
-            // Newton step: -J^-1 f.
-            let mut step = [
-                -(j[1][1] * f[0] - j[0][1] * f[1]) / det,
-                -(-j[1][0] * f[0] + j[0][0] * f[1]) / det,
-            ];
-            if !(step[0].is_finite() && step[1].is_finite()) {
-                return None;
-            }
-            // Halve until the step stays in the domain and does not increase the residual (a
-            // full step that lands on the root exactly is always accepted).
-            let mut next = [m[0] + step[0], m[1] + step[1]];
-            let mut f_next = residual(next);
-            let mut halvings = 0;
-            while !(self.in_domain(next) && norm(f_next) <= norm(f)) && halvings < 60 {
-                step = [0.5 * step[0], 0.5 * step[1]];
-                next = [m[0] + step[0], m[1] + step[1]];
-                f_next = residual(next);
-                halvings += 1;
-            }
-            m = next;
-            f = f_next;
-            if norm(step) < EPS {
-                return Some((m, iter));
-            }
-        }
-        None
+        self.distortion.undistort(target)
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
@@ -318,21 +239,18 @@ impl CameraModel for PinholeRadTan {
             return None;
         }
         let m = [x / z, y / z];
-        if !self.in_domain(m) {
+        if !self.distortion.in_domain(m) {
             return None;
         }
         let [xd, yd] = self.distort(m);
         Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
     }
 
-    /// The unit ray along `[x', y', 1]` with `(x', y')` the undistorted point (Newton, see
-    /// `MAX_ITER`, `EPS`); `None` without convergence or outside the domain.
+    /// The unit ray along `[x', y', 1]` with `(x', y')` the undistorted point (Newton with a
+    /// residual check, see [`super::radtan`]); `None` past the fold.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let target = [(px[0] - self.cx) / self.fx, (px[1] - self.cy) / self.fy];
         let (m, _) = self.undistort(target)?;
-        if !self.in_domain(m) {
-            return None;
-        }
         normalize([m[0], m[1], 1.0])
     }
 
@@ -346,11 +264,14 @@ impl CameraModel for PinholeRadTan {
         self.fov
     }
 
-    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); `k`, `p` unchanged (they act on the
-    /// `z = 1` plane); `r_max` and the field of view recomputed.
+    /// The intrinsics rescaled ([`Intrinsics::rescaled`]); the coefficients unchanged (they act
+    /// on the `z = 1` plane); `r_max` and the field of view recomputed.
     fn rescaled(&self, scale: [f64; 2], convention: PixelConvention) -> Camera {
         let intrinsics = self.intrinsics.rescaled(scale, convention);
-        Camera::PinholeRadTan(PinholeRadTan::unchecked(intrinsics, self.k, self.p))
+        let [k1, k2, k3] = self.k;
+        let [k4, k5, k6] = self.k_den;
+        let k = [k1, k2, k3, k4, k5, k6];
+        Camera::PinholeRadTan(PinholeRadTan::unchecked(intrinsics, k, self.p, self.rpmax))
     }
 }
 
@@ -415,6 +336,44 @@ mod tests {
             "Newton took {worst} steps (measured: 6 at most)"
         );
         assert!(worst_err < PX_TOL, "{worst_err} px");
+    }
+
+    /// A distortion that folds inside the image (k1 = -0.5 on a wide sensor, and a rational
+    /// camera like COLMAP FULL_OPENCV fits with a fold before the corners) is a valid camera:
+    /// pixels past the fold are `None`, every other pixel round-trips, and the field of view
+    /// ends at the fold.
+    #[test]
+    fn a_fold_inside_the_image_is_the_domain_edge() {
+        let intrinsics = Intrinsics::from_parts([300.0, 300.0, 320.0, 240.0], [640, 480]);
+        for (k, p) in [
+            ([-0.5, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0]),
+            ([0.2, -0.1, 0.0, 0.6, 0.0, 0.0], [0.003, -0.002]),
+        ] {
+            let c = PinholeRadTan::rational(intrinsics, k, p, 0.0).expect("a folding camera");
+            let (mut inside, mut outside) = (0, 0);
+            for v in (0..480).step_by(7) {
+                for u in (0..640).step_by(7) {
+                    let px = [u as f64, v as f64];
+                    let Some(ray) = c.unproject(px) else {
+                        outside += 1;
+                        continue;
+                    };
+                    inside += 1;
+                    let back = c.project(ray).expect("inside the domain");
+                    let err = (back[0] - px[0]).hypot(back[1] - px[1]);
+                    assert!(err < PX_TOL, "{k:?} {px:?}: {err} px");
+                }
+            }
+            assert!(inside > 0 && outside > 0, "{k:?}: {inside} {outside}");
+            // The field of view is that of the last pixels that unproject on the principal row:
+            // with p = 0 and a centred principal point, the fold's radius either side.
+            let half = c.fx * c.distort([c.r_max(), 0.0])[0];
+            assert!(half < 320.0, "{half}");
+            if p == [0.0, 0.0] {
+                let want = 2.0 * c.r_max().atan();
+                assert!((c.fov() - want).abs() < 1e-6, "{} vs {want}", c.fov());
+            }
+        }
     }
 
     #[test]

@@ -13,15 +13,23 @@ pub const MAX_ITER: usize = 100;
 
 /// Solves `g(x) = 0` on `[lo, hi]` for `g` increasing there, from `x0` (clamped into the
 /// bracket). `g_and_slope(x)` returns `(g(x), g'(x))`. Converged when `g(x) == 0` or the step is
-/// below `eps` (in the units of `x`; each caller's `EPS` says why its value can fire). Returns
-/// `(x, iterations)`, or `None` without convergence in [`MAX_ITER`] steps.
+/// below `eps` (in the units of `x`; each caller's `EPS` says why its value can fire) **and**
+/// the residual there is small, `|g(x)| <= max_residual` (in the units of `g`): a small step
+/// with a large residual (a bracket that shrank onto no root) is `None`, never a wrong root.
+/// Returns `(x, iterations)`, or `None` without convergence in [`MAX_ITER`] steps.
 pub(crate) fn increasing_root(
     g_and_slope: impl Fn(f64) -> (f64, f64),
     bracket: [f64; 2],
     x0: f64,
-    eps: f64,
+    [eps, max_residual]: [f64; 2],
 ) -> Option<(f64, usize)> {
-    let [root] = increasing_roots(|_, x| g_and_slope(x), [bracket], [x0], [true], eps);
+    let [root] = increasing_roots(
+        |_, x| g_and_slope(x),
+        [bracket],
+        [x0],
+        [true],
+        [eps, max_residual],
+    );
     root
 }
 
@@ -35,7 +43,7 @@ pub(crate) fn increasing_roots<const L: usize>(
     brackets: [[f64; 2]; L],
     x0: [f64; L],
     mut solve: [bool; L],
-    eps: f64,
+    [eps, max_residual]: [f64; 2],
 ) -> [Option<(f64, usize)>; L] {
     let mut roots = [None; L];
     let [mut lo, mut hi] = [0, 1].map(|e| brackets.map(|b| b[e]));
@@ -67,7 +75,9 @@ pub(crate) fn increasing_roots<const L: usize>(
             let step = next - x[l];
             x[l] = next;
             if step.abs() < eps {
-                (roots[l], solve[l]) = (Some((x[l], iter)), false);
+                let (g_next, _) = g_and_slope(l, x[l]);
+                let root = (g_next.abs() <= max_residual).then_some((x[l], iter));
+                (roots[l], solve[l]) = (root, false);
             }
         }
     }
@@ -116,16 +126,27 @@ mod tests {
     fn newton_converges_quadratically_and_bisects_when_it_would_leave() {
         // x^3 - 2 on [0, 2]: Newton from 1 converges in a handful of steps.
         let cube = |x: f64| (x * x * x - 2.0, 3.0 * x * x);
-        let (x, iters) = increasing_root(cube, [0.0, 2.0], 1.0, 1e-14).unwrap();
+        let tol = [1e-14, 1e-12];
+        let (x, iters) = increasing_root(cube, [0.0, 2.0], 1.0, tol).unwrap();
         assert!((x - 2f64.cbrt()).abs() < 1e-15, "{x}");
         assert!(iters < 10, "{iters}");
         // From 0 the slope vanishes: the first step bisects, then Newton takes over.
-        let (x, iters) = increasing_root(cube, [0.0, 2.0], 0.0, 1e-14).unwrap();
+        let (x, iters) = increasing_root(cube, [0.0, 2.0], 0.0, tol).unwrap();
         assert!((x - 2f64.cbrt()).abs() < 1e-15 && iters < 15, "{x} {iters}");
         // A tolerance the iteration cannot reach (no float squares to 2 exactly, and no step is
         // below 0): no convergence in MAX_ITER steps.
         let square = |x: f64| (x * x - 2.0, 2.0 * x);
-        assert_eq!(increasing_root(square, [0.0, 2.0], 1.0, 0.0), None);
+        assert_eq!(increasing_root(square, [0.0, 2.0], 1.0, [0.0, 1.0]), None);
+    }
+
+    #[test]
+    fn a_bracket_without_a_root_is_none_not_its_end() {
+        // x^3 + 1 > 0 on [0, 2]: the bracket shrinks onto 0, where the residual is 1.
+        let shifted = |x: f64| (x * x * x + 1.0, 3.0 * x * x);
+        assert_eq!(
+            increasing_root(shifted, [0.0, 2.0], 1.0, [1e-14, 1e-9]),
+            None
+        );
     }
 
     #[test]

@@ -128,8 +128,9 @@ pub(super) fn radtan(
 ) -> PinholeRadTan {
     PinholeRadTan::unchecked(
         Intrinsics::from_parts([fx, fy, cx, cy], [width, height]),
-        k,
+        [k[0], k[1], k[2], 0.0, 0.0, 0.0],
         p,
+        0.0,
     )
 }
 
@@ -273,14 +274,24 @@ fn command_line_names_parse_and_list_the_choices() {
     assert_eq!(
         "x".parse::<Format>(),
         Err(
-            "unknown format `x` (expected kalibr, opencv, basalt, colmap or ocamcalib)".to_string()
+            "unknown format `x` (expected kalibr, opencv, basalt, colmap, ocamcalib, ros or \
+             orbslam3)"
+                .to_string()
         )
     );
     assert_eq!(
         "x".parse::<OpenCvModel>(),
         Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
     );
-    for name in ["kalibr", "opencv", "basalt", "colmap", "ocamcalib"] {
+    for name in [
+        "kalibr",
+        "opencv",
+        "basalt",
+        "colmap",
+        "ocamcalib",
+        "ros",
+        "orbslam3",
+    ] {
         assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
     }
 }

@@ -66,13 +66,26 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
             alpha: p("alpha")?,
         },
         "pinhole" => Model::Pinhole { f: f()? },
+        "pinhole-radtan8" => Model::RadTan {
+            f: f()?,
+            k: [p("k1")?, p("k2")?, p("k3")?, p("k4")?, p("k5")?, p("k6")?],
+            p: [p("p1")?, p("p2")?],
+            rpmax: match params.get("rpmax") {
+                Some(_) => p("rpmax")?,
+                None => 0.0,
+            },
+        },
+        "fov" => Model::Fov {
+            f: f()?,
+            w: p("w")?,
+        },
         other => {
             return Err(camera_error(
                 path,
                 &format!("{field}.camera_type"),
                 format!(
                     "Basalt camera type `{other}` is not supported (supported: kb4, ds, eucm, \
-                     ucm, pinhole)"
+                     ucm, pinhole, pinhole-radtan8, fov)"
                 ),
             ))
         }

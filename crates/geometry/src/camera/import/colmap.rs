@@ -98,43 +98,44 @@ fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> 
         }
         "SIMPLE_RADIAL" => {
             count(4, "f, cx, cy, k")?;
-            Model::RadTan {
-                f: [params[0], params[0], params[1] - c, params[2] - c],
-                k: [params[3], 0.0, 0.0],
-                p: [0.0, 0.0],
-            }
+            Model::radtan(
+                [params[0], params[0], params[1] - c, params[2] - c],
+                [params[3], 0.0, 0.0],
+                [0.0, 0.0],
+            )
         }
         "RADIAL" => {
             count(5, "f, cx, cy, k1, k2")?;
-            Model::RadTan {
-                f: [params[0], params[0], params[1] - c, params[2] - c],
-                k: [params[3], params[4], 0.0],
-                p: [0.0, 0.0],
-            }
+            Model::radtan(
+                [params[0], params[0], params[1] - c, params[2] - c],
+                [params[3], params[4], 0.0],
+                [0.0, 0.0],
+            )
         }
         "OPENCV" => {
             count(8, "fx, fy, cx, cy, k1, k2, p1, p2")?;
-            Model::RadTan {
-                f: [params[0], params[1], params[2] - c, params[3] - c],
-                k: [params[4], params[5], 0.0],
-                p: [params[6], params[7]],
-            }
+            Model::radtan(
+                [params[0], params[1], params[2] - c, params[3] - c],
+                [params[4], params[5], 0.0],
+                [params[6], params[7]],
+            )
         }
         "FULL_OPENCV" => {
             count(12, "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6")?;
-            if params[9..].iter().any(|v| *v != 0.0) {
-                return Err(camera_error(
-                    path,
-                    &field("PARAMS"),
-                    "FULL_OPENCV with non-zero k4, k5, k6 (OpenCV's rational model) is not \
-                     supported"
-                        .to_string(),
-                ));
-            }
             Model::RadTan {
                 f: [params[0], params[1], params[2] - c, params[3] - c],
-                k: [params[4], params[5], params[8]],
+                k: [
+                    params[4], params[5], params[8], params[9], params[10], params[11],
+                ],
                 p: [params[6], params[7]],
+                rpmax: 0.0,
+            }
+        }
+        "FOV" => {
+            count(5, "fx, fy, cx, cy, omega")?;
+            Model::Fov {
+                f: [params[0], params[1], params[2] - c, params[3] - c],
+                w: params[4],
             }
         }
         "OPENCV_FISHEYE" => {
@@ -150,8 +151,7 @@ fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> 
                 &field("MODEL"),
                 format!(
                     "COLMAP model `{other}` is not supported (supported: OPENCV_FISHEYE, \
-                     OPENCV, FULL_OPENCV with zero k4..k6, PINHOLE, SIMPLE_PINHOLE, \
-                     SIMPLE_RADIAL, RADIAL)"
+                     OPENCV, FULL_OPENCV, FOV, PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL)"
                 ),
             ))
         }

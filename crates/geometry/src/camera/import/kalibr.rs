@@ -8,8 +8,8 @@ use super::tree::{expect_len, get, numbers, parse_tree, size_pair};
 use super::{camera_error, ImportOptions, Model, Parsed};
 use crate::error::Result;
 
-const KALIBR_SUPPORTED: &str =
-    "pinhole-equi, pinhole-radtan, pinhole-none, ds-none, eucm-none, omni-none";
+const KALIBR_SUPPORTED: &str = "pinhole-equi, pinhole-radtan, pinhole-fov, pinhole-none, \
+     omni-radtan, omni-none, ds-none, eucm-none";
 
 pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> {
     let tree = parse_tree(text, path)?;
@@ -109,9 +109,27 @@ impl Entry<'_> {
                 ints(4, "[fu, fv, pu, pv]")?;
                 coefs(4, "[k1, k2, p1, p2]")?;
                 notes.push("k3 = 0: Kalibr's radtan has four coefficients".to_string());
-                Model::RadTan {
+                Model::radtan(
+                    [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
+                    [coeffs[0], coeffs[1], 0.0],
+                    [coeffs[2], coeffs[3]],
+                )
+            }
+            ("pinhole", "fov") => {
+                ints(4, "[fu, fv, pu, pv]")?;
+                coefs(1, "[w]")?;
+                Model::Fov {
                     f: [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
-                    k: [coeffs[0], coeffs[1], 0.0],
+                    w: coeffs[0],
+                }
+            }
+            ("omni", "radtan") if !zero_coeffs => {
+                ints(5, "[xi, fu, fv, pu, pv]")?;
+                coefs(4, "[k1, k2, p1, p2]")?;
+                Model::Mei {
+                    f: [intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]],
+                    xi: intrinsics[0],
+                    k: [coeffs[0], coeffs[1]],
                     p: [coeffs[2], coeffs[3]],
                 }
             }
@@ -162,17 +180,12 @@ impl Entry<'_> {
                 }
             }
             _ => {
-                let detail = if camera_model == "omni" && distortion == "radtan" {
-                    " (with non-zero distortion coefficients)"
-                } else {
-                    ""
-                };
                 return Err(camera_error(
                     path,
                     &field("camera_model"),
                     format!(
-                    "Kalibr model `{name}`{detail} is not supported (supported: {KALIBR_SUPPORTED})"
-                ),
+                        "Kalibr model `{name}` is not supported (supported: {KALIBR_SUPPORTED})"
+                    ),
                 ));
             }
         })

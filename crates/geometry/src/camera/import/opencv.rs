@@ -1,5 +1,7 @@
-//! OpenCV calibration files: `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or JSON,
-//! or plain YAML / JSON.
+//! OpenCV calibration files: `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`), XML
+//! (`<opencv_storage>`, `type_id="opencv-matrix"`) or JSON, or plain YAML / JSON. Keys are
+//! matched without regard to case, so the calibration sample's older spellings
+//! (`Camera_Matrix`, `Distortion_Coefficients`, `image_Width`, `image_Height`) read too.
 
 use std::path::Path;
 
@@ -18,15 +20,22 @@ const OPENCV_D_KEYS: [&str; 5] = [
     "distortion",
 ];
 
-/// The first of `keys` present in `tree`, with its name.
-fn first_key<'a>(tree: &'a Value, keys: &[&'a str]) -> Option<(&'a str, &'a Value)> {
-    keys.iter().find_map(|k| tree.get(*k).map(|v| (*k, v)))
+/// The first of `keys` present in `tree` (compared without regard to case), with its name as
+/// the file spells it.
+pub(super) fn first_key<'a>(tree: &'a Value, keys: &[&str]) -> Option<(&'a str, &'a Value)> {
+    let object = tree.as_object()?;
+    keys.iter().find_map(|k| {
+        object
+            .iter()
+            .find(|(name, _)| name.eq_ignore_ascii_case(k))
+            .map(|(name, v)| (name.as_str(), v))
+    })
 }
 
 /// A matrix as OpenCV's FileStorage writes it (`{rows, cols, dt, data}`, tagged
 /// `!!opencv-matrix` in YAML, `"type_id": "opencv-matrix"` in JSON), a nested list, or a flat
 /// list: its values in row-major order.
-fn matrix(v: &Value, path: &Path, field: &str) -> Result<Vec<f64>> {
+pub(super) fn matrix(v: &Value, path: &Path, field: &str) -> Result<Vec<f64>> {
     match v {
         Value::Object(m) => {
             let data = numbers(
@@ -37,7 +46,7 @@ fn matrix(v: &Value, path: &Path, field: &str) -> Result<Vec<f64>> {
             )?;
             if let (Some(r), Some(c)) = (m.get("rows"), m.get("cols")) {
                 let (r, c) = (number(r, path, field)?, number(c, path, field)?);
-                if (r * c) as usize != data.len() {
+                if r * c != data.len() as f64 {
                     return Err(camera_error(
                         path,
                         field,
@@ -98,7 +107,7 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
 
 /// `[fx, fy, cx, cy]` of the file's camera matrix, which must be `[[fx, 0, cx], [0, fy, cy],
 /// [0, 0, 1]]`.
-fn focal_and_centre(tree: &Value, path: &Path) -> Result<[f64; 4]> {
+pub(super) fn focal_and_centre(tree: &Value, path: &Path) -> Result<[f64; 4]> {
     let (k_key, k_value) = first_key(tree, &OPENCV_K_KEYS).ok_or_else(|| {
         camera_error(
             path,
@@ -108,22 +117,43 @@ fn focal_and_centre(tree: &Value, path: &Path) -> Result<[f64; 4]> {
     })?;
     let k = matrix(k_value, path, k_key)?;
     expect_len(&k, 9, path, k_key, "a 3x3 camera matrix")?;
-    if k[1] != 0.0 || k[3] != 0.0 || k[6] != 0.0 || k[7] != 0.0 || k[8] != 1.0 {
+    camera_matrix_entries(&k, path, k_key)?;
+    Ok([k[0], k[4], k[2], k[5]])
+}
+
+/// Checks a row-major 3x3 camera matrix `k` (read from `field`) is `[[fx, 0, cx], [0, fy, cy],
+/// [0, 0, 1]]`. Skew (`k[0][1]`) is refused: no model of this crate has it, and dropping it
+/// would move every pixel by up to `skew * y'` (the error names the entry).
+pub(super) fn camera_matrix_entries(k: &[f64], path: &Path, field: &str) -> Result<()> {
+    if k[1] != 0.0 {
         return Err(camera_error(
             path,
-            k_key,
+            &format!("{field}[0][1]"),
             format!(
-                "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (skew is not supported), found \
-                 {k:?}"
+                "a skewed camera matrix (skew = {}) is not supported: the camera models here \
+                 have u = fx x'' + cx; recalibrate with zero skew (OpenCV's default)",
+                k[1]
             ),
         ));
     }
-    Ok([k[0], k[4], k[2], k[5]])
+    for (i, want) in [(3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0)] {
+        if k[i] != want {
+            return Err(camera_error(
+                path,
+                &format!("{field}[{}][{}]", i / 3, i % 3),
+                format!(
+                    "expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], found {} here ({k:?})",
+                    k[i]
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The model of the distortion coefficients `d` (read from `d_key`) for OpenCV's `model`, and
 /// its name; `notes` gets a line per convention converted.
-fn coefficients(
+pub(super) fn coefficients(
     model: OpenCvModel,
     f: [f64; 4],
     d: &[f64],
@@ -142,52 +172,60 @@ fn coefficients(
                 "fisheye",
             )
         }
-        OpenCvModel::Standard => {
-            let extra = d.get(5..).unwrap_or_default();
-            if ![4, 5, 8, 12, 14].contains(&d.len()) {
-                return Err(camera_error(
-                    path,
-                    d_key,
-                    format!(
-                        "OpenCV's standard model has 4, 5, 8, 12 or 14 coefficients, found {}",
-                        d.len()
-                    ),
-                ));
-            }
-            if extra.iter().any(|c| *c != 0.0) {
-                return Err(camera_error(
-                    path,
-                    d_key,
-                    format!(
-                        "OpenCV's rational / thin-prism / tilted model (non-zero k4.. of {} \
-                         coefficients) is not supported; only k1 k2 p1 p2 k3",
-                        d.len()
-                    ),
-                ));
-            }
-            if d.len() == 4 {
-                notes.push("k3 = 0: the file has four coefficients".to_string());
-            }
-            (
-                Model::RadTan {
-                    f,
-                    k: [d[0], d[1], d.get(4).copied().unwrap_or(0.0)],
-                    p: [d[2], d[3]],
-                },
-                "standard",
-            )
-        }
+        OpenCvModel::Standard => (standard(f, d, d_key, path, notes)?, "standard"),
+    })
+}
+
+/// OpenCV's standard model of `d` = `k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]`: the
+/// 5-coefficient or rational model; thin-prism and tilt terms must be zero.
+pub(super) fn standard(
+    f: [f64; 4],
+    d: &[f64],
+    d_key: &str,
+    path: &Path,
+    notes: &mut Vec<String>,
+) -> Result<Model> {
+    if ![4, 5, 8, 12, 14].contains(&d.len()) {
+        return Err(camera_error(
+            path,
+            d_key,
+            format!(
+                "OpenCV's standard model has 4, 5, 8, 12 or 14 coefficients, found {}",
+                d.len()
+            ),
+        ));
+    }
+    if let Some(i) = (8..d.len()).find(|&i| d[i] != 0.0) {
+        return Err(camera_error(
+            path,
+            &format!("{d_key}[{i}]"),
+            format!(
+                "OpenCV's thin-prism / tilted model (non-zero s1..s4, tx, ty of {} coefficients) \
+                 is not supported; the rational model k1 k2 p1 p2 k3 k4 k5 k6 is",
+                d.len()
+            ),
+        ));
+    }
+    if d.len() == 4 {
+        notes.push("k3 = 0: the file has four coefficients".to_string());
+    }
+    let at = |i: usize| d.get(i).copied().unwrap_or(0.0);
+    Ok(Model::RadTan {
+        f,
+        k: [d[0], d[1], at(4), at(5), at(6), at(7)],
+        p: [d[2], d[3]],
+        rpmax: 0.0,
     })
 }
 
 /// `image_width` + `image_height`, or a two-element `image_size` / `imageSize` / `resolution`.
 fn image_size(tree: &Value, path: &Path) -> Result<[usize; 2]> {
     Ok(
-        if let (Some(w), Some(h)) = (tree.get("image_width"), tree.get("image_height")) {
-            [
-                dimension(w, path, "image_width")?,
-                dimension(h, path, "image_height")?,
-            ]
+        if let (Some((wk, w)), Some((hk, h))) = (
+            first_key(tree, &["image_width"]),
+            first_key(tree, &["image_height"]),
+        ) {
+            [dimension(w, path, wk)?, dimension(h, path, hk)?]
         } else if let Some((key, v)) = first_key(tree, &["image_size", "imageSize", "resolution"]) {
             let values = matrix(v, path, key)?;
             expect_len(&values, 2, path, key, "[width, height]")?;
@@ -208,7 +246,7 @@ fn image_size(tree: &Value, path: &Path) -> Result<[usize; 2]> {
 /// The model the file declares (`fisheye_model: 0 | 1`, or `distortion_model` / `model` by
 /// name), if it does.
 fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
-    Ok(if let Some(v) = tree.get("fisheye_model") {
+    Ok(if let Some((_, v)) = first_key(tree, &["fisheye_model"]) {
         // OpenCV's camera_calibration sample writes `fisheye_model: 0 | 1`.
         match v {
             Value::Bool(b) => Some(*b),
@@ -226,16 +264,19 @@ fn declared_model(tree: &Value, path: &Path) -> Result<Option<OpenCvModel>> {
             "fisheye" | "equidistant" | "kannala_brandt" | "kannala-brandt" => {
                 Some(OpenCvModel::Fisheye)
             }
-            "plumb_bob" | "radtan" | "radial-tangential" | "standard" | "pinhole" => {
-                Some(OpenCvModel::Standard)
-            }
+            "plumb_bob"
+            | "rational_polynomial"
+            | "radtan"
+            | "radial-tangential"
+            | "standard"
+            | "pinhole" => Some(OpenCvModel::Standard),
             other => {
                 return Err(camera_error(
                     path,
                     key,
                     format!(
                         "OpenCV model `{other}` is not supported (supported: fisheye, \
-                         equidistant, plumb_bob, radtan)"
+                         equidistant, plumb_bob, rational_polynomial, radtan)"
                     ),
                 ))
             }

@@ -1,5 +1,6 @@
-//! Structured text: YAML and JSON as one tree (`serde_json::Value`), and the typed reads
-//! (numbers, lists, image sizes) every reader shares; each error names the file and the field.
+//! Structured text: YAML, JSON and OpenCV's FileStorage XML as one tree (`serde_json::Value`),
+//! and the typed reads (numbers, lists, image sizes) every reader shares; each error names the
+//! file and the field.
 
 use std::path::Path;
 
@@ -9,9 +10,25 @@ use super::{camera_error, format_error};
 use crate::error::Result;
 
 /// Parses YAML (a leading OpenCV `%YAML:1.0` line, which is not valid YAML, is skipped; tags
-/// such as `!!opencv-matrix` are ignored) or JSON (text starting with `{`) into a JSON tree.
+/// such as `!!opencv-matrix` are ignored), JSON (text starting with `{`) or OpenCV FileStorage
+/// XML (text starting with `<`, see [`xml_to_json`]) into a JSON tree.
 pub(super) fn parse_tree(text: &str, path: &Path) -> Result<Value> {
     let trimmed = text.trim_start_matches('\u{feff}').trim_start();
+    if trimmed.starts_with('<') {
+        let doc = roxmltree::Document::parse(trimmed)
+            .map_err(|e| format_error(path, format!("not valid XML: {e}")))?;
+        let root = doc.root_element();
+        if root.tag_name().name() != "opencv_storage" {
+            return Err(format_error(
+                path,
+                format!(
+                    "an XML file whose root is <{}>, not OpenCV's <opencv_storage>",
+                    root.tag_name().name()
+                ),
+            ));
+        }
+        return Ok(xml_to_json(root));
+    }
     if trimmed.starts_with('{') {
         return serde_json::from_str(trimmed)
             .map_err(|e| format_error(path, format!("not valid JSON: {e}")));
@@ -27,6 +44,37 @@ pub(super) fn parse_tree(text: &str, path: &Path) -> Result<Value> {
         Some(doc) => Ok(yaml_to_json(&doc)),
         None => Err(format_error(path, "empty file".to_string())),
     }
+}
+
+/// An element of OpenCV FileStorage XML as the tree its YAML would give: an element with
+/// child elements is a map (a sequence when every child is `<_>`, FileStorage's list items);
+/// a leaf is a number, a list of numbers (whitespace-separated, as in a matrix's `<data>`) or a
+/// string (quotes removed). The attribute `type_id` is ignored, like YAML's tags.
+fn xml_to_json(node: roxmltree::Node) -> Value {
+    let children: Vec<roxmltree::Node> = node.children().filter(|n| n.is_element()).collect();
+    if children.is_empty() {
+        let text: String = node
+            .children()
+            .filter(|n| n.is_text())
+            .filter_map(|n| n.text())
+            .collect();
+        let text = text.trim();
+        let numbers: Option<Vec<f64>> = text.split_whitespace().map(parse_float).collect();
+        return match numbers {
+            Some(v) if v.len() == 1 => Value::from(v[0]),
+            Some(v) if !v.is_empty() => Value::Array(v.into_iter().map(Value::from).collect()),
+            _ => Value::String(text.trim_matches('"').to_string()),
+        };
+    }
+    if children.iter().all(|c| c.tag_name().name() == "_") {
+        return Value::Array(children.into_iter().map(xml_to_json).collect());
+    }
+    Value::Object(
+        children
+            .into_iter()
+            .map(|c| (c.tag_name().name().to_string(), xml_to_json(c)))
+            .collect(),
+    )
 }
 
 pub(super) fn yaml_to_json(y: &yaml_rust2::Yaml) -> Value {
