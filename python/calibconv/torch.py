@@ -182,14 +182,15 @@ def calibrate(
     input_size: Sequence[int],
     input_padding: Sequence[int] = (0, 0),
     convention: str = "half-pixel",
-    in_channels: int = 3,
+    in_channels: Optional[int] = None,
 ) -> nn.Module:
     """Replaces every ``nn.Conv2d`` with a kernel > 1 by a :class:`CalibratedConv2d`.
 
     ``camera``: a :class:`calibconv.Camera` or the path of a camera file. ``input_size``: the
     network input ``(H, W)`` (the camera image plus ``input_padding = (p_w, p_h)``, resized to
     it). One forward of a ``[1, in_channels, H, W]`` zero tensor (in eval mode, without
-    gradients) records the input feature-map size of each convolution; each is swapped in place
+    gradients; ``in_channels`` defaults to the input channels of the model's first ``nn.Conv2d``
+    in module order, and is an error naming the model when it has none) records the input feature-map size of each convolution; each is swapped in place
     for a calibrated one with its own stride / padding / dilation / groups, sharing the weight and
     bias Parameters, so ``state_dict`` keys and optimiser state stay valid (fine-tuning works).
     Returns ``model``.
@@ -203,6 +204,14 @@ def calibrate(
     if isinstance(camera, (str, os.PathLike)):
         camera = Camera.load(camera)
     h, w = (int(s) for s in input_size)
+    if in_channels is None:
+        first = next((m for m in model.modules() if isinstance(m, nn.Conv2d)), None)
+        if first is None:
+            raise ValueError(
+                f"{type(model).__name__} has no nn.Conv2d to take the input channels from: "
+                f"pass in_channels"
+            )
+        in_channels = first.in_channels
 
     sizes: dict = {}
     hooks = []

@@ -142,3 +142,16 @@ def test_even_kernels_stay_standard_with_a_warning():
     with pytest.warns(UserWarning, match=r"left standard .*: 1"):
         calibrate(model, F195, (32, 36))
     assert isinstance(model[0], CalibratedConv2d) and type(model[1]) is nn.Conv2d
+
+
+def test_calibrate_takes_the_input_channels_from_the_first_convolution():
+    # A 4-channel input (RGB-D): without in_channels the probe forward reads the first conv's.
+    model = nn.Sequential(nn.Conv2d(4, 8, 3, padding=1), nn.ReLU(), nn.Conv2d(8, 2, 3, padding=1))
+    calibrate(model, F195, (32, 36))
+    assert len(conv_names(model, CalibratedConv2d)) == 2
+    assert model(torch.randn(2, 4, 32, 36)).shape == (2, 2, 32, 36)
+
+
+def test_calibrate_without_a_convolution_asks_for_in_channels():
+    with pytest.raises(ValueError, match="pass in_channels"):
+        calibrate(nn.Sequential(nn.Linear(4, 4)), F195, (32, 36))
