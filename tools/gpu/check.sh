@@ -21,6 +21,10 @@ mkdir -p "$OUT"
 BIN=${BIN:-target/gpu/calibconv}
 TESTS=${TESTS:-target/gpu/cuda-tests}
 PY=${PY:-python3}
+# A dry run elsewhere: DEVICE=cpu LAYERS=tiny:32x32:2 STEP=tiny:32x32:2 (every part, small).
+DEVICE=${DEVICE:-cuda}
+LAYERS=${LAYERS:-classic:1088x960:8 small:144x160:8}
+STEP=${STEP:-classic:1088x960:8}
 torch_lib=$("$PY" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')
 export LD_LIBRARY_PATH="$torch_lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 start=$(date +%s)
@@ -39,12 +43,13 @@ cp "$OUT/info.log" "$OUT/info.json"
 part cuda-tests 120 "$TESTS" --test-threads 1 --nocapture --skip cuda_without_cuda_is_refused_before_any_work
 part synth 120 "$BIN" synth --config data/synth-quick.toml
 sweep_t0=$(date +%s)
-part quick 240 "$BIN" sweep experiments/paper --profile quick --seeds 0 --set device=cuda --jobs 1
+part quick 240 "$BIN" sweep experiments/paper --profile quick --seeds 0 --set device=$DEVICE --jobs 1
 echo "$(( $(date +%s) - sweep_t0 ))" > "$OUT/quick_wall_s.txt"
 part report 60 "$BIN" report results/quick
-part layers 150 "$BIN" bench-device --device cuda --reps 7 \
-  --layers classic:1088x960:8 --layers small:144x160:8 --json "$OUT/layers.json"
-part step 120 "$BIN" bench-device --device cuda --reps 5 --step classic:1088x960:8 --json "$OUT/step.json"
+layer_args=()
+for l in $LAYERS; do layer_args+=(--layers "$l"); done
+part layers 150 "$BIN" bench-device --device "$DEVICE" --reps 7 "${layer_args[@]}" --json "$OUT/layers.json"
+part step 120 "$BIN" bench-device --device "$DEVICE" --reps 5 --step "$STEP" --json "$OUT/step.json"
 uptime >> "$OUT/load.txt"
 "$PY" tools/gpu/record.py "$OUT" > "$OUT/gpu-h200.json"
 echo "gpu check: $(( $(date +%s) - start )) s; record $OUT/gpu-h200.json"
