@@ -1,6 +1,6 @@
 //! Embeds an rpath to libtorch (from torch-sys's `DEP_TCH_LIBTORCH_LIB`) so binaries and tests
 //! run without `LD_LIBRARY_PATH`, checks that the venv's torch is the version tch expects, and
-//! compiles the native CPU kernels (`src/ops/native/deform.cpp`) against the same libtorch
+//! compiles the native CPU kernels (`src/ops/native/*.cpp`) against the same libtorch
 //! headers (C++17, the ABI torch-sys uses, OpenMP for `at::parallel_for`); on success it sets
 //! `cfg(calibconv_native)`, on failure it warns and the crate uses the ATen composition (and the
 //! test `native_kernels_are_built` fails unless `CALIBCONV_ALLOW_NO_NATIVE=1`). Linking to
@@ -10,10 +10,24 @@ use std::path::PathBuf;
 
 const TORCH_VERSION: &str = "2.13.0";
 
-/// The native kernels' source.
-const NATIVE_SRC: &str = "src/ops/native/deform.cpp";
-/// The headers it includes (a change to one rebuilds the kernels).
-const NATIVE_HEADERS: [&str; 2] = ["src/ops/native/simd.h", "src/ops/native/small_kernels.h"];
+/// The native kernels' sources, one per pass (deform.cpp holds the entry point).
+const NATIVE_SRC: [&str; 8] = [
+    "src/ops/native/deform.cpp",
+    "src/ops/native/forward.cpp",
+    "src/ops/native/gather.cpp",
+    "src/ops/native/grad_input.cpp",
+    "src/ops/native/grad_weight.cpp",
+    "src/ops/native/layout.cpp",
+    "src/ops/native/padding.cpp",
+    "src/ops/native/small.cpp",
+];
+/// The headers they include (a change to one rebuilds the kernels).
+const NATIVE_HEADERS: [&str; 4] = [
+    "src/ops/native/deform.h",
+    "src/ops/native/gather.h",
+    "src/ops/native/simd.h",
+    "src/ops/native/small_kernels.h",
+];
 
 fn main() {
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
@@ -46,9 +60,8 @@ fn main() {
 /// Compiles [`NATIVE_SRC`] into a static library linked into the crate and sets
 /// `cfg(calibconv_native)`; on failure warns and leaves the ATen composition as the CPU path.
 fn compile_native(lib: &std::path::Path) {
-    println!("cargo:rerun-if-changed={NATIVE_SRC}");
-    for header in NATIVE_HEADERS {
-        println!("cargo:rerun-if-changed={header}");
+    for path in NATIVE_SRC.iter().chain(&NATIVE_HEADERS) {
+        println!("cargo:rerun-if-changed={path}");
     }
     println!("cargo:rerun-if-env-changed=LIBTORCH_CXX11_ABI");
     let include = lib.join("..").join("include");
@@ -73,7 +86,7 @@ fn compile_native(lib: &std::path::Path) {
         .flag("-fopenmp")
         .flag("-Wall")
         .flag("-Wextra")
-        .file(NATIVE_SRC)
+        .files(NATIVE_SRC)
         .try_compile("calibconv_native");
     match built {
         Ok(()) => println!("cargo:rustc-cfg=calibconv_native"),

@@ -31,6 +31,8 @@
 #include <string>
 #include <vector>
 
+using namespace calibconv::native;
+
 namespace {
 
 struct Layer {

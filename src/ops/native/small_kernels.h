@@ -11,7 +11,7 @@
 
 #include "simd.h"
 
-namespace {
+namespace calibconv::native {
 
 // Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256, 512 or 1024 with AVX-512;
 // 8, 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the three
@@ -97,7 +97,7 @@ constexpr int64_t slab_end(int64_t a, int64_t s1) {
 // Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
 // multiple of 8 that fits SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS (or
 // SMALL_LARGE_BLOCK_ROWS for a large weight), at most the tile.
-int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
+inline int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
   const int64_t least =
       small_large_weight(kc, cout) ? SMALL_LARGE_BLOCK_ROWS : SMALL_BLOCK_MIN_ROWS;
@@ -344,16 +344,16 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 #define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
   static_assert(OC == small_panel(CO), "a pass is one panel of the weight");                  \
   constexpr int64_t small_rows_##CO##_##SUFFIX = R;                                            \
-  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc,         \
+  TARGET inline void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc,         \
                                             int64_t kc, int64_t s0, int64_t s1,                \
                                             const float* wt, const float* bias, float* y) {    \
     small_forward_body<CO, L, R, OC>(cols, n, ldc, kc, s0, s1, wt, bias, y);                   \
   }                                                                                            \
-  TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
+  TARGET inline void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
                                                     const float* w, float* g) {                \
     small_column_gradient_body<CO, CL, CR, CJ>(gy, n, kc, w, g);                               \
   }                                                                                            \
-  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc, \
+  TARGET inline void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc, \
                                                     int64_t kc, int64_t s0, int64_t s1,        \
                                                     const float* gy, float* acc, int64_t o0,   \
                                                     int64_t o1) {                              \
@@ -399,9 +399,9 @@ CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
 
 // The highest level this CPU runs, capped by the last calibconv_native_small_isa call (tests run
 // the AVX2 kernels on an AVX-512 machine with it).
-std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
+inline std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
 
-SmallIsa small_isa() {
+inline SmallIsa small_isa() {
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
   static const SmallIsa cpu = [] {
     __builtin_cpu_init();
@@ -440,7 +440,7 @@ struct SmallKernels {
 constexpr int64_t SMALL_MAX_WEIGHT = 9 << 20;
 
 // The kernels for C_out outputs and K*C = kc columns (float32, one group) at the level in use.
-SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
+inline SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   SmallKernels s;
   if (kc * cout > SMALL_MAX_WEIGHT) return s;
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
@@ -480,4 +480,4 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   return s;
 }
 
-}  // namespace
+}  // namespace calibconv::native
