@@ -31,11 +31,18 @@
 // - few output channels (float32, one group, C_out 8 to 1024 with a weight of at most 36 MiB; 8
 //   to 32 with AVX2): the three products run through register-blocked kernels on L1-sized blocks
 //   of pixels (gathered, multiplied, scattered block by block) instead of a oneDNN / BLAS call
-//   per tile, compiled per instruction-set level (AVX-512, AVX2) and picked at run time; see
-//   "Few output channels".
+//   per tile, compiled per instruction-set level (AVX-512, AVX2) and picked at run time
+//   (small_kernels.h, small.cpp).
 //
 // Tiles run in parallel with at::parallel_for. The entry point catches every C++ exception and
 // returns its message: no exception crosses into Rust.
+//
+// Files: deform.h (shared declarations), gather.h / gather.cpp (the gather and scatter kernels),
+// padding.cpp (the padded input), layout.cpp (NCHW <-> channels-last, the packed weight),
+// forward.cpp, grad_weight.cpp, grad_input.cpp (the passes), small.cpp (the few-output-channel
+// products in the layer), simd.h (instruction-set helpers), this file (tiling, the GEMM library,
+// the autograd Function and the C entry points). What was measured for the choices in these files:
+// docs/bench/cpu-kernels.md.
 
 #include <ATen/ops/mkldnn_convolution.h>
 #include <torch/csrc/autograd/custom_function.h>
@@ -84,19 +91,9 @@ bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems) {
 // (at::mkldnn_convolution) when asked (calibconv_native_gemm; `calibconv bench --gemm`, for A/B
 // timings). These are the layers of more than 1024 outputs or a weight of more than 36 MiB (more
 // than 32 outputs on CPUs without AVX-512), and the weight gradient from DNN_WEIGHT_MIN_COUT
-// outputs where no few-output-channel kernel exists. oneDNN was the default on CPUs with AVX-512
-// while it also multiplied the few-channel layers (there, on an AMD EPYC Zen 5, it reached 140-240
-// GFLOP/s where MKL's AVX2 code reached 80-110); once those had their own kernels, the BLAS
-// measured faster at the shapes left, on both CPUs compared (one thread, interleaved, calibrated /
-// conv2d forward and f+b, oneDNN -> the BLAS): an AMD EPYC Zen 3 without AVX-512, 1024->1024 at
-// 16x16 B2 2.87 / 1.86x -> 1.00 / 1.18x, 512->512 at 32x32 1.16 / 1.44x -> 1.10 / 1.17x, 256->256
-// at 8x8 B8 1.09 / 1.44x -> 0.95 / 1.06x; an AMD EPYC Zen 4 with AVX-512 (2 rounds each), 256->256
-// at 8x8 B8 2.08-2.15 / 2.16-2.61x -> 1.38-1.42 / 1.39x, 128->256 at 8x8 B8 1.64-2.17 / 2.29-2.33x
-// -> 1.42-1.48 / 1.36-1.37x, 1024->1024 at 16x16 B2 1.32-1.40 / 1.34-1.42x -> 1.19-1.21 /
-// 1.06-1.31x, and no row of ten (128-1024 channels, 8x8-64x64) slower in both rounds. oneDNN also
-// reorders the weight on every call: its layers' peak memory was 0.8-3.2x conv2d's against 0.7-1.7x
-// with the BLAS (Zen 4). Float64 (which oneDNN does not have) and grouped convolutions always use
-// at::mm.
+// outputs where no few-output-channel kernel exists. At these shapes the BLAS measured faster than
+// oneDNN (which also reorders the weight on every call, raising peak memory). Float64 (which
+// oneDNN does not have) and grouped convolutions always use at::mm.
 bool dnn_available() {
   static const bool ok = at::hasMKLDNN();
   return ok;
@@ -170,8 +167,7 @@ struct DeformConv : public torch::autograd::Function<DeformConv> {
     ctx->saved_data["top_left"] = top_left;
     // The per-sample coefficients the kernels read (sample_coefficients); the backward pass
     // computes them again from the fractions rather than keep the corner weights (16 bytes a
-    // sample) from forward to backward: 0.6 MiB for each 8-channel layer of the quick profile's
-    // network, whose training step's peak memory went 25 -> 27 MiB with them kept.
+    // sample) from forward to backward.
     const at::Tensor coef = sample_coefficients(frac, g);
     ctx->saved_data["frac"] = frac;
     ctx->saved_data["rows"] = rows;

@@ -26,8 +26,7 @@ namespace calibconv::native {
 // Tiling.
 
 // With oneDNN asked for (use_dnn), the weight gradient goes through it from this many output
-// channels on (below it oneDNN's reduction over a tile's pixels was slower than MKL's: 40 vs 69
-// GFLOP/s at 8 channels, even at 16, 1.5-1.7x faster from 32 on; Zen 5).
+// channels on (below it oneDNN's reduction over a tile's pixels measured slower than MKL's).
 constexpr int64_t DNN_WEIGHT_MIN_COUT = 32;
 // The forward pass keeps its column matrix for the weight gradient when the input needs no
 // gradient (a first layer) and has at most this many channels (the matrix is then K*C <= 36
@@ -40,9 +39,7 @@ constexpr int64_t KEEP_COLUMNS_MAX_C = 4;
 // call overhead); small problems get one tile per thread. With several threads the tiles are
 // then evened out: their count rounded up to a multiple of the threads, each of about the same
 // rows (a multiple of 8), so that no thread is left with a short last tile's worth more work
-// than the others. (Before: 256->256 at 8x8 B8, 512 rows, made tiles of 224, 224 and 64 rows,
-// one thread doing 288 rows while the other waited; two threads, forward medians of 300 calls
-// alternating in one process, 4.13 -> 3.86 ms and 4.04 -> 3.73 ms.) One thread: as before.
+// than the others.
 int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_t elem_bytes);
 
 // Whether a pass runs as one tile of all `total` rows on the calling thread, its GEMM then
@@ -54,9 +51,7 @@ int64_t tile_rows(int64_t total, int64_t row_elems, int64_t weight_elems, int64_
 // column matrix times C_out. One thread: always false (nothing to share). Not for the
 // few-output-channel kernels when each thread gets at least a block of rows (small_kernels):
 // they pack the weight once and multiply tiles of rows on every thread (their weight-gradient
-// panels split between the threads, see grad_weight_impl): classic 512->1024 and 1024->1024 at
-// 16x16 B2, two threads, calibrated / conv2d forward 1.27-1.46x through the BLAS's threads ->
-// 0.94-1.08x, f+b 1.18-1.48x -> 1.06-1.07x (2 rounds alternating).
+// panels split between the threads, see grad_weight_impl), which is faster.
 bool whole_rows(int64_t total, int64_t row_elems, int64_t weight_elems);
 
 // ---------------------------------------------------------------------------------------------
@@ -89,6 +84,7 @@ void gemm(const Mat<const T>& a, const Mat<const T>& b, const Mat<T>& c, bool ac
     at::mm_out(tc, view_of(a), view_of(b));
   }
 }
+
 // Whether the float32 GEMMs of one group go through oneDNN (deform.cpp: only when asked for).
 bool use_dnn();
 
@@ -138,12 +134,9 @@ void parallel_tasks(int64_t n, const Init& init, const F& f) {
 extern std::atomic<bool> poison_scratch;
 
 // n values, not initialised: for buffers that every pass writes before it reads them (a
-// std::vector zeroes its values first: at 256 -> 256 channels on 8x8 maps a block of columns is
-// 2.3 MiB, and the zeroing was 1.5-2% of a forward + backward's samples in perf). Aligned to a
+// std::vector zeroes its values first, which showed in profiles of large blocks). Aligned to a
 // cache line, as libtorch's tensors: a pixel of 16 float channels in a padded frame is one line,
-// not two. (With malloc's 16 bytes, where a buffer began depended on what the process had
-// allocated and freed before: at 16 -> 16 channels on 128x128 maps B8 the same gathers took
-// 9% or 13% of a forward + backward's perf samples from one build to the next.)
+// not two, and where a buffer begins does not depend on what the process allocated before.
 template <typename T>
 class Uninit {
  public:
@@ -207,8 +200,7 @@ at::Tensor nchw(const at::Tensor& x);
 at::MemoryFormat memory_format(const at::Tensor& input);
 // The weight packed as WP [G, C_out/G, K, C/G]: each output channel's [C/G, K] block
 // transposed, through convert_pixels for a contiguous weight (8x8 register transposes for
-// float; the scalar loop before them was 2.7% of a forward + backward's samples at 256 -> 256
-// on 8x8 maps, 2.1% after), else by a strided copy.
+// float), else by a strided copy.
 at::Tensor pack_weight(const at::Tensor& weight, const Geo& g);
 // The input as pad_row reads it: as it is (made contiguous) where `direct` (pad_direct), else
 // channels-last.
@@ -237,18 +229,18 @@ void sum_chunks(const Acc& acc, int64_t chunks, int64_t rows, int64_t len, const
 // ---------------------------------------------------------------------------------------------
 // Few output channels (small.cpp): the deformable convolution's side of small_kernels.h.
 
+// Which library multiplies large weights (calibconv_native_large_weights; see small.cpp).
 enum class LargeWeights : int32_t { Auto = 0, Kernels = 1, Blas = 2 };
 extern std::atomic<int32_t> large_weights_override;
-// Whether large weights go through the BLAS (small.cpp).
+// Whether large weights go through the BLAS.
 bool large_weights_to_blas();
 // The few-output-channel kernels (small_kernels.h) of a pass, or all null (small.cpp).
 template <typename T>
 SmallKernels small_kernels(const Geo& g);
 // The float32 weight [C_out, C, kh, kw] of one group as the few-output-channel kernels (float32
 // only) multiply it: [K*C, C_out], rows in the columns' (tap, channel) order, stored as panels of
-// P = small_panel(C_out) outputs ([C_out / P, K*C, P]), through weight_to_panels. One pass over
-// the weight, not a strided copy of a permuted view (TensorIterator's took 5.9% of the forward
-// pass at 64 -> 64 channels on 8x8 maps, a plain loop 4.2%).
+// P = small_panel(C_out) outputs ([C_out / P, K*C, P]), through weight_to_panels: one pass over
+// the weight, not a strided copy of a permuted view.
 at::Tensor weight_columns(const at::Tensor& weight, const Geo& g);
 // Between a float32 weight [C_out, C, K] of one group and its panels [C_out / P, K*C, P].
 void weight_to_panels(const float* __restrict w, float* __restrict panels, int64_t Cout, int64_t C,

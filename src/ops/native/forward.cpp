@@ -38,7 +38,7 @@ at::Tensor forward_impl(const Geo& g, const at::Tensor& input, const at::Tensor&
   const bool dnn = !small && std::is_same_v<T, float> && g.G == 1 && use_dnn();
   // The weight packed for the products: WP (pack_weight) for the library's GEMMs, or for the
   // few-output-channel kernels weight_columns, straight from the weight (one copy, not WP and
-  // then its transpose: at 64 channels on 8x8 maps the two copies took 7% of the forward pass).
+  // then its transpose).
   const at::Tensor wp = small ? at::Tensor() : pack_weight(weight, g);
   const T* wpp = small ? nullptr : wp.const_data_ptr<T>();
   const at::Tensor w2 = small ? at::Tensor() : wp.view({g.Cout, kcg});  // used with G = 1 only

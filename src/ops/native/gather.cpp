@@ -1,6 +1,7 @@
 // The gather and scatter kernels of calibconv's native deformable convolution: the columns of
 // output pixels from the padded input, and the column gradient added back to the corners the
-// samples read; compiled per (element type, channel count) and instruction set.
+// samples read; compiled per (element type, channel count) and instruction set. What was measured
+// for the choices below: docs/bench/cpu-kernels.md.
 
 #include "gather.h"
 
@@ -14,11 +15,8 @@ namespace calibconv::native {
 // (padded_input): a sample's corners are t, t + 1, t + Wp, t + Wp + 1 from its top-left corner t
 // (the plan's top_left; plan.rs says why every corner, inside or not, is a real pixel of the
 // padded input), each weighted by its bilinear weight: one index load per sample, no selects.
-// Against the plan's four corner indices into the unpadded input, each with a select for
-// out-of-range corners (the gather before this one, which staged the addresses of 64 samples at
-// a time), in one C++ process (float32, F195 plans, B8, one thread, Zen 3, the padding copy
-// included): 3 channels at 64x64 and 128x128 0.56-0.62x, 8 channels 0.67-0.77x, 16 channels
-// 0.74-0.81x; the same bits (each value is the same expression of the same numbers).
+// This replaced a gather through the plan's four corner indices into the unpadded input, each with
+// a select for out-of-range corners: the same bits, in less time.
 // NC > 0 fixes the channel count at compile time (one group): at 3-64 channels a sample is a few
 // vector operations, so the channel loop must be unrolled and vectorised for the instruction set
 // (the callers below are multiversioned; this body is inlined into every clone). Three channels
@@ -38,8 +36,7 @@ constexpr int gather_lanes() {
 // of a vector wider than the clone's registers, inside these loops, through the stack (spills,
 // general-register moves, four 16-byte stores that read back across two 32-byte writes, a
 // store-forwarding stall); in 32-byte chunks it is two plain stores (the same values: each lane
-// is the same expression). In one C++ process (16 float channels, F195 plans, B8, one thread,
-// AVX2) the chunked gather took 0.82-0.88x the time of the one with whole 64-byte vectors.
+// is the same expression), and faster.
 template <typename T, int NC>
 constexpr int chunk_lanes() {
   constexpr int L = NC == 3 ? 4 : NC, most = static_cast<int>(32 / sizeof(T));
@@ -66,12 +63,8 @@ CALIBCONV_ALWAYS_INLINE inline V gather_sample(const T* xb, const int32_t* tl, c
 // samples come from one load of their fractions, spread to the lanes by a shuffle. Each lane
 // computes the same expression of the same values as the loop one at a time (the same bits).
 // A pair's six values are packed and stored as eight: the last two land on the next sample's
-// first values, which this call stores later (hence i + 4 < count). Against the loop one at a
-// time (F195 plans, B8, one thread, Zen 4): the forward of 3->16 at 128x128 into an L1 block
-// 3.35-3.41 -> 3.09-3.22 ms (medians of 300 calls, page faults kept out); `calibconv bench
-// --first-layer`, calibrated / conv2d forward, 3 rounds: 3->16 at 128x128 1.71-1.79 ->
-// 1.56-1.74x, at 144x160 1.77-1.95 -> 1.67-1.76x (its columns, kept for the weight gradient,
-// are written to memory: the stores, not the arithmetic, bound it there).
+// first values, which this call stores later (hence i + 4 < count). Faster than the loop one at a
+// time where the columns stay in L1; where they are kept (written to memory), the stores bound it.
 CALIBCONV_ALWAYS_INLINE inline int64_t gather3_quads(const float* xb, const int32_t* tl,
                                                     const float* f, int64_t down, int64_t count,
                                                     float* cols) {
@@ -136,9 +129,8 @@ CALIBCONV_ALWAYS_INLINE inline void sample_channels(const Sample<T>& s, int64_t 
 // channels and more (AVX-512, tile_kernels). Computed per sample, the weights are six scalar
 // operations and four broadcasts from registers, and with 512-bit operations in flight (which leave
 // the vector units of two ports to them) those ten take the ports that the sample's four
-// multiply-adds need; from memory a broadcast is a load. Standalone (16 channels, 24-pixel blocks
-// of a 128x128 map, one thread, Intel Xeon, TSC cycles a sample): gather 4.7-4.9 -> 3.6-4.0,
-// scatter 6.3-7.1 -> 5.9-6.4. Each weight is the same expression (the same bits).
+// multiply-adds need; from memory a broadcast is a load. Each weight is the same expression (the
+// same bits).
 constexpr int64_t WEIGHT_CHUNK = 64;
 template <typename T, int NC, int CLW>
 constexpr bool weights_first() {
@@ -222,9 +214,7 @@ CALIBCONV_ALWAYS_INLINE inline void gather_columns_body(const Geo& g, const T* x
       } else {
         // Several chunks (16 to 64 channels): the weights once per sample. Written per chunk,
         // GCC recomputed them for every chunk (seen in the disassembly of the AVX-512
-        // clone): against that, `calibconv bench` (one thread, Zen 4, 2 rounds) forward 32->16 at
-        // 128x128 1.18-1.19 -> 1.02-1.04x conv2d, 64->32 at 64x64 1.26-1.32 -> 1.11-1.18x, 32->32
-        // at 64x64 1.24 -> 1.11-1.13x; the same bits.
+        // clone), which was slower; the same bits.
         const auto [w0, w1, w2, w3] = corners_at<T, NC>(f, i);
         const T* a = xb + int64_t{tl[i]} * NC;
         for (int c0 = 0; c0 < L; c0 += CL) {
@@ -289,18 +279,13 @@ CALIBCONV_CLONES void gather_range_float(const Geo& g, const float* xp, const in
 // phase write the same padding pixel. Every pixel of the input gets the same additions in the same
 // order as in the scatter into the unpadded input that came before (which skipped out-of-range
 // corners), the same bits (with Border::WrapX the first column's additions through the right
-// padding column come last). In one C++ process against that scatter (float32, F195 plans, B8, one
-// thread, the zeroing and the copy out included): 8 channels 0.75x at 64x64 and 0.87x at 128x128,
-// 16 channels 0.84-0.87x.
+// padding column come last), in less time.
 // A corner of zero weight adds w * g = +-0, which leaves every value but -0 as it is, and no
 // value here is -0 (the buffer starts at +0, and a sum is -0 only if both terms are): the same
 // bits as skipping it, for every finite gradient (an infinite or NaN one spreads NaN to its
 // zero-weight corners too). Such corners lie in the rows the plan's `rows` name (floor(y) and
 // floor(y) + 1 of every sample), so the bands stay disjoint. The branch that skipped them cost
-// more than the additions: two taken jumps a corner. Without it (F195 plans, one thread, Intel
-// Xeon, calibrated / conv2d f+b, 2 processes each way alternating): 16->16 at 128x128 B8
-// 1.51-1.53 -> 1.47-1.50x, 8->8 at 64x64 1.17-1.21 -> 1.09-1.12x, 16->16 at 64x64 1.42-1.46 ->
-// 1.39-1.40x, 32->16 at 128x128 and 32-64 channels within the spread.
+// more than the additions: two taken jumps a corner.
 // NC as in gather_columns_body.
 template <typename T, int NC, int CLW = chunk_lanes<T, NC>()>
 CALIBCONV_ALWAYS_INLINE inline void scatter_columns_body(const Geo& g, T* gxp,
@@ -411,25 +396,8 @@ CALIBCONV_TILE_KERNELS_ALL(double)
 // (x86-64-v4, as the few-output-channel kernels: in the multiversioned bodies above GCC would lower
 // such vectors through the stack in the AVX2 clone) and picked where the CPU has it (tile_kernels).
 // Each lane computes the same expression as the 32-byte chunks and the general loop (the same bits,
-// which few_output_channel_kernels_agree_across_isa_levels checks). On an Intel Xeon (AVX-512 and
-// AMX, one thread, two processes each way alternating, calibrated / conv2d forward and f+b): 32->16
-// at 128x128 B8 1.37-1.40 / 1.60-1.66x -> 1.25-1.32 / 1.54-1.55x, 32->32 at 64x64 1.26 / 1.24-1.25x
-// -> 1.20-1.22 / 1.19x, 64->32 at 64x64 1.37-1.40 / 1.40-1.41x -> 1.30-1.31 / 1.30-1.31x, 64->64 at
-// 32x32 1.22 / 1.13-1.14x -> 1.16-1.18 / 1.09-1.10x. At 16 channels the scatter only: once it had
-// no branches (see scatter_columns_body), 16->16 at 128x128 f+b 1.43-1.47 -> 1.38-1.39x, 16->16 at
-// 64x64 1.36-1.42 -> 1.37x, 16->8 and 16->32 at 64x64 within the spread; the 64-byte gather of 16
-// channels is no faster (16->8 at 64x64 forward 1.15-1.16 -> 1.19-1.20x, f+b 1.24-1.25 ->
-// 1.24-1.27x; with the branchy scatter, 16->8 f+b 1.24-1.26 -> 1.29-1.30x); with the weights
-// computed first (eighteenth session) it is: one thread, base -> this, 2 processes each
-// alternating, 16->16 at 128x128 forward 1.33-1.34 -> 1.24-1.26x, f+b 1.33-1.34 -> 1.27-1.29x, at
-// 64x64 forward 1.19-1.22 -> 1.09-1.10x; --presets forward goals holding 29-31 -> 33-35 of 38; 32
-// channels and more within the spread (docs/bench/ eighteenth-session-ab.txt). 128 and 256 channels
-// (sixteenth session; before, the general loop over a runtime channel count): 128->128 at 16x16 B8
-// forward 1.14-1.33 -> 1.11-1.24x, f+b 1.21-1.24 -> 1.17-1.20x, 128->64 at 32x32 1.24 / 1.17-1.18x
-// -> 1.20-1.21 / 1.11-1.12x, classic 128->128 at 128x128 B2 1.17 / 1.18-1.20x -> 1.14 / 1.16-1.17x.
-// (The slabs of large weights, whole taps of 128-512 channels, through such a loop too: no change,
-// at 256->128 on 16x16 1.25 -> 1.24x.) (On an AMD Zen 4, which splits 64-byte operations in two,
-// the thirteenth session measured such chunks 4-5% faster as kernels and no change in a step.)
+// which few_output_channel_kernels_agree_across_isa_levels checks). Faster than the 32-byte chunks
+// on an Intel Xeon with AVX-512 (the 16-channel gather only with the weights computed first).
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 32, _v4, 16)
 CALIBCONV_TILE_KERNELS_AS(CALIBCONV_TARGET_V4, float, 64, _v4, 16)

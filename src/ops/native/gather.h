@@ -16,15 +16,9 @@ namespace calibconv::native {
 // of at most CORNER_WEIGHTS_MAX_C channels in one group but 3 (NC 1, 2, 4, 8), the four
 // weights themselves, (1 - ly)(1 - lx), (1 - ly) lx, ly (1 - lx) and ly lx, computed once for
 // the forward pass and once for the backward (sample_coefficients: the same values, so the same
-// bits). At 8 channels a sample is one 32-byte vector a corner, and the weights were half its
-// instructions: with them from memory (F195 plans, one thread, Intel Xeon) the forward's gather
-// of 8->8 at 64x64 B8 took 1.32-1.34 -> 1.01-1.03 M TSC cycles a call (rdtsc), and calibrated /
-// conv2d went 1.31-1.36 -> 1.19-1.23x forward, 1.06-1.10 -> 0.99-1.03x f+b (3 processes each).
-// With more channels the stream of weights (16 bytes a sample instead of 8) cost more than it
-// saved: the gather of 16->16 at 128x128 7.9-8.5 -> 9.4 M cycles a call, of 64->32 at 64x64 5.6
-// -> 6.1-6.3 M; with 3 channels (first layers, whose gathers take two samples a vector or four
-// items a vector) 3->8 at 64x64 forward 1.06-1.12 -> 1.12-1.14x. (The scatter alone with them
-// at 16 and 32 channels: no change.)
+// bits). At 8 channels a sample is one 32-byte vector a corner and the weights were half its
+// instructions; with more channels, or 3, the stream of weights (16 bytes a sample instead of 8)
+// cost more than it saved (docs/bench/cpu-kernels.md).
 constexpr int64_t CORNER_WEIGHTS_MAX_C = 8;
 // (nc: the channel count the kernels are compiled for, 0 for the general ones)
 constexpr bool reads_corner_weights(int64_t nc) {

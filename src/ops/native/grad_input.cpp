@@ -58,10 +58,8 @@ int64_t band_rows(const Geo& g, const int32_t* rows) {
 // goes to the gradient gx (channels-last [B, H, W, C]). A row that a band of the odd phase
 // touches after an even band did is saved whole to a side buffer (`shared`) by the even band and
 // loaded from there by the odd one, so every value receives the same additions in the same order
-// as in one batch-sized padded buffer (the same bits). Before, that buffer (B * Hp * Wp * C
-// values) was faulted in and zeroed row by row, and copied out once the scatter was done
-// (unpadded_gradient): at 32 -> 16 channels on 128x128 maps B8 17 MiB, its page faults and the
-// copy out of memory 3-4% of a forward + backward's perf samples.
+// as in one batch-sized padded buffer (the same bits), without faulting in, zeroing and copying
+// out such a buffer.
 template <typename T>
 class GradientRows {
  public:

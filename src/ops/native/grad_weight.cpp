@@ -35,9 +35,6 @@ std::pair<at::Tensor, at::Tensor> grad_weight_impl(const Geo& g, const at::Tenso
   // rows, in their order (as one thread does: the result does not depend on the thread count),
   // gathering every row's columns itself, instead of every output's gradient over its share of
   // the rows (a weight-sized accumulator per thread, zeroed, converted and summed at the end).
-  // Two threads, calibrated / conv2d f+b, 2 rounds alternating: 256->256 at 8x8 B8 1.20-1.22 ->
-  // 1.09-1.13x, 256->128 at 16x16 1.13-1.16 -> 1.11x, classic 512->1024 at 16x16 B2 1.07-1.17 ->
-  // 1.06x.
   // (Every thread gathers all rows: the condition threads * 32 <= C_out keeps that gather, about
   // 4 reads a value, small against the thread's share of the products, C_out / threads
   // multiply-adds a value; measured at two threads.)

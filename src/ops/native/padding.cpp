@@ -85,9 +85,7 @@ template at::Tensor padded_input<double>(const at::Tensor&, const Geo&);
 // One row of padded_batch_input: for x < W, o[x * pix + b * 4 + c] = row[b * sb + c * sc + x *
 // sw] for the B items and c < 3, and 0 for c = 3. With sw = 1, four pixels of an item at a time:
 // its three channels' four values are loaded as vectors and transposed into four pixels of
-// [c0, c1, c2, 0], each one 16-byte store. (Before: a whole-row fill with zeros, then each
-// item's channel copied at a stride of pix values, one scalar store a value: tiny's first layer,
-// 3->8 at 64x64 B8, 61 -> 43 us a call at one thread, 44-46 -> 27 us at two; the same values.)
+// [c0, c1, c2, 0], each one 16-byte store.
 CALIBCONV_CLONES void pad_batch_row(const float* __restrict row, int64_t sb, int64_t sc, int64_t sw,
                                     int64_t B, int64_t W, int64_t pix, float* __restrict o) {
   typedef float v4 __attribute__((vector_size(16)));
