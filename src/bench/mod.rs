@@ -17,15 +17,13 @@
 //! step of each U-Net it times (standard and calibrated, [`measure::warm_like_trainer`]), as a
 //! trainer has before its later steps: glibc's dynamic mmap threshold then sits where a
 //! trainer's does, and a row's `conv2d` no longer runs up to 4x faster or slower with what the
-//! calibrated layer beside it frees (on an Intel Xeon, one thread, 2 runs each: small's first
-//! layer's `conv2d` forward 6.0-6.2 ms without the warm-up, 1.6 ms with it, and 9.8-10.3 ->
-//! 5.6-5.9 ms at 16->16 on 128x128; the other 74 references moved by less than 10%). Peak
+//! calibrated layer beside it frees (docs/bench/cpu-kernels.md). Peak
 //! memory is measured afterwards in a child process (`calibconv bench ... --memory-child`, the
 //! same arguments, which runs [`memory_child`]) that pins glibc's mmap threshold first
 //! (`mallopt`), so freed tensors go back to the kernel instead of lingering
-//! in the heap and hiding later allocations; pinning it in the timing process made every
-//! allocation over 256 KiB a fresh mmap with page faults, which slowed `conv2d` 1.5-3.5x and made
-//! the ratios look better than in a training process. A measurement is `VmHWM` after one training
+//! in the heap and hiding later allocations; pinned in the timing process it would make every
+//! allocation over 256 KiB a fresh mmap with page faults, slowing `conv2d` and making the ratios
+//! look better than in a training process. A measurement is `VmHWM` after one training
 //! step minus `VmRSS` before it (the kernel's high-water mark, reset by writing `5` to
 //! `/proc/self/clear_refs`), i.e. the resident memory the step added at its peak (inputs, weights
 //! and the probe are allocated before and not counted). Limits: page granularity, process-wide

@@ -1,7 +1,8 @@
-//! The native CPU kernels (`deform.cpp`, compiled by `build.rs` against libtorch): a
-//! `torch::autograd::Function` called through one C entry point that takes and returns
-//! `at::Tensor*` handles (tch's `Tensor::as_ptr` / `Tensor::from_ptr`), and reports C++
-//! exceptions as an error message instead of letting them cross into Rust.
+//! The native CPU kernels (the C++ sources beside this file, entry point `deform.cpp`, compiled
+//! by `build.rs` against libtorch): a `torch::autograd::Function` called through one C entry
+//! point that takes and returns `at::Tensor*` handles (tch's `Tensor::as_ptr` /
+//! `Tensor::from_ptr`), and reports C++ exceptions as an error message instead of letting them
+//! cross into Rust.
 
 use std::ffi::{c_char, CStr};
 

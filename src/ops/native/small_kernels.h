@@ -74,7 +74,7 @@ constexpr bool small_large_weight(int64_t kc, int64_t cout) {
   return kc * cout > SMALL_LARGE_WEIGHT;
 }
 // The columns a block's gathered row holds for the few-output-channel kernels (its row stride):
-// a slab of a large weight's, else all kc (deform.cpp's column_slabs, tools/product_harness.cpp).
+// a slab of a large weight's, else all kc (gather.h's column_slabs, tools/product_harness.cpp).
 constexpr int64_t small_slab_width(int64_t kc, int64_t cout) {
   return small_large_weight(kc, cout) ? std::min(kc, SMALL_SLAB) : kc;
 }
