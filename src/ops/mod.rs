@@ -57,6 +57,20 @@
 mod cache;
 #[cfg(calibconv_native)]
 mod native;
+/// Without the native kernels their settings are fixed: there is nothing to choose.
+#[cfg(not(calibconv_native))]
+mod native {
+    use super::{GemmLibrary, LargeWeights, SmallKernelIsa};
+    pub(super) fn small_kernel_isa(_cap: Option<SmallKernelIsa>) -> SmallKernelIsa {
+        SmallKernelIsa::None
+    }
+    pub(super) fn gemm_library(_choice: Option<Option<GemmLibrary>>) -> GemmLibrary {
+        GemmLibrary::Blas
+    }
+    pub(super) fn large_weights(_choice: Option<Option<LargeWeights>>) -> LargeWeights {
+        LargeWeights::Kernels
+    }
+}
 mod plan;
 
 pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
@@ -167,23 +181,14 @@ pub enum SmallKernelIsa {
 
 /// The level of the few-output-channel kernels this process uses.
 pub fn small_kernel_isa() -> SmallKernelIsa {
-    #[cfg(calibconv_native)]
-    return native::small_kernel_isa(None);
-    #[cfg(not(calibconv_native))]
-    SmallKernelIsa::None
+    native::small_kernel_isa(None)
 }
 
 /// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
 /// thread; both levels compute identical values, `None` sends those layers through the GEMM
 /// library); returns the level now in use. For tests and A/B timings.
 pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
-    #[cfg(calibconv_native)]
-    return native::small_kernel_isa(Some(cap));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = cap;
-        SmallKernelIsa::None
-    }
+    native::small_kernel_isa(Some(cap))
 }
 
 /// The library of the float32 products of one group that the few-output-channel kernels do not
@@ -205,23 +210,14 @@ pub enum GemmLibrary {
 /// The GEMM library this process uses ([`GemmLibrary::Blas`] without the native kernels, whose
 /// ATen composition multiplies with `at::mm`-style ops).
 pub fn gemm_library() -> GemmLibrary {
-    #[cfg(calibconv_native)]
-    return native::gemm_library(None);
-    #[cfg(not(calibconv_native))]
-    GemmLibrary::Blas
+    native::gemm_library(None)
 }
 
 /// Sets the GEMM library for the rest of the process (every thread; `None`: the default, the
 /// BLAS; oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
 /// (`calibconv bench --gemm`); the results differ only by rounding.
 pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
-    #[cfg(calibconv_native)]
-    return native::gemm_library(Some(choice));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = choice;
-        GemmLibrary::Blas
-    }
+    native::gemm_library(Some(choice))
 }
 
 /// The library of the products of large weights (see [`LargeWeights::Blas`])
@@ -243,23 +239,14 @@ pub enum LargeWeights {
 /// The library of the large weights' products this process uses ([`LargeWeights::Kernels`]
 /// without the native kernels, where there are none to choose).
 pub fn large_weights() -> LargeWeights {
-    #[cfg(calibconv_native)]
-    return native::large_weights(None);
-    #[cfg(not(calibconv_native))]
-    LargeWeights::Kernels
+    native::large_weights(None)
 }
 
 /// Sets the library of the large weights' products for the rest of the process (every thread;
 /// `None`: the CPU's default) and returns the one now in use. For tests and A/B timings
 /// (`calibconv bench --large-weights`); the results differ only by rounding.
 pub fn set_large_weights(choice: Option<LargeWeights>) -> LargeWeights {
-    #[cfg(calibconv_native)]
-    return native::large_weights(Some(choice));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = choice;
-        LargeWeights::Kernels
-    }
+    native::large_weights(Some(choice))
 }
 
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).

@@ -5,7 +5,7 @@ use rayon::prelude::*;
 use tch::kind::Element;
 use tch::{Device, Kind, Tensor};
 
-use super::{Border, ConvGeometry, SamplingPlan};
+use super::{padded_size, Border, ConvGeometry, SamplingPlan};
 use crate::error::{Error, Result};
 
 /// Plan weights: float32 or float64.

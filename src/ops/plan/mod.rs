@@ -7,12 +7,12 @@ mod fill;
 #[cfg(test)]
 mod tests;
 
-
+use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};
 
 use super::check_float;
-use fill::{elements, filled, Layout};
 use crate::error::{Error, Result};
+use fill::{elements, filled, Layout};
 use crate::kernel::Offsets;
 
 /// What a bilinear sample reads outside the input.

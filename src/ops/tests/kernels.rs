@@ -3,7 +3,6 @@
 
 use super::*;
 
-
 /// A first layer: the input (an image) needs no gradient, so the native forward keeps its few-
 /// channel column matrix for the weight gradient instead of gathering it again. Output, weight
 /// and bias gradients still match the ATen composition, shared and per-item offsets, over tiles
@@ -32,31 +31,18 @@ fn first_layer_without_input_gradient_matches_aten() {
                 Tensor::randn([cout, c, 3, 3], opts),
                 Tensor::randn([cout], opts),
             );
-            let run = |backend| {
-                let wt = wt0.detach().set_requires_grad(true);
-                let bias = bias0.detach().set_requires_grad(true);
-                let out =
-                    deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
-                let loss = (&out * &probe).sum(kind);
-                let g = Tensor::run_backward(&[loss], &[&wt, &bias], false, false);
-                (out.detach(), g[0].shallow_clone(), g[1].shallow_clone())
-            };
+            let run = |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
             let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
             // The output's layout follows the input's.
-            assert!(a.0.is_contiguous(), "NCHW in, NCHW out");
-            let cl = deform_conv2d_planned(&channels_last(&x), &plan, &b_.1, None, 1).unwrap();
+            assert!(a.out.is_contiguous(), "NCHW in, NCHW out");
+            let cl = deform_conv2d_planned(&channels_last(&x), &plan, &b_.weight, None, 1).unwrap();
             assert!(is_channels_last(&cl), "channels-last in, channels-last out");
-            for (name, x, y) in [
-                ("output", &a.0, &b_.0),
-                ("grad weight", &a.1, &b_.1),
-                ("grad bias", &a.2, &b_.2),
-            ] {
-                let rel = max_rel(x, y);
-                assert!(
-                    rel < tol,
-                    "{kind:?} per-item {per_item}, {cout} out: {name} differs by {rel:e}"
-                );
-            }
+            assert_same(
+                &a,
+                &b_,
+                tol,
+                &format!("{kind:?} per-item {per_item}, {cout} out"),
+            );
         }
     }
 }
@@ -96,27 +82,10 @@ fn three_channel_batches_match_aten() {
             let aten = run_backend(&x, &plan, &wt0, &bias0, 1, &probe, Backend::Aten);
             assert_same(&native, &aten, F32_IMPL_TOL, &what);
             // a first layer: the weight and bias gradients only
-            let first = |backend| {
-                let wt = wt0.detach().set_requires_grad(true);
-                let bias = bias0.detach().set_requires_grad(true);
-                let out =
-                    deform_conv2d_planned_with(&x, &plan, &wt, Some(&bias), 1, backend).unwrap();
-                let loss = (&out * &probe).sum(Kind::Float);
-                let g = Tensor::run_backward(&[loss], &[&wt, &bias], false, false);
-                [out.detach(), g[0].shallow_clone(), g[1].shallow_clone()]
-            };
+            let first =
+                |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
             let (n, a) = (first(Backend::Auto), first(Backend::Aten));
-            for (name, u, v) in [
-                ("output", &n[0], &a[0]),
-                ("grad weight", &n[1], &a[1]),
-                ("grad bias", &n[2], &a[2]),
-            ] {
-                let rel = max_rel(u, v);
-                assert!(
-                    rel < F32_IMPL_TOL,
-                    "{what}, first layer: {name} differs by {rel:e}"
-                );
-            }
+            assert_same(&n, &a, F32_IMPL_TOL, &format!("{what}, first layer"));
         }
     }
 }
