@@ -5,16 +5,16 @@
 //! repetition the reference (`conv2d`, same weights) and the candidate run back to back (the
 //! order alternates between repetitions), and the reported ratio is the median of the
 //! per-repetition ratios, with a distribution-free 95% confidence interval of that median (order
-//! statistics, [`median_ci`]). Times are medians too. `--presets` rows also carry the layer's
-//! performance goal ([`goal_limit`]) and whether it holds, is contradicted or is inconclusive,
-//! computed from the interval ([`Outcome`]), counted after the table. The system load
+//! statistics, `median_ci`). Times are medians too. `--presets` rows also carry the layer's
+//! performance goal (`goal_limit`) and whether it holds, is contradicted or is inconclusive,
+//! computed from the interval (`Outcome`), counted after the table. The system load
 //! (`/proc/loadavg`) before and
 //! after the timings is reported with them. Nothing here is asserted anywhere: these are numbers
 //! for people.
 //!
 //! The timing process is configured like the trainer: the allocator is left alone (no `mallopt`),
 //! and the thread count is libtorch's or `--threads`. Before the layer rows it runs one training
-//! step of each U-Net it times (standard and calibrated, [`measure::warm_like_trainer`]), as a
+//! step of each U-Net it times (standard and calibrated, `measure::warm_like_trainer`), as a
 //! trainer has before its later steps: glibc's dynamic mmap threshold then sits where a
 //! trainer's does, and a row's `conv2d` no longer runs up to 4x faster or slower with what the
 //! calibrated layer beside it frees (docs/bench/cpu-kernels.md). Peak

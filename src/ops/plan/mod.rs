@@ -94,7 +94,7 @@ impl ConvGeometry {
 /// For `N = P * K` samples (`P = H_out*W_out` output pixels, `K = kh*kw` taps, pixel-major;
 /// times `B` for per-item offsets), `top_left` `[N]` (int32, CPU) holds the index of each
 /// sample's top-left bilinear corner in the input *padded* by one row above, two below and one
-/// column on each side (`(H + 3) x (W + 2)` pixels, [`padded_size`]; per-item plans index the
+/// column on each side (`(H + 3) x (W + 2)` pixels, `padded_size`; per-item plans index the
 /// stacked padded items, item `b`'s indices offset by `b * (H + 3) * (W + 2)`), and `frac`
 /// `[N * 2]` the fractional parts `(ly, lx)` of the sample position, from which the corner
 /// weights follow: `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` ([`SamplingPlan::f_weights`]);
@@ -323,7 +323,7 @@ impl SamplingPlan {
     }
 
     /// `[N]` (int32, CPU): each sample's top-left corner in the padded input (see the type's
-    /// documentation and [`padded_size`]).
+    /// documentation and `padded_size`).
     pub fn top_left(&self) -> &Tensor {
         &self.top_left
     }
