@@ -73,7 +73,11 @@ fn plot_err(path: &Path, e: impl std::fmt::Display) -> Error {
 
 /// Writes `labels` (text, top-left corner `[x, y]` in pixels) in black, `size` pixels high, onto
 /// `img` with the embedded font (titles and legends of composed figures).
-pub fn draw_labels(img: &mut image::RgbImage, labels: &[(&str, [i32; 2])], size: u32) -> Result<()> {
+pub fn draw_labels(
+    img: &mut image::RgbImage,
+    labels: &[(&str, [i32; 2])],
+    size: u32,
+) -> Result<()> {
     ensure_font();
     let (w, h) = img.dimensions();
     let err = |e: &dyn std::fmt::Display| Error::InvalidArgument(format!("drawing text: {e}"));

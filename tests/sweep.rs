@@ -162,7 +162,10 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
         table.starts_with("block,dataset,kernel,n,mre,mre_ci95_half_width,mae,"),
         "{table}"
     );
-    file_containing(&dir.join("report/REPORT.md"), &["| FT | F195 | standard | 1 |"]);
+    file_containing(
+        &dir.join("report/REPORT.md"),
+        &["| FT | F195 | standard | 1 |"],
+    );
     file_containing(&dir.join("report/runs.md"), &["[ft](../runs/ft)"]);
     assert!(dir.join("report/verdict.json").is_file());
 }

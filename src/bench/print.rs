@@ -8,7 +8,11 @@ pub(super) fn fmt_load(l: Option<[f64; 3]>) -> String {
     })
 }
 
-pub(super) fn merge_memory(results: &mut [ShapeResult], unet: &mut [UnetResult], mem: &MemoryReport) {
+pub(super) fn merge_memory(
+    results: &mut [ShapeResult],
+    unet: &mut [UnetResult],
+    mem: &MemoryReport,
+) {
     for (r, m) in results.iter_mut().zip(&mem.layers) {
         r.conv2d_peak_mib = m[0];
         r.calibrated.peak_mib = m[1];
@@ -175,4 +179,3 @@ pub(super) fn print_goals(results: &[ShapeResult]) {
         );
     }
 }
-

@@ -16,9 +16,9 @@
 use std::path::{Path, PathBuf};
 
 use super::collect::{collect, Row, Study};
+use super::grids::{qualitative_grids, COLUMNS};
 use super::radial::radial_plots;
 use super::study::Observations;
-use super::grids::{qualitative_grids, COLUMNS};
 use super::study::Task;
 use super::tables::{
     cell_table, comparison_pairs, convention, difference_table, seed_values_csv,
@@ -178,9 +178,11 @@ fn task_tables(
     let n_seeds = cx.obs.seeds().len();
     let table = table_section(cx, task, columns, title, n_seeds, files)?;
     let differences = differences_section(cx, task, columns, n_seeds, files)?;
-    Ok(format!("{table}Paired differences per seed: {differences}.
+    Ok(format!(
+        "{table}Paired differences per seed: {differences}.
 
-"))
+"
+    ))
 }
 
 /// One task's figures (radial plots, qualitative grids of its first seed), with captions.
@@ -269,7 +271,11 @@ fn differences_section(
         &csv,
         files,
     )?;
-    Ok(format!("{} ({})", link(&md_file, out), link(&csv_file, out)))
+    Ok(format!(
+        "{} ({})",
+        link(&md_file, out),
+        link(&csv_file, out)
+    ))
 }
 
 /// The task's radial plots ([`radial_plots`]), empty if none.

@@ -12,8 +12,8 @@ use tch::{Device, Kind, Tensor};
 
 use super::check_float;
 use crate::error::{Error, Result};
-use fill::{elements, filled, Layout};
 use crate::kernel::Offsets;
+use fill::{elements, filled, Layout};
 
 /// What a bilinear sample reads outside the input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
@@ -141,7 +141,6 @@ pub struct SamplingPlan {
 pub fn padded_size([h, w]: [i64; 2]) -> [i64; 2] {
     [h + 3, w + 2]
 }
-
 
 impl SamplingPlan {
     /// Builds the plan from offsets `[2*kh*kw, H_out, W_out]` or `[B, 2*kh*kw, H_out, W_out]`
@@ -489,4 +488,3 @@ fn corners_of_top_left(top_left: &[i32], [h, w]: [i64; 2], border: Border, out: 
             }
         });
 }
-

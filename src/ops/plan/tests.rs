@@ -119,8 +119,7 @@ fn fill_row_matches_bilinear_sample_by_sample() {
         };
         let row = wo as usize * taps;
         // Both clones of the fill without wrap (AVX2 where the CPU has it, and portable).
-        for (r, portable) in (0..(n_items * ho) as usize).flat_map(|r| [(r, false), (r, true)])
-        {
+        for (r, portable) in (0..(n_items * ho) as usize).flat_map(|r| [(r, false), (r, true)]) {
             let mut idx = vec![-7i32; 4 * row];
             let mut frac = vec![-7.0f64; 2 * row];
             let mut top_left = vec![-7i32; row];
@@ -144,8 +143,7 @@ fn fill_row_matches_bilinear_sample_by_sample() {
                     let p = (oy * wo + ox) as usize;
                     let at = |c: i64| off[((item * 2 * taps as i64 + c) as usize) * plane + p];
                     let y = (oy * stride[0] - padding[0] + i * dilation[0]) as f64 + at(2 * k);
-                    let x =
-                        (ox * stride[1] - padding[1] + j * dilation[1]) as f64 + at(2 * k + 1);
+                    let x = (ox * stride[1] - padding[1] + j * dilation[1]) as f64 + at(2 * k + 1);
                     let (want_idx, want_frac) = reference_sample(y, x, h, w, border, base);
                     let s = (ox * taps as i64 + k) as usize;
                     let what = format!("case {case}, row {r}, ox {ox}, tap {k}: y {y}, x {x}");

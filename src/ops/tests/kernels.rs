@@ -31,7 +31,8 @@ fn first_layer_without_input_gradient_matches_aten() {
                 Tensor::randn([cout, c, 3, 3], opts),
                 Tensor::randn([cout], opts),
             );
-            let run = |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
+            let run =
+                |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
             let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
             // The output's layout follows the input's.
             assert!(a.out.is_contiguous(), "NCHW in, NCHW out");
@@ -345,4 +346,3 @@ fn functional_plans_are_cached_by_tensor_identity_and_version() {
         "the change must show in the result"
     );
 }
-

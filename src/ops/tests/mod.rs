@@ -272,7 +272,11 @@ fn run_backend_with(
         vec![&w, &b]
     };
     let mut g = Tensor::run_backward(&[loss], &leaves, false, false);
-    let input = if input_grad { g.remove(0) } else { Tensor::new() };
+    let input = if input_grad {
+        g.remove(0)
+    } else {
+        Tensor::new()
+    };
     Grads {
         out: out.detach(),
         input,
@@ -311,7 +315,6 @@ fn is_channels_last(x: &Tensor) -> bool {
     let (_, c, h, w) = x.size4().unwrap();
     x.stride() == [h * w * c, 1, w * c, c]
 }
-
 
 /// CI runs with the native kernels: without them every native-vs-ATen test above compares the
 /// ATen composition with itself and passes vacuously. A build that cannot have them (no C++17

@@ -508,4 +508,3 @@ fn native_handles_an_empty_batch() {
     assert_eq!(g[0].size(), [0, 2, 5, 5]);
     assert_eq!(g[1].abs().sum(Kind::Float).double_value(&[]), 0.0);
 }
-
