@@ -129,12 +129,8 @@ pub fn qualitative_grids(rows: &[&Row], out: &Path) -> Result<Vec<PathBuf>> {
         if lines.is_empty() {
             continue;
         }
-        let file = out.join(format!(
-            "grid_{}_{}_{}.png",
-            task.short(),
-            block.to_string().to_lowercase(),
-            set.to_lowercase()
-        ));
+        let name = [task.short().to_string(), block.to_string(), set].join("_");
+        let file = out.join(format!("grid_{}.png", name.to_lowercase()));
         write_png_atomic(&file, &compose(&lines, task)?)?;
         files.push(file);
     }

@@ -215,13 +215,9 @@ fn table_section(
     };
     let about = convention(task, opts.averaging, n_seeds);
     let (md, csv) = cell_table(obs, task, columns);
-    let (md_file, csv_file) = write_md_csv(
-        out,
-        &format!("table_{}", task.short()),
-        &format!("## {title}\n\n{about}.\n\n{md}"),
-        &csv,
-        files,
-    )?;
+    let text = format!("## {title}\n\n{about}.\n\n{md}");
+    let stem = format!("table_{}", task.short());
+    let (md_file, csv_file) = write_md_csv(out, &stem, &text, &csv, files)?;
     let seeds_file = out.join(format!("values_{}.csv", task.short()));
     write_bytes_atomic(&seeds_file, seed_values_csv(obs, task, columns).as_bytes())?;
     files.push(seeds_file.clone());
@@ -264,13 +260,9 @@ fn differences_section(
         "One seed: the difference of the two rows; intervals need >= 2 seeds".to_string()
     };
     let heading = format!("Paired differences, {}", task.name());
-    let (md_file, csv_file) = write_md_csv(
-        out,
-        &format!("differences_{}", task.short()),
-        &format!("## {heading}\n\n{diff_about}.\n\n{md}"),
-        &csv,
-        files,
-    )?;
+    let text = format!("## {heading}\n\n{diff_about}.\n\n{md}");
+    let stem = format!("differences_{}", task.short());
+    let (md_file, csv_file) = write_md_csv(out, &stem, &text, &csv, files)?;
     Ok(format!(
         "{} ({})",
         link(&md_file, out),
@@ -398,8 +390,12 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     for (task, columns, title) in tasks {
         report += &task_tables(&cx, task, columns, title, &mut files)?;
     }
+    let mut figures = String::new();
     for (task, ..) in tasks {
-        report += &task_figures(&cx, task, &mut files)?;
+        figures += &task_figures(&cx, task, &mut files)?;
+    }
+    if !figures.is_empty() {
+        report += &format!("## Figures\n\n{figures}");
     }
     report += &fov_section(&cx, &mut files)?;
     report += &extra_figures(out);

@@ -32,7 +32,7 @@ fn first_layer_without_input_gradient_matches_aten() {
                 Tensor::randn([cout], opts),
             );
             let run =
-                |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
+                |backend| run_backend_with([&x, &wt0, &bias0], &plan, 1, &probe, backend, false);
             let (a, b_) = (run(Backend::Auto), run(Backend::Aten));
             // The output's layout follows the input's.
             assert!(a.out.is_contiguous(), "NCHW in, NCHW out");
@@ -84,7 +84,7 @@ fn three_channel_batches_match_aten() {
             assert_same(&native, &aten, F32_IMPL_TOL, &what);
             // a first layer: the weight and bias gradients only
             let first =
-                |backend| run_backend_with(&x, &plan, &wt0, &bias0, 1, &probe, backend, false);
+                |backend| run_backend_with([&x, &wt0, &bias0], &plan, 1, &probe, backend, false);
             let (n, a) = (first(Backend::Auto), first(Backend::Aten));
             assert_same(&n, &a, F32_IMPL_TOL, &format!("{what}, first layer"));
         }

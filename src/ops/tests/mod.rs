@@ -239,17 +239,15 @@ fn run_backend(
     probe: &Tensor,
     backend: Backend,
 ) -> Grads {
-    run_backend_with(x, plan, w, b, groups, probe, backend, true)
+    run_backend_with([x, w, b], plan, groups, probe, backend, true)
 }
 
-/// Output and gradients of `(conv(x) * probe).sum()` through `backend`; without `input_grad` the
-/// input needs no gradient (a first layer) and `Grads::input` is undefined.
-#[allow(clippy::too_many_arguments)]
+/// Output and gradients of `(conv(x) * probe).sum()` through `backend` for `[x, w, b]` (input,
+/// weight, bias); without `input_grad` the input needs no gradient (a first layer) and
+/// `Grads::input` is undefined.
 fn run_backend_with(
-    x: &Tensor,
+    [x, w, b]: [&Tensor; 3],
     plan: &SamplingPlan,
-    w: &Tensor,
-    b: &Tensor,
     groups: i64,
     probe: &Tensor,
     backend: Backend,
