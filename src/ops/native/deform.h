@@ -98,7 +98,8 @@ at::Tensor dnn_linear(const Mat<const float>& a, const at::Tensor& w, const at::
 
 struct Geo {
   int64_t B, C, H, W, HW, Ho, Wo, P, K, G, Cg, Cout, Coutg;
-  // The padded input the gather reads: H + 3 rows, W + 2 columns (plan.rs, `padded_size`).
+  // The padded input the gather reads: H + 3 rows, W + 2 columns (`padded_size` in
+  // ops/plan/mod.rs).
   int64_t Hp, Wp;
   bool wrap;  // Border::WrapX: the padding columns hold the input's last and first columns
   bool per_item;  // the plan holds one set of samples per batch item

@@ -13,8 +13,8 @@ namespace calibconv::native {
 // The gather of the columns of output pixels [p0, p0 + n) of batch item b into cols [n, K*C]
 // (layout: group, tap, channel within the group) from the padded channels-last input xp
 // (padded_input): a sample's corners are t, t + 1, t + Wp, t + Wp + 1 from its top-left corner t
-// (the plan's top_left; plan.rs says why every corner, inside or not, is a real pixel of the
-// padded input), each weighted by its bilinear weight: one index load per sample, no selects.
+// (the plan's top_left; ops/plan/mod.rs says why every corner, inside or not, is a real pixel of
+// the padded input), each weighted by its bilinear weight: one index load per sample, no selects.
 // This replaced a gather through the plan's four corner indices into the unpadded input, each with
 // a select for out-of-range corners: the same bits, in less time.
 // NC > 0 fixes the channel count at compile time (one group): at 3-64 channels a sample is a few
@@ -446,11 +446,7 @@ TileKernels<double> tile_kernels<double>(const Geo& g) {
   CALIBCONV_PICK_ALL(double)
 }
 
-// The columns of output pixels [p0, p0 + n) of every batch item from the padded batch input
-// xq (padded_batch_input) into cols + b * ldb (item b's rows of K * 3 values, as
-// gather_columns_body writes them): four items a vector of sixteen floats, each lane the same
-// expression as gather_sample (the same bits). Each item's sample stores four values, the last
-// on the next sample's first, which the call stores later; its last sample stores three.
+// Batch item J's lanes of a vector of four items (batch_gather, see gather.h).
 template <int J>
 CALIBCONV_ALWAYS_INLINE inline VecOf<float, 4>::type item_lanes(const VecOf<float, 16>::type& v) {
   return __builtin_shufflevector(v, v, 4 * J, 4 * J + 1, 4 * J + 2, 4 * J + 3);

@@ -107,7 +107,7 @@ std::pair<int64_t, int64_t> input_rows(const Geo& g, const int32_t* rows, int64_
                                        int64_t oy1);
 
 // The input as the gather reads it: channels-last, padded to [B, H + 3, W + 2, C] (one row above,
-// two below, one column on each side; see `padded_size` in plan.rs) with zeros, or with
+// two below, one column on each side; see `padded_size` in ops/plan/mod.rs) with zeros, or with
 // Border::WrapX the input's last column in the left padding column and its first in the right;
 // then PAD_SLACK zeros. A copy of the input (a few percent of the gather's reads, which are
 // 4 * K values a pixel); an NCHW input of few channels (an image) is transposed in the same pass.
