@@ -110,10 +110,13 @@ void convert_layout(const T* x, T* dst, int64_t B, int64_t C, int64_t HW, bool t
   });
 }
 
-template const float* rows_of<float>(const float*, bool, int64_t, int64_t, int64_t, int64_t, float*);
+template const float* rows_of<float>(const float*, bool, int64_t, int64_t, int64_t, int64_t,
+                                     float*);
 template void write_rows<float>(const float*, float*, bool, int64_t, int64_t, int64_t, int64_t);
-template const double* rows_of<double>(const double*, bool, int64_t, int64_t, int64_t, int64_t, double*);
-template void write_rows<double>(const double*, double*, bool, int64_t, int64_t, int64_t, int64_t);
+template const double* rows_of<double>(const double*, bool, int64_t, int64_t, int64_t, int64_t,
+                                       double*);
+template void write_rows<double>(const double*, double*, bool, int64_t, int64_t, int64_t,
+                                 int64_t);
 
 template <typename T>
 at::Tensor channels_last(const at::Tensor& input) {
