@@ -31,7 +31,8 @@ namespace calibconv::native {
 // (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory).
 // Vectors are at most 16 floats; a block of R rows (forward) or JB columns (weight gradient)
 // holds R * OC / L accumulators of L floats for OC of the outputs at a time, sized to leave
-// registers for the weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 1024 as passes of 64):
+// registers for the weights and the broadcast (C_out 8 / 16 / 32 / 64; 128 to 1024 as passes of
+// 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 12 / 12 / 6, JB = 12 / 12 / 8 / 6,
 //                                        all outputs at once; column gradient 8 rows x 3
 //                                        vectors (4 x 4 at 8 outputs, 6 x 4 at 256 to 1024);
