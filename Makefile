@@ -81,3 +81,4 @@ fixtures: setup
 lint: setup
 	cargo fmt --all --check
 	cargo clippy --release --all-targets --workspace -- -D warnings
+	RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --workspace --exclude calibconv-python

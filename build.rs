@@ -4,7 +4,7 @@
 //! libtorch's CUDA backend where the libtorch has one (`libtorch_cuda.so`: rustc links with
 //! `--as-needed`, and nothing in the crate references a CUDA symbol, so without
 //! `--no-as-needed` the library is dropped and the CUDA backend never registers), and
-//! compiles the native CPU kernels (`src/ops/native/deform.cpp`) against the same libtorch
+//! compiles the native CPU kernels (`src/ops/native/*.cpp`) against the same libtorch
 //! headers (C++17, the ABI torch-sys uses, OpenMP for `at::parallel_for`); on success it sets
 //! `cfg(calibconv_native)`, on failure it warns and the crate uses the ATen composition (and the
 //! test `native_kernels_are_built` fails unless `CALIBCONV_ALLOW_NO_NATIVE=1`). Linking to
@@ -15,10 +15,24 @@ use std::path::PathBuf;
 /// The libtorch release each tch release is built for (tch's own table, per minor version).
 const TORCH_FOR_TCH: [(&str, &str); 2] = [("0.26", "2.13.0"), ("0.24", "2.11.0")];
 
-/// The native kernels' source.
-const NATIVE_SRC: &str = "src/ops/native/deform.cpp";
-/// The headers it includes (a change to one rebuilds the kernels).
-const NATIVE_HEADERS: [&str; 2] = ["src/ops/native/simd.h", "src/ops/native/small_kernels.h"];
+/// The native kernels' sources, one per pass (deform.cpp holds the entry point).
+const NATIVE_SRC: [&str; 8] = [
+    "src/ops/native/deform.cpp",
+    "src/ops/native/forward.cpp",
+    "src/ops/native/gather.cpp",
+    "src/ops/native/grad_input.cpp",
+    "src/ops/native/grad_weight.cpp",
+    "src/ops/native/layout.cpp",
+    "src/ops/native/padding.cpp",
+    "src/ops/native/small.cpp",
+];
+/// The headers they include (a change to one rebuilds the kernels).
+const NATIVE_HEADERS: [&str; 4] = [
+    "src/ops/native/deform.h",
+    "src/ops/native/gather.h",
+    "src/ops/native/simd.h",
+    "src/ops/native/small_kernels.h",
+];
 
 fn main() {
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
@@ -93,9 +107,8 @@ fn tch_version() -> String {
 /// Compiles [`NATIVE_SRC`] into a static library linked into the crate and sets
 /// `cfg(calibconv_native)`; on failure warns and leaves the ATen composition as the CPU path.
 fn compile_native(lib: &std::path::Path) {
-    println!("cargo:rerun-if-changed={NATIVE_SRC}");
-    for header in NATIVE_HEADERS {
-        println!("cargo:rerun-if-changed={header}");
+    for path in NATIVE_SRC.iter().chain(&NATIVE_HEADERS) {
+        println!("cargo:rerun-if-changed={path}");
     }
     println!("cargo:rerun-if-env-changed=LIBTORCH_CXX11_ABI");
     let include = lib.join("..").join("include");
@@ -120,7 +133,7 @@ fn compile_native(lib: &std::path::Path) {
         .flag("-fopenmp")
         .flag("-Wall")
         .flag("-Wextra")
-        .file(NATIVE_SRC)
+        .files(NATIVE_SRC)
         .try_compile("calibconv_native");
     match built {
         Ok(()) => println!("cargo:rustc-cfg=calibconv_native"),

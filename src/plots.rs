@@ -71,6 +71,25 @@ fn plot_err(path: &Path, e: impl std::fmt::Display) -> Error {
     }
 }
 
+/// Writes `labels` (text, top-left corner `[x, y]` in pixels) in black, `size` pixels high, onto
+/// `img` with the embedded font (titles and legends of composed figures).
+pub fn draw_labels(
+    img: &mut image::RgbImage,
+    labels: &[(&str, [i32; 2])],
+    size: u32,
+) -> Result<()> {
+    ensure_font();
+    let (w, h) = img.dimensions();
+    let err = |e: &dyn std::fmt::Display| Error::InvalidArgument(format!("drawing text: {e}"));
+    let root = BitMapBackend::with_buffer(img.as_mut(), (w, h)).into_drawing_area();
+    let style = ("sans-serif", size as f64).into_font().color(&BLACK);
+    for (text, [x, y]) in labels {
+        root.draw(&Text::new(*text, (*x, *y), style.clone()))
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))
+}
+
 /// Draws `curves` (mean line + translucent one-std band each) and writes a PNG atomically.
 /// Non-finite values are skipped; the y range covers every band.
 pub fn line_band_plot(path: &Path, spec: &PlotSpec, curves: &[Curve]) -> Result<()> {

@@ -1,13 +1,11 @@
 // The forward products of a calibrated layer alone: the few-output-channel kernels of
-// src/ops/native/small_kernels.h run through the loops of deform.cpp's forward_impl (blocks of
+// src/ops/native/small_kernels.h run through the loops of forward.cpp's forward_impl (blocks of
 // small_block_rows rows; for a large weight, slabs of SMALL_SLAB reduction steps in a buffer of
 // that width; passes of small_panel(C_out) outputs inside the kernel), without the gather, the
 // weight's packing or ATen. One slab buffer stands for every slab's columns and stays in the
 // caches, as the gather leaves it in the layer. A change to the kernels or their blocking is then
 // timed in seconds, not through a build of the crate and `calibconv bench`; what it gains there
-// is an upper bound of what the layer gains (docs/bench/twenty-second-session-ab.txt: the
-// products of 1024->512 at 32x32 B2 ran at 60-63 float operations per TSC cycle here, 56 in the
-// layer). GCC only (the kernels are compiled per instruction set with GCC's target attributes).
+// is an upper bound of what the layer gains (docs/bench/cpu-kernels.md). GCC only (the kernels are compiled per instruction set with GCC's target attributes).
 //
 //   g++ -O3 -std=c++17 -I src/ops/native tools/product_harness.cpp -o /tmp/product_harness
 //   /tmp/product_harness time CIN COUT ROWS [BLOCK]
@@ -31,12 +29,14 @@
 #include <string>
 #include <vector>
 
+using namespace calibconv::native;
+
 namespace {
 
 struct Layer {
   int64_t cin, cout, rows, block;
   int64_t kc() const { return 9 * cin; }
-  // The columns a slab buffer holds (as deform.cpp's column_slabs).
+  // The columns a slab buffer holds (as gather.h's column_slabs).
   int64_t width() const { return small_slab_width(kc(), cout); }
 };
 

@@ -139,8 +139,8 @@ fn paired(
         ratio.push(b / a);
     }
     ratio.sort_by(|a, b| a.total_cmp(b));
-    let ci = super::median_ci(&ratio);
-    (super::median(r), super::median(c), super::median(ratio), ci)
+    let ci = super::paired::median_ci(&ratio);
+    (super::paired::median(r), super::paired::median(c), super::paired::median(ratio), ci)
 }
 
 /// Times one layer on `device`: calibrated (offsets of `camera`) against `conv2d` with the same

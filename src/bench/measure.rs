@@ -356,7 +356,7 @@ impl UnetBench {
 /// trainer from its second step on. Without it the layer rows began in a fresh process's state
 /// (every block over 128 KiB a fresh mmap, faulted in page by page) and a row's `conv2d`
 /// reference ran up to 4x faster or slower depending on what the calibrated layer beside it
-/// happened to free (the README's thirteenth-session paragraph).
+/// happened to free (docs/bench/cpu-kernels.md).
 pub(super) fn warm_like_trainer(camera: &Camera, args: &Options) -> Result<()> {
     for spec in unet_specs(args) {
         let mut nets = UnetBench::new(camera, spec)?;

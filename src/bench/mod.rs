@@ -5,27 +5,25 @@
 //! repetition the reference (`conv2d`, same weights) and the candidate run back to back (the
 //! order alternates between repetitions), and the reported ratio is the median of the
 //! per-repetition ratios, with a distribution-free 95% confidence interval of that median (order
-//! statistics, [`median_ci`]). Times are medians too. `--presets` rows also carry the layer's
-//! performance goal ([`goal_limit`]) and whether it holds, is contradicted or is inconclusive,
-//! computed from the interval ([`Outcome`]), counted after the table. The system load
+//! statistics, `median_ci`). Times are medians too. `--presets` rows also carry the layer's
+//! performance goal (`goal_limit`) and whether it holds, is contradicted or is inconclusive,
+//! computed from the interval (`Outcome`), counted after the table. The system load
 //! (`/proc/loadavg`) before and
 //! after the timings is reported with them. Nothing here is asserted anywhere: these are numbers
 //! for people.
 //!
 //! The timing process is configured like the trainer: the allocator is left alone (no `mallopt`),
 //! and the thread count is libtorch's or `--threads`. Before the layer rows it runs one training
-//! step of each U-Net it times (standard and calibrated, [`measure::warm_like_trainer`]), as a
+//! step of each U-Net it times (standard and calibrated, `measure::warm_like_trainer`), as a
 //! trainer has before its later steps: glibc's dynamic mmap threshold then sits where a
 //! trainer's does, and a row's `conv2d` no longer runs up to 4x faster or slower with what the
-//! calibrated layer beside it frees (on an Intel Xeon, one thread, 2 runs each: small's first
-//! layer's `conv2d` forward 6.0-6.2 ms without the warm-up, 1.6 ms with it, and 9.8-10.3 ->
-//! 5.6-5.9 ms at 16->16 on 128x128; the other 74 references moved by less than 10%). Peak
+//! calibrated layer beside it frees (docs/bench/cpu-kernels.md). Peak
 //! memory is measured afterwards in a child process (`calibconv bench ... --memory-child`, the
 //! same arguments, which runs [`memory_child`]) that pins glibc's mmap threshold first
 //! (`mallopt`), so freed tensors go back to the kernel instead of lingering
-//! in the heap and hiding later allocations; pinning it in the timing process made every
-//! allocation over 256 KiB a fresh mmap with page faults, which slowed `conv2d` 1.5-3.5x and made
-//! the ratios look better than in a training process. A measurement is `VmHWM` after one training
+//! in the heap and hiding later allocations; pinned in the timing process it would make every
+//! allocation over 256 KiB a fresh mmap with page faults, slowing `conv2d` and making the ratios
+//! look better than in a training process. A measurement is `VmHWM` after one training
 //! step minus `VmRSS` before it (the kernel's high-water mark, reset by writing `5` to
 //! `/proc/self/clear_refs`), i.e. the resident memory the step added at its peak (inputs, weights
 //! and the probe are allocated before and not counted). Limits: page granularity, process-wide
@@ -39,13 +37,16 @@
 //! training. Its U-Net training steps are those of the two CPU profiles' networks: the quick
 //! profile's tiny U-Net at 64x64 and the study profile's small one (depth 3) at 144x160, B8.
 //!
-//! Layout: this file holds the options, the report and its printing; `measure` the timed
-//! and measured workloads; `proc` the platform probes (`/proc`, `clock_gettime`, `mallopt`),
+//! Layout: this file holds the options and the report; `print` its printing; `paired` the paired
+//! timing, its statistics and the goals; `measure` the timed and measured workloads; `proc` the
+//! platform probes (`/proc`, `clock_gettime`, `mallopt`),
 //! real on Linux only (elsewhere they report nothing). The CLI wrapper
 //! (`src/commands/bench.rs`) parses flags, loads the camera and runs the memory child.
 
 pub mod device;
 mod measure;
+mod paired;
+mod print;
 mod proc;
 
 use std::path::PathBuf;
@@ -60,7 +61,9 @@ use crate::nn::{Head, UNetConfig};
 
 pub use measure::memory_child;
 use measure::{bench_functional, bench_pyramid, bench_shape, bench_unet, ratio, warm_like_trainer};
-use proc::{cpu_model, cpu_seconds, load_average};
+use paired::*;
+use print::*;
+use proc::{cpu_model, load_average};
 
 /// A part of the benchmark.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -218,84 +221,6 @@ fn full_shapes() -> Vec<Shape> {
         .iter()
         .flat_map(|&b| levels.iter().map(move |&(c, s)| [b, c, c, s, s]))
         .collect()
-}
-
-/// Medians of a paired measurement (milliseconds) and of the per-repetition ratios.
-#[derive(Debug, Serialize)]
-struct Paired {
-    reference_ms: f64,
-    candidate_ms: f64,
-    ratio: f64,
-    /// A distribution-free confidence interval (at least 95%) of the median per-repetition
-    /// wall-time ratio ([`median_ci`]; none below 6 repetitions).
-    ratio_ci: Option<[f64; 2]>,
-    /// The same from the process's CPU time (all threads, user + system) instead of wall time:
-    /// on a machine loaded beyond its cores a run longer than a scheduler time slice is
-    /// preempted more often than a short one, which inflates wall-time ratios; with one thread
-    /// the CPU-time ratio is the work ratio (with more, it counts OpenMP's spinning too).
-    cpu_ratio: Option<f64>,
-}
-
-/// The performance goals of the calibrated layers (README, "Performance"): every 3x3 layer of
-/// the `tiny` and `small` presets at most 1.3x `conv2d`, forward and forward+backward, and at
-/// most 1.15x where input and output both have 64 channels or more (in every preset: `classic`'s
-/// wider layers). `None`: the layer has no goal (explicit shapes, `classic`'s narrow layers).
-fn goal_limit(net: &str, c_in: i64, c_out: i64) -> Option<f64> {
-    let wide = c_in >= 64 && c_out >= 64;
-    match net {
-        "tiny" | "small" => Some(if wide { 1.15 } else { 1.3 }),
-        "classic" if wide => Some(1.15),
-        _ => None,
-    }
-}
-
-/// Whether a goal holds, computed from the ratio's interval: `Holds` when the whole interval is
-/// at or below the limit, `Contradicted` when it is wholly above, else (or without an interval)
-/// `Inconclusive`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-enum Outcome {
-    Holds,
-    Contradicted,
-    Inconclusive,
-}
-
-impl Outcome {
-    fn of(ci: Option<[f64; 2]>, limit: f64) -> Self {
-        match ci {
-            Some([_, hi]) if hi <= limit => Outcome::Holds,
-            Some([lo, _]) if lo > limit => Outcome::Contradicted,
-            _ => Outcome::Inconclusive,
-        }
-    }
-
-    /// The short form of the table's last column.
-    fn mark(self) -> &'static str {
-        match self {
-            Outcome::Holds => "ok",
-            Outcome::Contradicted => "OVER",
-            Outcome::Inconclusive => "?",
-        }
-    }
-}
-
-/// A layer's goal ([`goal_limit`]) and its outcome for the forward and the forward+backward pass.
-#[derive(Debug, Serialize)]
-struct Goal {
-    limit: f64,
-    forward: Outcome,
-    forward_backward: Outcome,
-}
-
-impl Goal {
-    fn of(net: &str, c_in: i64, c_out: i64, calibrated: &Impl) -> Option<Self> {
-        let limit = goal_limit(net, c_in, c_out)?;
-        Some(Goal {
-            limit,
-            forward: Outcome::of(calibrated.forward.ratio_ci, limit),
-            forward_backward: Outcome::of(calibrated.forward_backward.ratio_ci, limit),
-        })
-    }
 }
 
 #[derive(Debug, Serialize)]
@@ -505,275 +430,6 @@ peak memory not measured: {e}"
         unet,
         functional,
     })
-}
-
-fn fmt_load(l: Option<[f64; 3]>) -> String {
-    l.map_or("-".into(), |l| {
-        format!("{:.2} {:.2} {:.2}", l[0], l[1], l[2])
-    })
-}
-
-fn merge_memory(results: &mut [ShapeResult], unet: &mut [UnetResult], mem: &MemoryReport) {
-    for (r, m) in results.iter_mut().zip(&mem.layers) {
-        r.conv2d_peak_mib = m[0];
-        r.calibrated.peak_mib = m[1];
-        r.calibrated.peak_ratio = ratio(m[1], m[0]);
-        if let Some(a) = r.aten.as_mut() {
-            a.peak_mib = m[2];
-            a.peak_ratio = ratio(m[2], m[0]);
-        }
-    }
-    for (u, m) in unet.iter_mut().zip(&mem.unet) {
-        u.conv2d_peak_mib = m[0];
-        u.calibrated_peak_mib = m[1];
-        u.peak_ratio = ratio(m[1], m[0]);
-    }
-}
-
-fn print_memory(results: &[ShapeResult], unet: &[UnetResult]) {
-    if !results.is_empty() {
-        println!("\npeak memory of one training step (separate process, mmap threshold pinned):");
-        println!(
-            "{:>7} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5}",
-            "net", "B", "Cin", "Cout", "HxW", "conv MiB", "cal MiB", "x"
-        );
-    }
-    for r in results {
-        println!(
-            "{:>7} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5}",
-            r.net,
-            r.batch,
-            r.c_in,
-            r.c_out,
-            format!("{}x{}", r.height, r.width),
-            fmt_opt(r.conv2d_peak_mib, 1),
-            fmt_opt(r.calibrated.peak_mib, 1),
-            fmt_opt(r.calibrated.peak_ratio, 2),
-        );
-    }
-    for u in unet {
-        println!(
-            "U-Net ({}) step peak: conv2d {} MiB, calibrated {} MiB ({}x)",
-            u.network,
-            fmt_opt(u.conv2d_peak_mib, 0),
-            fmt_opt(u.calibrated_peak_mib, 0),
-            fmt_opt(u.peak_ratio, 2)
-        );
-    }
-}
-
-fn fmt_opt(v: Option<f64>, prec: usize) -> String {
-    v.map_or("-".to_string(), |v| format!("{v:.prec$}"))
-}
-
-fn print_header(aten: bool) {
-    println!(
-        "\n{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8} {:>8} {:>5} {:>11} {:>5} | {:>8} {:>8} {:>5} {:>11} {:>5} | {:>4} {:>4} {:>4}{}",
-        "net",
-        "n",
-        "B",
-        "Cin",
-        "Cout",
-        "HxW",
-        "conv fwd",
-        "cal fwd",
-        "x",
-        "95% ci",
-        "cpu x",
-        "conv f+b",
-        "cal f+b",
-        "x",
-        "95% ci",
-        "cpu x",
-        "goal",
-        "fwd",
-        "f+b",
-        if aten { " | aten fwd x  f+b x" } else { "" }
-    );
-}
-
-/// An interval as the table prints it.
-fn fmt_ci(ci: Option<[f64; 2]>) -> String {
-    ci.map_or("-".to_string(), |[lo, hi]| format!("[{lo:.2},{hi:.2}]"))
-}
-
-fn print_row(r: &ShapeResult) {
-    let c = &r.calibrated;
-    let goal = r.goal.as_ref().map_or("-".to_string(), |g| {
-        format!(
-            "{:>4.2} {:>4} {:>4}",
-            g.limit,
-            g.forward.mark(),
-            g.forward_backward.mark()
-        )
-    });
-    let mut line = format!(
-        "{:>7} {:>2} {:>2} {:>4} {:>4} {:>8} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {:>8.2} {:>8.2} {:>5.2} {:>11} {:>5} | {goal}",
-        r.net,
-        r.count,
-        r.batch,
-        r.c_in,
-        r.c_out,
-        format!("{}x{}{}", r.height, r.width, if r.input_grad { "" } else { "*" }),
-        c.forward.reference_ms,
-        c.forward.candidate_ms,
-        c.forward.ratio,
-        fmt_ci(c.forward.ratio_ci),
-        fmt_opt(c.forward.cpu_ratio, 2),
-        c.forward_backward.reference_ms,
-        c.forward_backward.candidate_ms,
-        c.forward_backward.ratio,
-        fmt_ci(c.forward_backward.ratio_ci),
-        fmt_opt(c.forward_backward.cpu_ratio, 2),
-    );
-    if let Some(a) = &r.aten {
-        line.push_str(&format!(
-            " | {:>10.2} {:>6.2}",
-            a.forward.ratio, a.forward_backward.ratio
-        ));
-    }
-    println!("{line}");
-}
-
-/// The outcomes of the rows' goals, counted per pass, and the rows where one does not hold.
-fn print_goals(results: &[ShapeResult]) {
-    let goals: Vec<(&ShapeResult, &Goal)> = results
-        .iter()
-        .filter_map(|r| r.goal.as_ref().map(|g| (r, g)))
-        .collect();
-    if goals.is_empty() {
-        return;
-    }
-    println!(
-        "\ngoals (README, Performance: <= 1.3x conv2d for tiny and small, <= 1.15x from 64 \
-         channels in and out), from each ratio's 95% interval (ok: within, OVER: above, ?: \
-         inconclusive):"
-    );
-    for (pass, get) in [
-        ("forward", (|g: &Goal| g.forward) as fn(&Goal) -> Outcome),
-        ("forward+backward", |g: &Goal| g.forward_backward),
-    ] {
-        let count = |o: Outcome| goals.iter().filter(|(_, g)| get(g) == o).count();
-        let missed: Vec<String> = goals
-            .iter()
-            .filter(|(_, g)| get(g) != Outcome::Holds)
-            .map(|(r, g)| {
-                format!(
-                    "{} {}->{} {}x{} ({})",
-                    r.net,
-                    r.c_in,
-                    r.c_out,
-                    r.height,
-                    r.width,
-                    get(g).mark()
-                )
-            })
-            .collect();
-        println!(
-            "  {pass}: {} of {} hold, {} contradicted, {} inconclusive{}{}",
-            count(Outcome::Holds),
-            goals.len(),
-            count(Outcome::Contradicted),
-            count(Outcome::Inconclusive),
-            if missed.is_empty() { "" } else { ": " },
-            missed.join(", ")
-        );
-    }
-}
-
-/// Wall time of `f` in milliseconds.
-fn time_ms(f: &mut dyn FnMut()) -> f64 {
-    let start = Instant::now();
-    f();
-    start.elapsed().as_secs_f64() * 1e3
-}
-
-/// Wall and process CPU time of `f` in milliseconds.
-fn time_both_ms(f: &mut dyn FnMut()) -> (f64, Option<f64>) {
-    let cpu0 = cpu_seconds();
-    let wall = time_ms(f);
-    let cpu = cpu_seconds().zip(cpu0).map(|(b, a)| (b - a) * 1e3);
-    (wall, cpu)
-}
-
-/// A distribution-free confidence interval of the median of `sorted` (ascending), with
-/// coverage at least 95%: the order statistics `x(j)` and `x(n + 1 - j)` (1-based), `j` the
-/// largest with `P(Binomial(n, 1/2) <= j - 1) <= 0.025` (the number of values below the median
-/// is binomial when they are exchangeable). `None` below 6 values (no such `j`). For 15
-/// repetitions: `x(4)` and `x(12)`, coverage 96.5%; for 101 (`MAX_REPS`): `x(41)`, `x(61)`.
-fn median_ci(sorted: &[f64]) -> Option<[f64; 2]> {
-    let n = sorted.len();
-    let total = 2f64.powi(i32::try_from(n).ok()?);
-    let (mut cdf, mut choose, mut j) = (0.0, 1.0, 0);
-    for k in 0..n {
-        cdf += choose / total; // P(X <= k)
-        if cdf > 0.025 {
-            break;
-        }
-        j = k + 1;
-        choose *= (n - k) as f64 / (k + 1) as f64;
-    }
-    (j >= 1).then(|| [sorted[j - 1], sorted[n - j]])
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    let n = v.len();
-    if n == 0 {
-        f64::NAN
-    } else if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
-/// Runs `reference` and every candidate `reps` times, interleaved (the order rotates each
-/// repetition), after one warm-up call each; returns one [`Paired`] per candidate.
-fn paired(
-    reps: usize,
-    reference: &mut dyn FnMut(),
-    candidates: &mut [&mut dyn FnMut()],
-) -> Vec<Paired> {
-    reference();
-    for c in candidates.iter_mut() {
-        c();
-    }
-    let n = candidates.len();
-    let mut times = vec![Vec::with_capacity(reps); n + 1]; // slot 0: the reference
-    for rep in 0..reps {
-        // Rotate who goes first.
-        for k in 0..=n {
-            let slot = (k + rep) % (n + 1);
-            let t = if slot == 0 {
-                time_both_ms(reference)
-            } else {
-                time_both_ms(candidates[slot - 1])
-            };
-            times[slot].push(t);
-        }
-    }
-    let wall = |v: &[(f64, Option<f64>)]| v.iter().map(|t| t.0).collect::<Vec<_>>();
-    let ref_wall = wall(&times[0]);
-    times[1..]
-        .iter()
-        .map(|c| {
-            let cpu: Option<Vec<f64>> = c
-                .iter()
-                .zip(&times[0])
-                .map(|(c, r)| Some(c.1? / r.1?.max(1e-6)))
-                .collect();
-            let mut ratios: Vec<f64> = c.iter().zip(&ref_wall).map(|(c, r)| c.0 / r).collect();
-            ratios.sort_by(|a, b| a.total_cmp(b));
-            Paired {
-                reference_ms: median(ref_wall.clone()),
-                candidate_ms: median(wall(c)),
-                ratio_ci: median_ci(&ratios),
-                ratio: median(ratios),
-                cpu_ratio: cpu.map(median),
-            }
-        })
-        .collect()
 }
 
 #[cfg(test)]

@@ -76,7 +76,7 @@ impl Conv2dConfig {
 /// one and the next one's input stay channels-last and nothing converts per call. An NCHW image
 /// (at most 4 channels) is read as it is; a wider NCHW input is converted once. Code that needs
 /// NCHW memory (`view` on an activation) calls `contiguous()`. With fewer than 16 outputs and
-/// more than one libtorch thread the output is NCHW instead ([`NCHW_BELOW_CHANNELS`]).
+/// more than one libtorch thread the output is NCHW instead (`NCHW_BELOW_CHANNELS`).
 ///
 /// Parameters are named and shaped exactly like tch's / PyTorch's `Conv2d` (`weight`, `bias`).
 /// The sampling plan is built once per (offsets, geometry, device) and shared (same tensor

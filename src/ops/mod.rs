@@ -11,98 +11,27 @@
 //! outside point at an all-zero block; [`Border::WrapX`] instead takes columns modulo `W` (the
 //! right padding column then holds the first column). The corner weights
 //! `(1-ly)(1-lx), (1-ly)lx, ly(1-lx), ly lx` do not depend on the border rule, which only moves
-//! corners, so every kernel below consumes any plan unchanged. The ATen path reads the four
-//! corners as flat indices into the unpadded input with an extra zero row
-//! ([`SamplingPlan::corner_index`], derived from the top-left corners). The plan also records,
-//! per output row, the input rows its samples read (for the scatter schedule below). Plans are
-//! built in parallel over output rows, written in place.
+//! corners, so every kernel consumes any plan unchanged. The ATen path reads the four corners as
+//! flat indices into the unpadded input with an extra zero row ([`SamplingPlan::corner_index`]).
+//! The plan also records, per output row, the input rows its samples read (the scatter's
+//! schedule). Plans are built in parallel over output rows, written in place.
 //!
 //! # Two implementations, one semantics ([`Backend`])
-//! - **Native CPU kernels** (`native/deform.cpp` with `small_kernels.h` and `simd.h`, compiled
-//!   by `build.rs` against libtorch; the default for CPU tensors): a
-//!   `torch::autograd::Function` with hand-written kernels.
-//!   - *Forward*: the input is read channels-last and padded (a copy per call; an NCHW input
-//!     is converted in 8x8 register transposes first, or in the same pass at <= 4 channels;
-//!     with [`Border::WrapX`] the padding columns hold the other side's pixels). Per tile of output pixels (tiles
-//!     run over the flattened `(item, pixel)` rows, so the small maps of a U-Net batch into
-//!     GEMMs of >= 1024 rows instead of one small GEMM per item) a column tile `[T, K*C]`
-//!     (group, tap, channel) is gathered, each element `w0 a0 + w1 a1 + w2 a2 + w3 a3` over
-//!     contiguous channel vectors from the sample's top-left corner `t` and its neighbours
-//!     `t + 1`, `t + W + 2`, `t + W + 3` in the padded input (each thread pads the rows its
-//!     tiles read into a buffer of one item's frame, which stays in the caches, rather than the
-//!     whole batch up front: one thread, Intel Xeon, calibrated / conv2d, 64->64 at 256x256 B2
-//!     forward 1.16 -> 0.97-0.99x, U-Net training steps of the quick and study profiles
-//!     1.10-1.14 -> 1.08-1.11x and 1.19-1.21 -> 1.16-1.18x; that buffer, like every scratch
-//!     buffer, begins on a cache line, so that a pixel of 16 float channels is one line, not
-//!     two: with malloc's 16-byte alignment 16->16 at 128x128 B8 ran its forward at 1.23x or
-//!     1.41x conv2d depending on where the allocator put it); the gather is compiled
-//!     for 1-4, 8, 16, 32 and 64 channels as whole-vector operations (3 channels as vectors of
-//!     4) and in general, each for AVX-512 / AVX2 / baseline, picked at load time (32, 64,
-//!     128 and 256 channels in whole 64-byte vectors where the CPU has AVX-512). The kernels
-//!     of 1, 2, 4 and 8 channels read each sample's four corner weights (16 bytes a sample),
-//!     computed from the plan's fractions once for the forward pass and again for the backward,
-//!     instead of per sample and item (one thread, Intel Xeon: 8->8 at 64x64 B8 forward
-//!     1.31-1.36 -> 1.19-1.23x `conv2d`); with more channels the larger stream cost more than
-//!     it saved, so they take the fractions. Then one GEMM per
-//!     group against the weight packed as `[G, C_out/G, K, C/G]`, through the BLAS (`at::mm`,
-//!     libtorch's MKL; oneDNN's 1x1 convolution, `at::mkldnn_convolution`, when asked for: see
-//!     [`GemmLibrary`]); the result is written into the output (NCHW, or channels-last for a
-//!     channels-last input, as `conv2d`). Tiles run in parallel
-//!     (`at::parallel_for`, handed out dynamically). The column matrix is not materialised,
-//!     except for a first layer in grad mode: an input without gradient and <= 4 channels (an
-//!     image) keeps its `[B*P, K*C]` columns (~9x the input) for the weight gradient, which
-//!     would otherwise gather them again at a cost close to the whole convolution's. But 3
-//!     float32 channels with the few-output-channel kernels and >= 4 items: with one plan for
-//!     the batch they are gathered for every item at once, from a padded copy holding each
-//!     pixel's items side by side (four items a 16-float vector, the bilinear weights computed
-//!     once a sample), and as a first layer keep nothing but that copy: the weight gradient
-//!     gathers the columns again, by pixel blocks of all items (per-item plans take the same
-//!     order, so both give the same bits). Writing the kept columns had bound that forward.
-//!   - *Weight gradient*: column tiles are recomputed (or the kept ones read) and
-//!     `gy^T @ cols` is accumulated per thread chunk (fixed chunks, so the result is the same on
-//!     every run for a given thread count), then summed and laid out as the weight; oneDNN (where
-//!     it is the GEMM library) from 32 output channels on (below, its reduction over pixels was
-//!     slower than MKL's).
-//!   - *Input gradient*: per tile `grad_cols = gy @ W`, then every sample adds `w * grad_cols`
-//!     to its four corners of padded channels-last rows (from its top-left corner, as the
-//!     gather; corners of zero weight too, which leaves every finite value's bits as they are,
-//!     rather than a branch a corner). Each task adds into a per-thread buffer of the rows it
-//!     touches of one item (zeroed, or loaded where a band of the other phase added first) and
-//!     writes them out, padding dropped, when it is done with them; before, a batch-sized
-//!     padded buffer was faulted in, zeroed and copied out at the end (32->16 at 128x128 B8
-//!     f+b 1.29-1.30 -> 1.24-1.26x conv2d, one thread, Intel Xeon). Tiles run in bands of
-//!     output rows in two
-//!     phases (even bands, then odd bands), with the smallest band height (from 1024 pixels and
-//!     16 bands per batch up) for which the input rows read by two bands of the same phase are
-//!     disjoint (from the plan's row ranges); with one band per item a task takes whole items.
-//!     A scatter without atomics or races whose summation order does not depend on the number
-//!     of threads. (A transposed plan that turns this into a gather was tried and dropped: for
-//!     the 1080x960 pyramid it took longer to build than offsets and plans together and held
-//!     400 MiB more.)
-//!   - *Bias gradient*: a sum of the output gradient; with the few-output-channel kernels below,
-//!     summed block by block as the weight gradient reads the output gradient (in its order),
-//!     not in a pass of its own (16->16 at 128x128 B8 f+b 1.40-1.46 -> 1.36-1.39x conv2d, one
-//!     thread, Intel Xeon).
-//!   - *Few output channels* (float32, one group, 8, 16, 32, 64, 128, 256, 512 or 1024 outputs
-//!     and a weight of at most 36 MiB; 8, 16 or 32 outputs on CPUs without AVX-512): the three
-//!     products above run through register-blocked kernels instead of a oneDNN / BLAS call per
-//!     tile, on blocks of pixels whose columns fit 16 KiB (at least 24 pixels; 256 for a weight
-//!     over 1 MiB, whose forward and weight gradient gather and multiply a block's columns one
-//!     slab of 512 at a time; gathered, multiplied and scattered block by block): at these
-//!     shapes a GEMM call costs more in overhead than in arithmetic (at
-//!     64-1024 outputs these kernels beat oneDNN or the BLAS at one thread on AMD CPUs; with more
-//!     threads a weight larger than the column matrix goes through the library; where the BLAS
-//!     is MKL on an Intel CPU, which runs its AVX-512 code there, the gradients of weights over 4
-//!     MiB and their forward on fewer than 1024 output pixels a pass go through it,
-//!     [`LargeWeights`]). Their
-//!     register blocking is compiled separately for AVX-512 and AVX2 and
-//!     picked at run time ([`small_kernel_isa`]; both levels give identical values); CPUs
-//!     without AVX2 use the GEMM library. The forward keeps a row group's accumulators in
-//!     registers over a slab of 512 reduction steps (the weight's rows in order from L2); the
-//!     column gradient walks the columns in chunks whose slice of the weight is read once per
-//!     block.
-//!   - Float32 and float64; no double backward (an error, not a wrong result). C++ exceptions
-//!     come back as [`Error::Torch`], never across the FFI boundary.
+//! - **Native CPU kernels** (`native/`, C++ compiled by `build.rs` against libtorch; the default
+//!   for CPU tensors): a `torch::autograd::Function`. The forward gathers column tiles `[T, K*C]`
+//!   over the flattened `(item, pixel)` rows from the input padded channels-last (each thread pads
+//!   the rows its tiles read) and multiplies them by the packed weight; the weight gradient
+//!   gathers the tiles again (a first layer of <= 4 channels keeps its columns instead); the input
+//!   gradient scatters `gy @ W` to the corners in bands of output rows whose input rows are
+//!   disjoint within each of two phases: no atomics, and a summation order that does not depend
+//!   on the number of threads. Products go through the BLAS (`at::mm`; oneDNN when asked, see
+//!   [`GemmLibrary`]) or, for few output channels (float32, one group, 8 to 1024 outputs on
+//!   AVX-512, 8 to 32 on AVX2), through register-blocked kernels on L1-sized blocks of pixels,
+//!   compiled per instruction-set level and picked at run time ([`small_kernel_isa`]; both levels
+//!   give identical values; large weights on Intel CPUs with MKL: [`LargeWeights`]). Float32 and
+//!   float64; no double backward (an error, not a wrong result); C++ exceptions come back as
+//!   [`Error::Torch`], never across the FFI boundary. The design of each pass is in the comments
+//!   of `native/deform.cpp`; what was measured for its choices is in docs/bench/cpu-kernels.md.
 //! - **ATen composition** (any device; the CUDA path): one `embedding_bag` (weighted sum of the
 //!   four corner rows of a pixel-major table) builds the column matrix `[B, P, K*C]`, and one
 //!   batched `matmul` applies the weight; libtorch differentiates both.
@@ -110,13 +39,12 @@
 //! # Numerics
 //! Both compute torchvision's bilinear deformable convolution; they differ from each other (and
 //! from torchvision) only in rounding: summation order (per-tile GEMMs, per-chunk weight
-//! gradients, the scatter order, oneDNN's or MKL's GEMM blocking in float32), fused multiply-adds
-//! in the gathers, and, for float32 plans,
-//! corner weights formed in float32 from float32 fractions (relative differences ~1e-7). Tests
-//! hold the native path to the ATen one at 1e-12 (float64) on random plans with out-of-range and
-//! far-reaching samples, to torchvision's fixtures at 1e-4 (float32) / 1e-6 (float64), and to
-//! finite differences in float64. Gradients with respect to the offsets are not computed (they
-//! are fixed data).
+//! gradients, the scatter order, the BLAS's blocking in float32), fused multiply-adds in the
+//! gathers, and, for float32 plans, corner weights formed in float32 from float32 fractions
+//! (relative differences ~1e-7). Tests hold the native path to the ATen one at 1e-12 (float64)
+//! on random plans with out-of-range and far-reaching samples, to torchvision's fixtures at 1e-4
+//! (float32) / 1e-6 (float64), and to finite differences in float64. Gradients with respect to
+//! the offsets are not computed (they are fixed data).
 //!
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
 //! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
@@ -129,6 +57,20 @@
 mod cache;
 #[cfg(calibconv_native)]
 mod native;
+/// Without the native kernels their settings are fixed: there is nothing to choose.
+#[cfg(not(calibconv_native))]
+mod native {
+    use super::{GemmLibrary, LargeWeights, SmallKernelIsa};
+    pub(super) fn small_kernel_isa(_cap: Option<SmallKernelIsa>) -> SmallKernelIsa {
+        SmallKernelIsa::None
+    }
+    pub(super) fn gemm_library(_choice: Option<Option<GemmLibrary>>) -> GemmLibrary {
+        GemmLibrary::Blas
+    }
+    pub(super) fn large_weights(_choice: Option<Option<LargeWeights>>) -> LargeWeights {
+        LargeWeights::Kernels
+    }
+}
 mod plan;
 
 pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
@@ -220,8 +162,8 @@ pub fn native_available() -> bool {
     cfg!(calibconv_native)
 }
 
-/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8,
-/// 16, 32, 64 or 128 output channels): their register blocking is compiled per level and picked
+/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8
+/// to 1024 output channels): their register blocking is compiled per level and picked
 /// at run time from the CPU.
 /// (The discriminants are the native code's `SmallIsa`.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
@@ -239,23 +181,14 @@ pub enum SmallKernelIsa {
 
 /// The level of the few-output-channel kernels this process uses.
 pub fn small_kernel_isa() -> SmallKernelIsa {
-    #[cfg(calibconv_native)]
-    return native::small_kernel_isa(None);
-    #[cfg(not(calibconv_native))]
-    SmallKernelIsa::None
+    native::small_kernel_isa(None)
 }
 
 /// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
 /// thread; both levels compute identical values, `None` sends those layers through the GEMM
 /// library); returns the level now in use. For tests and A/B timings.
 pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
-    #[cfg(calibconv_native)]
-    return native::small_kernel_isa(Some(cap));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = cap;
-        SmallKernelIsa::None
-    }
+    native::small_kernel_isa(Some(cap))
 }
 
 /// The library of the float32 products of one group that the few-output-channel kernels do not
@@ -270,30 +203,21 @@ pub enum GemmLibrary {
     OneDnn = 1,
     /// The BLAS (`at::mm`, libtorch's MKL), the default: at the shapes left to the library
     /// (128-1024 channels) faster than oneDNN's 1x1 convolution on an AMD Zen 3 (AVX2) and on a
-    /// Zen 4 (AVX-512), with less memory (README, "Performance").
+    /// Zen 4 (AVX-512), with less memory (docs/bench/cpu-kernels.md).
     Blas = 2,
 }
 
 /// The GEMM library this process uses ([`GemmLibrary::Blas`] without the native kernels, whose
 /// ATen composition multiplies with `at::mm`-style ops).
 pub fn gemm_library() -> GemmLibrary {
-    #[cfg(calibconv_native)]
-    return native::gemm_library(None);
-    #[cfg(not(calibconv_native))]
-    GemmLibrary::Blas
+    native::gemm_library(None)
 }
 
 /// Sets the GEMM library for the rest of the process (every thread; `None`: the default, the
 /// BLAS; oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
 /// (`calibconv bench --gemm`); the results differ only by rounding.
 pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
-    #[cfg(calibconv_native)]
-    return native::gemm_library(Some(choice));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = choice;
-        GemmLibrary::Blas
-    }
+    native::gemm_library(Some(choice))
 }
 
 /// The library of the products of large weights (see [`LargeWeights::Blas`])
@@ -306,33 +230,23 @@ pub enum LargeWeights {
     /// with MKL).
     Kernels = 1,
     /// The BLAS computes the column and weight gradients of weights over 4 MiB (256->512 and
-    /// 512->256 on; over 1 MiB until the twentieth session) and the forward of such weights on
-    /// fewer than 1024 output pixels a pass (`classic`'s 512->1024 and 1024->1024 on 16x16 maps
-    /// at B2): the default where the BLAS is MKL on an Intel CPU, which runs its AVX-512 code
-    /// there only (README, "Performance").
+    /// 512->256 on) and the forward of such weights on fewer than 1024 output pixels a pass
+    /// (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where the BLAS is
+    /// MKL on an Intel CPU, which runs its AVX-512 code there only (docs/bench/cpu-kernels.md).
     Blas = 2,
 }
 
 /// The library of the large weights' products this process uses ([`LargeWeights::Kernels`]
 /// without the native kernels, where there are none to choose).
 pub fn large_weights() -> LargeWeights {
-    #[cfg(calibconv_native)]
-    return native::large_weights(None);
-    #[cfg(not(calibconv_native))]
-    LargeWeights::Kernels
+    native::large_weights(None)
 }
 
 /// Sets the library of the large weights' products for the rest of the process (every thread;
 /// `None`: the CPU's default) and returns the one now in use. For tests and A/B timings
 /// (`calibconv bench --large-weights`); the results differ only by rounding.
 pub fn set_large_weights(choice: Option<LargeWeights>) -> LargeWeights {
-    #[cfg(calibconv_native)]
-    return native::large_weights(Some(choice));
-    #[cfg(not(calibconv_native))]
-    {
-        let _ = choice;
-        LargeWeights::Kernels
-    }
+    native::large_weights(Some(choice))
 }
 
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).

@@ -302,8 +302,7 @@ impl Study {
 
     /// Elapsed wall seconds of the study: the length of the union of the intervals the runs
     /// occupied (`[finished - seconds, finished]` from `sweep.json`), so that runs that overlap
-    /// (`--jobs 2`) count once and the time between two sessions of a resumed study counts not at
-    /// all. Runs without a time are left out (see [`Self::wall_seconds`] for their count).
+    /// (`--jobs 2`) count once and the pause before a resumed study goes on counts not at all. Runs without a time are left out (see [`Self::wall_seconds`] for their count).
     pub fn elapsed_seconds(&self) -> f64 {
         self.elapsed_seconds_of(|_| true)
     }
@@ -370,7 +369,7 @@ mod union_tests {
 
     #[test]
     fn overlapping_runs_count_once_and_gaps_not_at_all() {
-        // Two parallel runs 0-10 and 5-12, then a session later 100-103.
+        // Two parallel runs 0-10 and 5-12, then a resumed run later 100-103.
         let spans = [(0.0, 10.0), (100.0, 103.0), (5.0, 12.0)];
         assert_eq!(union_length(spans), 15.0);
         assert_eq!(union_length([(3.0, 3.0), (4.0, 2.0)]), 0.0);

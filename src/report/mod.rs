@@ -3,14 +3,15 @@
 //! - [`kernels`]: the grid of calibrated kernels over a fisheye image (paper Figure 1a).
 //! - [`results`]: `calibconv report RESULTS`: reads the run directories of every seed into
 //!   [`study::Observations`], writes the tables with intervals over seeds, the paired-difference
-//!   table ([`tables`]), radial plots with bands over seeds, qualitative grids, the verdict
-//!   ([`verdict`]), the gain against the field of view ([`fov`]) and `REPORT.md`. [`stats`]
-//!   holds the pure statistics (Student t, bootstrap).
+//!   table ([`tables`]), radial plots with bands over seeds, qualitative grids ([`grids`]), the
+//!   verdict ([`verdict`]), the gain against the field of view ([`fov`]) and `REPORT.md`.
+//!   [`stats`] holds the pure statistics (Student t, bootstrap).
 
 pub mod collect;
 pub mod curves;
 pub mod draw;
 pub mod fov;
+pub mod grids;
 pub mod kernels;
 pub mod pointcloud;
 pub mod radial;

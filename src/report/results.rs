@@ -6,21 +6,20 @@
 //! Files in `out` (default: `RESULTS`): `table_{depth,seg}.{md,csv}` (each cell mean ± 95%
 //! Student-t half-width over seeds, with n), `differences_{depth,seg}.{md,csv}` (paired
 //! differences per seed, their mean and t-interval over seeds, and per seed a paired bootstrap
-//! interval over test images), `radial_TASK_BLOCK_SET_METRIC.png`, `grid_TASK_BLOCK_SET.png`,
-//! `verdict.json` / `verdict.md` ([`super::verdict`]) and `REPORT.md`. Depth tables use
+//! interval over test images), `radial_TASK_BLOCK_SET_METRIC.png`, `grid_TASK_BLOCK_SET.png`
+//! ([`super::grids`]), `verdict.json` / `verdict.md` ([`super::verdict`]), `training.md`,
+//! `runs.md` and `REPORT.md` (the verdict, the two tables and the figures, linking the rest). Depth tables use
 //! [`ReportOptions::averaging`] (default `per-image`, the authors' convention) and say so;
 //! segmentation uses one confusion matrix over the test set. The best mean of each metric
 //! among the rows of one block and data set (one calibration) is bold.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use image::RgbImage;
-
 use super::collect::{collect, Row, Study};
+use super::grids::{qualitative_grids, COLUMNS};
 use super::radial::radial_plots;
 use super::study::Observations;
-use super::study::{Block, Task, CALIBRATED, STANDARD};
+use super::study::Task;
 use super::tables::{
     cell_table, comparison_pairs, convention, difference_table, seed_values_csv,
     BOOTSTRAP_RESAMPLES,
@@ -28,7 +27,7 @@ use super::tables::{
 use super::verdict::{markdown, verdict, Meta, CLAIM_DATASETS};
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Averaging, Metric, DEPTH_METRICS, SEGMENTATION_METRICS};
-use crate::io::{write_bytes_atomic, write_png_atomic};
+use crate::io::write_bytes_atomic;
 
 /// How to report.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -47,84 +46,6 @@ impl Default for ReportOptions {
             bootstrap_seed: 0,
         }
     }
-}
-
-fn load_png(path: &Path) -> Option<RgbImage> {
-    image::open(path).ok().map(|i| i.to_rgb8())
-}
-
-fn save_png(path: &Path, img: &RgbImage) -> Result<()> {
-    write_png_atomic(path, img)
-}
-
-/// Tile `i` of a prediction panel of `n` tiles (tiles separated by 2-pixel gaps, see
-/// [`crate::eval::visual::hstack`]).
-fn tile(panel: &RgbImage, n: u32, i: u32) -> RgbImage {
-    const GAP: u32 = 2;
-    let w = (panel.width() + GAP).saturating_sub(GAP * n) / n;
-    image::imageops::crop_imm(panel, i * (w + GAP), 0, w, panel.height()).to_image()
-}
-
-/// Qualitative grids (RGB | standard | calibrated | ground truth) for each task, block and
-/// fisheye data set with both kernels, from the evaluations' prediction panels;
-/// `grid_TASK_BLOCK_SET.png`. Returns the files.
-pub fn qualitative_grids(rows: &[&Row], out: &Path) -> Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    let mut groups: BTreeMap<(Task, Block, String), BTreeMap<String, &Row>> = BTreeMap::new();
-    for r in rows {
-        groups
-            .entry((r.cell.task, r.cell.block, r.cell.dataset.clone()))
-            .or_default()
-            .insert(r.cell.kernel.clone(), r);
-    }
-    for ((task, block, set), by_kernel) in groups {
-        let (Some(std_row), Some(cal_row)) = (by_kernel.get(STANDARD), by_kernel.get(CALIBRATED))
-        else {
-            continue;
-        };
-        // Depth panels: RGB | GT | prediction | error; segmentation: RGB | GT | prediction.
-        let n = if task == Task::Segmentation { 3 } else { 4 };
-        let mut ids: Vec<PathBuf> = std::fs::read_dir(std_row.dir.join("predictions"))
-            .map(|it| it.flatten().map(|e| e.path()).collect())
-            .unwrap_or_default();
-        ids.sort();
-        let mut lines = Vec::new();
-        for p in ids.iter().take(4) {
-            let Some(name) = p.file_name() else { continue };
-            let (Some(a), Some(b)) = (
-                load_png(p),
-                load_png(&cal_row.dir.join("predictions").join(name)),
-            ) else {
-                continue;
-            };
-            lines.push(crate::eval::visual::hstack(&[
-                tile(&a, n, 0),
-                tile(&a, n, 2),
-                tile(&b, n, 2),
-                tile(&a, n, 1),
-            ]));
-        }
-        if lines.is_empty() {
-            continue;
-        }
-        let w = lines.iter().map(|l| l.width()).max().unwrap_or(0);
-        let h: u32 = lines.iter().map(|l| l.height() + 2).sum();
-        let mut grid = RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
-        let mut y = 0;
-        for l in &lines {
-            image::imageops::replace(&mut grid, l, 0, y as i64);
-            y += l.height() + 2;
-        }
-        let file = out.join(format!(
-            "grid_{}_{}_{}.png",
-            task.short(),
-            block.to_string().to_lowercase(),
-            set.to_lowercase()
-        ));
-        save_png(&file, &grid)?;
-        files.push(file);
-    }
-    Ok(files)
 }
 
 /// The class palette legend as Markdown (colour swatches are the hex values of
@@ -242,32 +163,38 @@ fn write_md_csv(
     Ok((md_file, csv_file))
 }
 
-/// One task's tables, differences, radial plots and grids; returns its `REPORT.md` section.
-fn task_section(
+/// One task's table, with links to its detail (the table's files, every seed's value, the paired
+/// differences); returns its `REPORT.md` section (empty without rows of the task).
+fn task_tables(
     cx: &Ctx<'_>,
     task: Task,
     columns: &[Metric],
     title: &str,
     files: &mut Vec<PathBuf>,
 ) -> Result<String> {
+    if !cx.study.rows.iter().any(|r| r.cell.task == task) {
+        return Ok(String::new());
+    }
+    let n_seeds = cx.obs.seeds().len();
+    let table = table_section(cx, task, columns, title, n_seeds, files)?;
+    let differences = differences_section(cx, task, columns, n_seeds, files)?;
+    Ok(format!(
+        "{table}Paired differences per seed: {differences}.
+
+"
+    ))
+}
+
+/// One task's figures (radial plots, qualitative grids of its first seed), with captions.
+fn task_figures(cx: &Ctx<'_>, task: Task, files: &mut Vec<PathBuf>) -> Result<String> {
     let seeds: Vec<u64> = cx.obs.seeds().into_iter().collect();
-    let task_rows: Vec<&Row> = cx
+    let first_seed: Vec<&Row> = cx
         .study
         .rows
         .iter()
-        .filter(|r| r.cell.task == task)
+        .filter(|r| r.cell.task == task && Some(r.seed) == seeds.first().copied())
         .collect();
-    if task_rows.is_empty() {
-        return Ok(String::new());
-    }
-    let mut report = table_section(cx, task, columns, title, seeds.len(), files)?;
-    report += &differences_section(cx, task, columns, seeds.len(), files)?;
-    report += &radial_section(cx, task, seeds.len(), files)?;
-    let first_seed: Vec<&Row> = task_rows
-        .iter()
-        .copied()
-        .filter(|r| Some(r.seed) == seeds.first().copied())
-        .collect();
+    let mut report = radial_section(cx, task, seeds.len(), files)?;
     report += &grids_section(cx, task, &first_seed, seeds.first().copied(), files)?;
     Ok(report)
 }
@@ -288,18 +215,14 @@ fn table_section(
     };
     let about = convention(task, opts.averaging, n_seeds);
     let (md, csv) = cell_table(obs, task, columns);
-    let (md_file, csv_file) = write_md_csv(
-        out,
-        &format!("table_{}", task.short()),
-        &format!("## {title}\n\n{about}.\n\n{md}"),
-        &csv,
-        files,
-    )?;
+    let text = format!("## {title}\n\n{about}.\n\n{md}");
+    let stem = format!("table_{}", task.short());
+    let (md_file, csv_file) = write_md_csv(out, &stem, &text, &csv, files)?;
     let seeds_file = out.join(format!("values_{}.csv", task.short()));
     write_bytes_atomic(&seeds_file, seed_values_csv(obs, task, columns).as_bytes())?;
     files.push(seeds_file.clone());
     Ok(format!(
-        "## {title}\n\n{about}.\n\n{md}\n({}, {}; every seed's value: {})\n\n",
+        "## {title}\n\n{about}.\n\n{md}\nDetail: {}, {}; every seed's value: {}. ",
         link(&md_file, out),
         link(&csv_file, out),
         link(&seeds_file, out)
@@ -307,7 +230,7 @@ fn table_section(
 }
 
 /// The task's paired differences (`differences_T.{md,csv}`), with a bootstrap over test
-/// images when there are two seeds or more.
+/// images when there are two seeds or more; returns the links to the two files.
 fn differences_section(
     cx: &Ctx<'_>,
     task: Task,
@@ -337,15 +260,11 @@ fn differences_section(
         "One seed: the difference of the two rows; intervals need >= 2 seeds".to_string()
     };
     let heading = format!("Paired differences, {}", task.name());
-    let (md_file, csv_file) = write_md_csv(
-        out,
-        &format!("differences_{}", task.short()),
-        &format!("## {heading}\n\n{diff_about}.\n\n{md}"),
-        &csv,
-        files,
-    )?;
+    let text = format!("## {heading}\n\n{diff_about}.\n\n{md}");
+    let stem = format!("differences_{}", task.short());
+    let (md_file, csv_file) = write_md_csv(out, &stem, &text, &csv, files)?;
     Ok(format!(
-        "### {heading}\n\n{diff_about}.\n\n{md}\n({}, {})\n\n",
+        "{} ({})",
         link(&md_file, out),
         link(&csv_file, out)
     ))
@@ -362,9 +281,10 @@ fn radial_section(
     let mut report = String::new();
     if !plots.is_empty() {
         report += &format!(
-            "### Radial plots\n\nMetric vs distance to the principal point ({}); standard \
+            "### Radial plots, {}\n\nMetric vs distance to the principal point ({}); standard \
              kernels red, calibrated blue, rectified green (rectified images are a pinhole \
              projection: the same radius is another viewing angle).\n\n",
+            task.name(),
             if n_seeds >= 2 {
                 "mean over seeds of each seed's curve, band: 95% Student-t interval over seeds"
             } else {
@@ -392,12 +312,13 @@ fn grids_section(
     let mut report = String::new();
     if !grids.is_empty() {
         report += &format!(
-            "### Qualitative results\n\nColumns: RGB | standard | calibrated | ground truth \
-             (first test images, seed {}).{}\n\n",
+            "### Qualitative results, {}\n\nColumns: {} (the first test images, seed {}).{}\n\n",
+            task.name(),
+            COLUMNS.join(" | "),
             seed.unwrap_or(0),
             if task == Task::Depth {
-                " Depth colour map: near dark blue to far yellow, per image over [0, max \
-                 ground truth]; invalid pixels black."
+                " Depth colour map (the bar under the grid): near dark blue to far yellow, per \
+                 image over [0, max ground truth]; invalid pixels black."
             } else {
                 " Classes: the fixed palette below; unknown / invalid black."
             }
@@ -416,7 +337,10 @@ fn grids_section(
 }
 
 /// Writes the tables, differences, radial plots, grids, verdict and `REPORT.md` of `results`
-/// into `out`; returns the files written.
+/// into `out`; returns the files written. `REPORT.md` holds the verdict, the two tables and the
+/// figures with their captions, and links to the detail beside it: each table's files and its
+/// paired differences per seed, `training.md` (validation curves, timings) and `runs.md` (every
+/// run, its time and configuration).
 pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Result<Vec<PathBuf>> {
     let study = collect(results)?;
     if study.runs.is_empty() {
@@ -430,33 +354,62 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
     let obs = study.observations(opts.averaging)?;
     let seeds: Vec<u64> = obs.seeds().into_iter().collect();
     let mut files = Vec::new();
-    let mut report = format!(
-        "# Report: {}\n\nRuns: {} in {} replicate(s) (seeds {:?}). Generated by `calibconv \
-         report` from the run directories (metrics: `RUN/eval/NAME/metrics.json`, per test \
-         image: `per_image.json`).\n\n",
-        results.display(),
-        study.runs.len(),
-        study.replicates.len(),
-        seeds,
-    );
     let cx = Ctx {
         study: &study,
         obs: &obs,
         opts,
         out,
     };
+    let training = super::curves::training_section(&study, out, &mut files)?;
+    let training_file = out.join("training.md");
+    write_bytes_atomic(&training_file, training.as_bytes())?;
+    let runs_file = out.join("runs.md");
+    write_bytes_atomic(&runs_file, runs_section(&study, out).as_bytes())?;
+    files.extend([training_file.clone(), runs_file.clone()]);
+    let mut report = format!(
+        "# Report: {}\n\n{} runs in {} replicate(s) (seeds {:?}), read by `calibconv report` \
+         from their run directories (metrics: `RUN/eval/NAME/metrics.json`, per test image: \
+         `per_image.json`). Every run, its time and configuration: {}; validation curves and \
+         timings: {}.\n\n",
+        results.display(),
+        study.runs.len(),
+        study.replicates.len(),
+        seeds,
+        link(&runs_file, out),
+        link(&training_file, out),
+    );
     report += &verdict_section(&cx, &mut files)?;
-    for (task, columns, title) in [
+    let tasks = [
         (Task::Depth, &DEPTH_METRICS[..], "Table 1: depth"),
         (
             Task::Segmentation,
             &SEGMENTATION_METRICS[..],
             "Table 2: semantic segmentation",
         ),
-    ] {
-        report += &task_section(&cx, task, columns, title, &mut files)?;
+    ];
+    for (task, columns, title) in tasks {
+        report += &task_tables(&cx, task, columns, title, &mut files)?;
+    }
+    let mut figures = String::new();
+    for (task, ..) in tasks {
+        figures += &task_figures(&cx, task, &mut files)?;
+    }
+    if !figures.is_empty() {
+        report += &format!("## Figures\n\n{figures}");
     }
     report += &fov_section(&cx, &mut files)?;
+    report += &extra_figures(out);
+    report += &training_figures(&files, out);
+    let report_file = out.join("REPORT.md");
+    write_bytes_atomic(&report_file, report.as_bytes())?;
+    files.push(report_file);
+    Ok(files)
+}
+
+/// The figures other commands left in `out` (the point cloud of `calibconv report`, the kernel
+/// grids of `make demo`), with captions.
+fn extra_figures(out: &Path) -> String {
+    let mut report = String::new();
     if out.join("pointcloud_top.png").is_file() {
         let about = std::fs::read_to_string(out.join("pointcloud.txt")).unwrap_or_default();
         let ply = if out.join("pointcloud_pred.ply").is_file() {
@@ -478,12 +431,30 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
             );
         }
     }
-    report += &super::curves::training_section(&study, out, &mut files)?;
-    report += &runs_section(&study, out);
-    let report_file = out.join("REPORT.md");
-    write_bytes_atomic(&report_file, report.as_bytes())?;
-    files.push(report_file);
-    Ok(files)
+    report
+}
+
+/// The validation curves among `files` (`val_GROUP.png`), with their caption; empty if none.
+fn training_figures(files: &[PathBuf], out: &Path) -> String {
+    let curves: Vec<&PathBuf> = files
+        .iter()
+        .filter(|f| {
+            let name = f.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            name.starts_with("val_") && name.ends_with(".png")
+        })
+        .collect();
+    if curves.is_empty() {
+        return String::new();
+    }
+    let mut report = String::from(
+        "## Training\n\nValidation metric against the step, per fine-tuning group: mean over \
+         seeds, band one standard deviation over seeds (the table of how flat each curve ends, \
+         and the timings: [training.md](training.md)).\n\n",
+    );
+    for f in curves {
+        report += &format!("![{0}]({0})\n", rel(f, out));
+    }
+    report + "\n"
 }
 
 /// The calibrated gain against the field of view ([`super::fov`]), when two or more FT data
@@ -519,10 +490,10 @@ fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
     Ok(md)
 }
 
-/// The runs and their configurations (`REPORT.md`'s end).
+/// The runs, their times and configurations (`runs.md`).
 fn runs_section(study: &Study, out: &Path) -> String {
     let mut report = String::from(
-        "## Runs\n\n| seed | run | task | block | steps | training (s) | sweep wall (s) | \
+        "# Runs\n\n| seed | run | task | block | steps | training (s) | sweep wall (s) | \
                git | overrides |\n|---:|---|---|---|---:|---:|---:|---|---|\n",
     );
     for r in &study.runs {

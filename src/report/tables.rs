@@ -233,14 +233,10 @@ pub fn difference_table(
                     }
                 })
                 .collect();
+            let (block, set, ka, kb) = (&a.block, &a.dataset, &a.kernel, &b.kernel);
+            let (n, mean) = (ci.n, ci.mean);
             md += &format!(
-                "| {} | {} | {} − {} | {m} | {} | {:+.4} | {} | {} |\n",
-                a.block,
-                a.dataset,
-                a.kernel,
-                b.kernel,
-                ci.n,
-                ci.mean,
+                "| {block} | {set} | {ka} − {kb} | {m} | {n} | {mean:+.4} | {} | {} |\n",
                 if seeds >= 2 {
                     fmt_interval(iv)
                 } else {
@@ -254,13 +250,7 @@ pub fn difference_table(
                     .filter(|_| seeds >= 2);
                 let opt = |v: Option<f64>| v.map(|x| x.to_string()).unwrap_or_default();
                 csv += &format!(
-                    "{},{},{},{},{m},{},{},{},{},{s},{x},{},{}\n",
-                    a.block,
-                    a.dataset,
-                    a.kernel,
-                    b.kernel,
-                    ci.n,
-                    ci.mean,
+                    "{block},{set},{ka},{kb},{m},{n},{mean},{},{},{s},{x},{},{}\n",
                     opt(iv.map(|i| i[0])),
                     opt(iv.map(|i| i[1])),
                     opt(bi.map(|i| i[0])),

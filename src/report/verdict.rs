@@ -89,8 +89,8 @@ pub struct Verdict {
     pub test_images: u64,
     pub averaging: Averaging,
     /// Elapsed wall seconds of the runs the claims read (every seed; runs that evaluate on a
-    /// [`CLAIM_DATASETS`] set): overlapping runs count once, the time between the sessions of a
-    /// resumed study not at all.
+    /// [`CLAIM_DATASETS`] set): overlapping runs count once, the pause before a resumed study
+    /// goes on not at all.
     pub wall_s: f64,
     /// Sum of the same runs' own wall seconds (more than `wall_s` when runs ran in parallel).
     #[serde(default)]

@@ -1,7 +1,8 @@
-//! The native CPU kernels (`deform.cpp`, compiled by `build.rs` against libtorch): a
-//! `torch::autograd::Function` called through one C entry point that takes and returns
-//! `at::Tensor*` handles (tch's `Tensor::as_ptr` / `Tensor::from_ptr`), and reports C++
-//! exceptions as an error message instead of letting them cross into Rust.
+//! The native CPU kernels (the C++ sources beside this file, entry point `deform.cpp`, compiled
+//! by `build.rs` against libtorch): a `torch::autograd::Function` called through one C entry
+//! point that takes and returns `at::Tensor*` handles (tch's `Tensor::as_ptr` /
+//! `Tensor::from_ptr`), and reports C++ exceptions as an error message instead of letting them
+//! cross into Rust.
 
 use std::ffi::{c_char, CStr};
 
@@ -54,17 +55,18 @@ pub(super) fn poison_scratch() {
     assert_eq!(on, 1, "scratch poisoning must take effect");
 }
 
+/// The C entry points' encoding of a setting: `-1` keeps it, `0` the default, else the choice's
+/// discriminant.
+fn setting(choice: Option<Option<i32>>) -> i32 {
+    choice.map_or(-1, |c| c.unwrap_or(0))
+}
+
 /// The library of the float32 GEMMs in use (see [`super::GemmLibrary`]); with `choice`, first
 /// sets it (`Some(None)`: the default, the BLAS).
 pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super::GemmLibrary {
     use super::GemmLibrary as Gemm;
-    let choice = match choice {
-        None => -1,
-        Some(None) => 0,
-        Some(Some(lib)) => lib as i32,
-    };
     // SAFETY: a plain function of an integer; it only reads and writes an atomic.
-    match unsafe { calibconv_native_gemm(choice) } {
+    match unsafe { calibconv_native_gemm(setting(choice.map(|c| c.map(|l| l as i32)))) } {
         1 => Gemm::OneDnn,
         _ => Gemm::Blas,
     }
@@ -73,13 +75,8 @@ pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super:
 /// The library of the large weights' products in use (see [`super::LargeWeights`]); with
 /// `choice`, first sets it (`Some(None)`: the CPU's default).
 pub(super) fn large_weights(choice: Option<Option<super::LargeWeights>>) -> super::LargeWeights {
-    let choice = match choice {
-        None => -1,
-        Some(None) => 0,
-        Some(Some(lib)) => lib as i32,
-    };
     // SAFETY: a plain function of an integer; it only reads and writes an atomic.
-    match unsafe { calibconv_native_large_weights(choice) } {
+    match unsafe { calibconv_native_large_weights(setting(choice.map(|c| c.map(|l| l as i32)))) } {
         2 => super::LargeWeights::Blas,
         _ => super::LargeWeights::Kernels,
     }

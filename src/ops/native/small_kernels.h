@@ -1,8 +1,9 @@
 // The few-output-channel kernels of calibconv's deformable convolution (float32, one group, C_out
 // 8 to 1024 with AVX-512, 8 to 32 with AVX2; weights up to SMALL_MAX_WEIGHT): register-blocked
 // products on L1-sized blocks of gathered columns (larger blocks, in slabs, for large weights),
-// compiled per instruction-set level and picked at run time. Included once, by deform.cpp, which
-// calls them through small_kernels_for.
+// compiled per instruction-set level and picked at run time. Header-only (the layer calls them
+// through small_kernels_for, tools/product_harness.cpp times them alone). What was measured for
+// the block sizes and limits below: docs/bench/cpu-kernels.md.
 #pragma once
 
 #include <algorithm>
@@ -11,7 +12,7 @@
 
 #include "simd.h"
 
-namespace {
+namespace calibconv::native {
 
 // Few output channels (float32, one group, C_out 8, 16, 32, 64, 128, 256, 512 or 1024 with AVX-512;
 // 8, 16 or 32 with AVX2, see below; a weight of at most SMALL_MAX_WEIGHT values): the three
@@ -27,28 +28,20 @@ namespace {
 // level with their own block sizes and picked at run time (small_isa), not by GCC's
 // target_clones (one body for all levels): a row of 32 outputs is 2 AVX-512 registers but 4
 // AVX2 ones, and with AVX-512's block sizes the AVX2 body spills its accumulators to the stack
-// (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory,
-// which made an earlier 32-output kernel 1.4-2.5x slower than oneDNN). Vectors are at most 16
-// floats; a block of R rows (forward) or JB columns (weight gradient) holds R * OC / L
-// accumulators of L floats for OC of the outputs at a time, sized to leave registers for the
-// weights and the broadcast (C_out 8 / 16 / 32 / 64, 128 to 1024 as passes of 64):
+// (and a 128-byte vector type spills them even with AVX-512: GCC keeps such vectors in memory).
+// Vectors are at most 16 floats; a block of R rows (forward) or JB columns (weight gradient)
+// holds R * OC / L accumulators of L floats for OC of the outputs at a time, sized to leave
+// registers for the weights and the broadcast (C_out 8 / 16 / 32 / 64; 128 to 1024 as passes of
+// 64):
 //   AVX-512 (32 registers of 16 floats): forward R = 8 / 12 / 12 / 6, JB = 12 / 12 / 8 / 6,
 //                                        all outputs at once; column gradient 8 rows x 3
 //                                        vectors (4 x 4 at 8 outputs, 6 x 4 at 256 to 1024);
 //   AVX2 (16 registers of 8 floats):     forward R = 8 / 6 / 2, JB = 8 / 4 / 2 (8 / 16 / 32
 //                                        outputs; 64 and 128 go through the BLAS, which beat
 //                                        passes of 32); column gradient 4 x 3.
-// (Until the seventeenth session AVX-512 had forward R = 8 / 8 / 6 / 4, JB = 8 / 8 / 8 / 4 and
-// column gradients of 4 x 4, chosen on an AMD Zen 4. On the Intel Xeon of sessions 14-17 (family
-// 6 model 167 as KVM reports it, AVX-512 and AMX, L1d 48 KiB) the forward of 64 outputs with R =
-// 4 streams its weight panel from L2 at 256 bytes per 16 multiply-adds, which L2 does not
-// sustain. In a standalone loop of each kernel (float operations per TSC cycle, medians of 7,
-// two runs): the forward of 64 outputs (24 rows, 1152 reduction steps) R = 4 / 6 56-63 / 71-79,
-// of 32 R = 6 / 12 69 / 84, of 16 R = 8 / 12 73 / 83; the column gradient of 128 outputs 4 x 4 /
-// 8 x 3 50 / 69, of 64 70 / 80, of 16 77 / 87, of 256 4 x 4 / 6 x 4 40-44 / 44-50 (8 x 3
-// 44-47), of 512 36 / 39; the weight gradient of 64 outputs JB = 4 / 6 53-75 / 63-78, of 256
-// 48-65 / 69-70, of 16 JB = 8 / 12 70 / 75. Blocks of fewer rows than R finish four rows at a
-// time, then one.)
+// The AVX-512 sizes suit an Intel Xeon with 48 KiB of L1d (with R = 4 the forward of 64 outputs
+// streams its weight panel from L2 faster than L2 sustains). Blocks of fewer rows than R finish
+// four rows at a time, then one.
 // The arithmetic of every output element (one fused multiply-add per reduction step, in the
 // same order) is the same at both levels, so where both have kernels they give identical
 // results. CPUs without AVX2 and FMA (and other architectures) use the oneDNN / BLAS path.
@@ -74,10 +67,7 @@ constexpr int64_t SMALL_BLOCK_MIN_ROWS = 24;
 // writes its gradient there (the weight gradient). Blocks of such layers have
 // SMALL_LARGE_BLOCK_ROWS rows, so the weight is read once per 256 rows instead of 24, and the
 // forward and weight gradient run through the columns in slabs of SMALL_SLAB reduction steps
-// (a slab of a block's columns, 512 KiB, stays in L2 while every pass multiplies it). (Blocks
-// of 128 rows: 512->1024 at 16x16 B2 1.19-1.20 / 1.21-1.22x conv2d forward / f+b, 512->512 at
-// 32x32 1.14-1.19 / 1.11-1.15x; of 256: 1.15-1.17 / 1.12-1.17x and 1.12-1.13 / 1.08-1.10x, 2
-// rounds alternating, one thread, Zen 4.)
+// (a slab of a block's columns, 512 KiB, stays in L2 while every pass multiplies it).
 constexpr int64_t SMALL_LARGE_WEIGHT = 1 << 18;
 constexpr int64_t SMALL_LARGE_BLOCK_ROWS = 256;
 constexpr int64_t SMALL_SLAB = 512;
@@ -85,7 +75,7 @@ constexpr bool small_large_weight(int64_t kc, int64_t cout) {
   return kc * cout > SMALL_LARGE_WEIGHT;
 }
 // The columns a block's gathered row holds for the few-output-channel kernels (its row stride):
-// a slab of a large weight's, else all kc (deform.cpp's column_slabs, tools/product_harness.cpp).
+// a slab of a large weight's, else all kc (gather.h's column_slabs, tools/product_harness.cpp).
 constexpr int64_t small_slab_width(int64_t kc, int64_t cout) {
   return small_large_weight(kc, cout) ? std::min(kc, SMALL_SLAB) : kc;
 }
@@ -97,7 +87,7 @@ constexpr int64_t slab_end(int64_t a, int64_t s1) {
 // Rows of a block of `kc` columns each, for `cout` outputs, within a tile of `tile` rows: a
 // multiple of 8 that fits SMALL_BLOCK_BYTES, at least SMALL_BLOCK_MIN_ROWS (or
 // SMALL_LARGE_BLOCK_ROWS for a large weight), at most the tile.
-int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
+inline int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
   const int64_t rows = SMALL_BLOCK_BYTES / (kc * static_cast<int64_t>(sizeof(float)));
   const int64_t least =
       small_large_weight(kc, cout) ? SMALL_LARGE_BLOCK_ROWS : SMALL_BLOCK_MIN_ROWS;
@@ -110,16 +100,9 @@ int64_t small_block_rows(int64_t kc, int64_t cout, int64_t tile) {
 // its products in the order of k (one fused multiply-add each), whatever R, NV and L: the
 // results do not depend on the register blocking. tile_step is one step k.
 //
-// Four steps an iteration: GCC does not unroll the loop over k by itself, and one step an
-// iteration (with R = 6, NV = 4: 4 loads, 6 broadcasts, 24 multiply-adds, then the loop's
-// add, compare and branch) ran at 78 float operations per TSC cycle where this Xeon's two FMA
-// units do 91 (a loop of independent multiply-adds), 84 with four (a standalone loop of the
-// forward of 512 outputs over 4608 steps, 256 rows, -O3; 16 outputs, R = 12: 76 -> 80-82; 64
-// and 128 outputs: 88-89 either way). In the layer (calibconv bench, one thread, 2 rounds
-// alternating, forward, one step -> four): 512->512 at 32x32 B2 1.18 -> 1.09x conv2d, 1024->512
-// 1.18-1.19 -> 1.12-1.15x, 256->128 at 128x128 B2 1.08-1.09 -> 1.01-1.02x, 32->16 at 128x128 B8
-// 1.12-1.13 -> 1.04-1.06x (f+b 1.24-1.26 -> 1.20-1.22x), 16->16 1.21-1.25 -> 1.18x; the same
-// bits (docs/bench/twentieth-session-ab.txt).
+// Four steps an iteration: GCC does not unroll the loop over k by itself, and with one step an
+// iteration the loop's add, compare and branch kept the two FMA units from their peak (the same
+// bits either way).
 template <int R, int NV, int L>
 CALIBCONV_ALWAYS_INLINE inline void tile_step(typename VecOf<float, L>::type (&acc)[R][NV],
                                               const float* a, int64_t ars, int64_t aks,
@@ -200,12 +183,8 @@ CALIBCONV_ALWAYS_INLINE inline void small_forward_rows(const float* cols, int64_
 // [kc, CO] (a panel of the weight, transposed, rows of CO values), y [n, CO] (row stride CS) with
 // the partial sums of [0, r0) unless r0 = 0; bias may be null. R rows at a time (then one), each
 // with CO / L accumulators of L floats, in registers over the whole range: the range's rows of
-// the panel (up to 128 KiB) are read in order, from L2, once per R rows. (They were read in
-// chunks of 4096 / CO steps, 16 KiB that stay in L1 for all rows of the block, the partial sums
-// stored to y and loaded back between chunks: against that, calibconv bench, one thread, 2
-// rounds alternating, forward 256->256 at 8x8 B8 1.18 / 1.21x -> 1.15 / 1.15x conv2d, 128->256
-// 1.13 / 1.15x -> 1.12 / 1.11x, 128->64 at 32x32 1.14 / 1.11x -> 1.08 / 1.09x, 256->256 at 64x64
-// B2 1.12 / 1.09x -> 1.02 / 1.04x; docs/bench/eleventh-session-ab.txt.)
+// the panel (up to 128 KiB) are read in order, from L2, once per R rows (faster than chunks that
+// stay in L1 with the partial sums stored and loaded back between chunks).
 template <int CS, int CO, int L, int R>
 CALIBCONV_ALWAYS_INLINE inline void small_forward_range(const float* cols, int64_t n, int64_t ldc,
                                                         int64_t s0, const float* wt,
@@ -344,38 +323,23 @@ enum class SmallIsa { None = 0, Avx2 = 1, Avx512 = 2 };
 #define CALIBCONV_SMALL_KERNELS(SUFFIX, TARGET, CO, L, R, JB, OC, CL, CR, CJ)                  \
   static_assert(OC == small_panel(CO), "a pass is one panel of the weight");                  \
   constexpr int64_t small_rows_##CO##_##SUFFIX = R;                                            \
-  TARGET void small_forward_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc,         \
-                                            int64_t kc, int64_t s0, int64_t s1,                \
-                                            const float* wt, const float* bias, float* y) {    \
+  TARGET inline void small_forward_##CO##_##SUFFIX(                                            \
+      const float* cols, int64_t n, int64_t ldc, int64_t kc, int64_t s0, int64_t s1,           \
+      const float* wt, const float* bias, float* y) {                                          \
     small_forward_body<CO, L, R, OC>(cols, n, ldc, kc, s0, s1, wt, bias, y);                   \
   }                                                                                            \
-  TARGET void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n, int64_t kc,    \
-                                                    const float* w, float* g) {                \
+  TARGET inline void small_column_gradient_##CO##_##SUFFIX(const float* gy, int64_t n,         \
+                                                           int64_t kc, const float* w,         \
+                                                           float* g) {                         \
     small_column_gradient_body<CO, CL, CR, CJ>(gy, n, kc, w, g);                               \
   }                                                                                            \
-  TARGET void small_weight_gradient_##CO##_##SUFFIX(const float* cols, int64_t n, int64_t ldc, \
-                                                    int64_t kc, int64_t s0, int64_t s1,        \
-                                                    const float* gy, float* acc, int64_t o0,   \
-                                                    int64_t o1) {                              \
+  TARGET inline void small_weight_gradient_##CO##_##SUFFIX(                                    \
+      const float* cols, int64_t n, int64_t ldc, int64_t kc, int64_t s0, int64_t s1,           \
+      const float* gy, float* acc, int64_t o0, int64_t o1) {                                   \
     small_weight_gradient_body<CO, L, JB, OC>(cols, n, ldc, kc, s0, s1, gy, acc, o0, o1);      \
   }
-// (256 and 512 outputs, as passes of 64, against the BLAS, on an AMD EPYC Zen 4, one thread, 2
-// rounds alternating, calibrated / conv2d forward and f+b, the BLAS -> these kernels: 128->256 at
-// 8x8 B8 1.39-1.56 / 1.27-1.30x -> 1.21 / 1.17-1.24x, 256->256 at 8x8 B8 1.34-1.42 / 1.35-1.43x
-// -> 1.31-1.32 / 1.26-1.28x, at 64x64 B2 1.13-1.24 / 1.20-1.27x -> 1.07-1.13 / 1.02-1.05x,
-// 128->256 at 64x64 B2 1.10-1.15 / 1.12-1.23x -> 1.05-1.06 / 0.96-0.98x, 512->256 at 64x64 B2
-// 1.29-1.33 / 1.24-1.55x -> 1.22-1.27 / 1.06-1.14x, 256->512 at 32x32 B2 1.25-1.34 / 1.25-1.26x ->
-// 1.11-1.12 / 1.12-1.13x; but 512->512 at 32x32 B2 1.25-1.28 / 1.27-1.33x -> 1.40-1.54 /
-// 1.25-1.72x and 1024->512 1.29-1.31 / 1.21-1.38x -> 1.92-1.94 / 1.98-2.13x: each block of rows
-// reads the whole weight, and 9 MiB and more of it no longer stay in the caches; the limit was
-// then 6 MiB. With the weight in panels and the large-weight blocks and slabs (SMALL_PANEL,
-// SMALL_LARGE_WEIGHT), against the BLAS (256->256: against these kernels before them; same A/B,
-// docs/bench/large-weight-ab.txt): 512->512 1.33-1.38 / 1.24-1.36x -> 1.17 /
-// 1.12-1.18x, 1024->512 1.26-1.42 / 1.25-1.27x -> 1.15-1.16 / 1.14x, 1024->1024 at 16x16 B2
-// 1.19-1.20 / 1.09-1.17x -> 1.16-1.18 / 1.10-1.11x, 256->256 at 8x8 B8 1.26-1.30 / 1.34-1.38x ->
-// 1.11-1.13 / 1.22-1.24x; hence the 1024-output kernels and SMALL_MAX_WEIGHT. An earlier session
-// had found 256 outputs slower than oneDNN, 1.6x against 1.4x at 256->256, 64x64 B2, on the
-// Zen 5 while oneDNN was the library.)
+// (256 to 1024 outputs run as passes of 64, the weight in panels, large weights in blocks of
+// SMALL_LARGE_BLOCK_ROWS and slabs: faster than the BLAS up to SMALL_MAX_WEIGHT.)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 8, 8, 8, 12, 8, 16, 4, 4)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 16, 16, 12, 12, 16, 16, 8, 3)
 CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 32, 16, 12, 8, 32, 16, 8, 3)
@@ -387,21 +351,15 @@ CALIBCONV_SMALL_KERNELS(v4, CALIBCONV_TARGET_V4, 1024, 16, 6, 6, 64, 16, 6, 4)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 8, 8, 8, 8, 8, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 16, 8, 6, 4, 16, 8, 4, 3)
 CALIBCONV_SMALL_KERNELS(v3, CALIBCONV_TARGET_V3, 32, 8, 2, 2, 32, 8, 4, 3)
-// (AVX2 has none for 64 and 128 outputs: as passes of 32 they lost to the BLAS at every shape
-// measured, one process, one thread, AMD EPYC Zen 3, calibrated / conv2d forward and f+b with
-// these kernels -> the BLAS: 64->64 at 32x32 B8 1.43 / 1.08x -> 1.14 / 1.01x, 128->128 at 16x16
-// 1.50 / 1.25x -> 1.03 / 1.03x, 32->64 at 32x32 1.43 / 1.08x -> 1.23 / 1.01x, 128->64 at 32x32
-// 1.48 / 1.12x -> 1.12 / 0.96x, 64->128 at 16x16 1.26 / 1.16x -> 1.06 / 1.13x, 256->128 at
-// 16x16 1.53 / 1.33x -> 1.11 / 1.07x, 64->64 at 8x8 1.00 / 1.03x -> 0.89 / 0.96x. At 32
-// outputs the two were even forward, these kernels ahead in f+b: 1.08x against 1.15x.)
+// (AVX2 has none for 64 and 128 outputs: as passes of 32 they lost to the BLAS.)
 #undef CALIBCONV_SMALL_KERNELS
 #endif
 
 // The highest level this CPU runs, capped by the last calibconv_native_small_isa call (tests run
 // the AVX2 kernels on an AVX-512 machine with it).
-std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
+inline std::atomic<int> small_isa_cap{static_cast<int>(SmallIsa::Avx512)};
 
-SmallIsa small_isa() {
+inline SmallIsa small_isa() {
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
   static const SmallIsa cpu = [] {
     __builtin_cpu_init();
@@ -434,13 +392,11 @@ struct SmallKernels {
 
 // The largest weight (K*C x C_out values) the kernels take: 9 Mi values, 36 MiB, the largest
 // measured (1024->1024, 3x3), faster through them than through the BLAS; see the 256- to
-// 1024-output kernels above. (Before the weight's panels and the large-weight blocks, 9 MiB
-// weights had run slower than the BLAS and the limit was 6 MiB.) Larger weights go through the
-// BLAS, untimed.
+// 1024-output kernels above. Larger weights go through the BLAS, untimed.
 constexpr int64_t SMALL_MAX_WEIGHT = 9 << 20;
 
 // The kernels for C_out outputs and K*C = kc columns (float32, one group) at the level in use.
-SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
+inline SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   SmallKernels s;
   if (kc * cout > SMALL_MAX_WEIGHT) return s;
 #ifdef CALIBCONV_HAVE_SMALL_KERNELS
@@ -480,4 +436,4 @@ SmallKernels small_kernels_for(int64_t cout, int64_t kc) {
   return s;
 }
 
-}  // namespace
+}  // namespace calibconv::native

@@ -98,7 +98,7 @@ impl ExtendedUnified {
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    /// `project` is `None` (`Divided::jacobian_by_den` with the gradient of `den`).
     pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
         self.jacobian_by_den(ray)
     }

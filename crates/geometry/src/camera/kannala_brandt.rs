@@ -393,7 +393,7 @@ impl CameraModel for KannalaBrandt {
         ray
     }
 
-    /// Four pixels at a time through [`KannalaBrandt::unproject_lanes`] (their Newton
+    /// Four pixels at a time through `KannalaBrandt::unproject_lanes` (their Newton
     /// iterations in lockstep), the last few one by one; each pixel gets the bits it gets alone.
     fn unproject_columns(&self, [pu, pv]: [&[f64]; 2], rays: [&mut [f64]; 3], ok: &mut [bool]) {
         const LANES: usize = 4;

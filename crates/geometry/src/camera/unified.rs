@@ -96,7 +96,7 @@ impl Unified {
     }
 
     /// Analytic Jacobian `d[u, v] / d[x, y, z]` of [`CameraModel::project`], or `None` where
-    /// `project` is `None` ([`Divided::jacobian_by_den`] with the gradient of `den`).
+    /// `project` is `None` (`Divided::jacobian_by_den` with the gradient of `den`).
     pub fn project_jacobian(&self, ray: [f64; 3]) -> Option<[[f64; 3]; 2]> {
         self.jacobian_by_den(ray)
     }
