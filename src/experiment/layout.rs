@@ -14,7 +14,8 @@
 //!                               the holder's PID (see RunLock)
 //!   experiment.toml             the experiment file as given (the last invocation's)
 //!   config.json                 the resolved experiment: every default, absolute paths
-//!   run.json                    one record per invocation (RunRecord)
+//!   run.json                    one record per invocation, one segment per process that
+//!                               trained it (RunRecord)
 //!   summary.json                what the last training call did, with a timing breakdown
 //!                               (Summary)
 //!   sweep.json                  the sweep that ran it: profile, overrides, outcome
@@ -461,11 +462,90 @@ pub struct Invocation {
     pub details: InvocationDetails,
 }
 
-/// `run.json`: every invocation on a run directory, oldest first.
+/// How a [`Segment`] ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SegmentEnd {
+    /// Trained to the end and evaluated.
+    Complete,
+    /// Stopped on a signal after writing its checkpoint (SLURM's warning before a time limit,
+    /// preemption, Ctrl-C): running it again resumes.
+    Interrupted,
+    /// Stopped by an error.
+    Failed,
+}
+
+/// One process's stretch of training on a run: a run that SLURM requeued twice has three.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Segment {
+    /// When it started and ended (Unix seconds). `end` is absent while it runs, and stays
+    /// absent when the process was killed before it could record it (`kill -9`, a lost node).
+    pub start: f64,
+    pub end: Option<f64>,
+    /// The machine and the process.
+    pub host: String,
+    pub pid: u32,
+    /// The SLURM job (`JOB_TASK` for an array task) and SLURM's restart count (requeues).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slurm_job: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slurm_restarts: Option<u32>,
+    /// The step it started from and, when it ended, the step of the run's last checkpoint.
+    pub first_step: u64,
+    pub last_step: Option<u64>,
+    /// How it ended (absent while it runs).
+    pub reason: Option<SegmentEnd>,
+    /// Interrupted: the signal and where; failed: the error (first line).
+    pub message: Option<String>,
+}
+
+impl Segment {
+    /// A segment of this process starting now at `first_step`, with the host name and the SLURM
+    /// job of the environment (`SLURM_ARRAY_JOB_ID`/`SLURM_ARRAY_TASK_ID`, else `SLURM_JOB_ID`;
+    /// `SLURM_RESTART_COUNT`).
+    pub fn begin(first_step: u64) -> Segment {
+        let env = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
+        let slurm_job = match (env("SLURM_ARRAY_JOB_ID"), env("SLURM_ARRAY_TASK_ID")) {
+            (Some(j), Some(t)) => Some(format!("{j}_{t}")),
+            _ => env("SLURM_JOB_ID"),
+        };
+        Segment {
+            start: unix_now(),
+            end: None,
+            host: host_name(),
+            pid: std::process::id(),
+            slurm_job,
+            slurm_restarts: env("SLURM_RESTART_COUNT").and_then(|c| c.parse().ok()),
+            first_step,
+            last_step: None,
+            reason: None,
+            message: None,
+        }
+    }
+}
+
+/// This machine's host name (`?` if the OS does not say).
+pub fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: gethostname writes at most `buf.len()` bytes into the buffer it is given.
+    let rc = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len()) };
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    if rc == 0 && end > 0 {
+        String::from_utf8_lossy(&buf[..end]).into_owned()
+    } else {
+        "?".into()
+    }
+}
+
+/// `run.json`: every invocation on a run directory, oldest first, and the segments of its
+/// training (one per process that trained it).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
     pub experiment: String,
     pub invocations: Vec<Invocation>,
+    /// Oldest first (absent in records of older versions).
+    #[serde(default)]
+    pub segments: Vec<Segment>,
 }
 
 impl RunRecord {
@@ -482,6 +562,8 @@ pub enum SweepStatus {
     Done,
     Failed,
     Blocked,
+    /// Stopped on a signal after writing its checkpoint; the next sweep resumes it.
+    Interrupted,
 }
 
 /// `sweep.json`: the sweep invocation that last ran (or failed to run) a run directory.
@@ -577,7 +659,19 @@ impl RunLock {
             .truncate(false)
             .open(&path)
             .map_err(|e| Error::io(&path, e))?;
-        match file.try_lock() {
+        // A status view's probe ([`RunDir::lock_holder`]) holds a shared lock for an instant:
+        // a busy lock is tried again for a moment before it counts as held.
+        let mut tries = 0;
+        let got = loop {
+            match file.try_lock() {
+                Err(TryLockError::WouldBlock) if tries < LOCK_TRIES => {
+                    tries += 1;
+                    std::thread::sleep(LOCK_RETRY_WAIT);
+                }
+                other => break other,
+            }
+        };
+        match got {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
                 let mut text = String::new();
@@ -608,6 +702,38 @@ impl RunLock {
     }
 }
 
+/// How often [`RunLock`] tries a busy lock again, and how long it waits before each: 20 x 10
+/// ms, far longer than a status probe holds it, short enough to fail "at once" for a user.
+const LOCK_TRIES: u32 = 20;
+const LOCK_RETRY_WAIT: std::time::Duration = std::time::Duration::from_millis(10);
+
+impl RunDir {
+    /// Who holds the run's lock: `None` when no process does, else the holder's PID as its
+    /// lock file says (`None` inside if unreadable). Never writes: it tries a shared lock and
+    /// releases it at once (the lock works across the machines of a shared file system that
+    /// supports `flock`, which is how a login node sees a compute node's run).
+    pub fn lock_holder(&self) -> Result<Option<Option<u32>>> {
+        let path = self.lock_file();
+        let mut file = match File::open(&path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(Error::io(&path, e)),
+        };
+        match file.try_lock_shared() {
+            Ok(()) => {
+                let _ = file.unlock();
+                Ok(None)
+            }
+            Err(TryLockError::WouldBlock) => {
+                let mut text = String::new();
+                let _ = file.read_to_string(&mut text);
+                Ok(Some(text.trim().parse::<u32>().ok()))
+            }
+            Err(TryLockError::Error(e)) => Err(Error::io(&path, e)),
+        }
+    }
+}
+
 impl Drop for RunLock {
     fn drop(&mut self) {
         let _ = self.file.unlock();
@@ -628,7 +754,14 @@ mod tests {
             e.contains(&format!("process {}", std::process::id())),
             "{e}"
         );
+        assert_eq!(
+            run.lock_holder().unwrap(),
+            Some(Some(std::process::id())),
+            "the probe sees the holder"
+        );
         drop(held);
+        assert_eq!(run.lock_holder().unwrap(), None);
+        // A probe leaves the lock free for the next holder.
         run.lock().unwrap();
     }
 

@@ -102,6 +102,7 @@ pub mod schema;
 pub mod slurm;
 pub mod source;
 pub mod spec;
+pub mod status;
 pub mod suggest;
 pub mod sweep;
 
