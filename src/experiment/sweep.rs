@@ -690,9 +690,12 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                             .map(|d| format!("its initial weights come from `{d}`, which failed"))
                     };
                     bar.set_message(p.key());
-                    let stopped = opts.stop.requested().map(|s| {
-                        format!("not started: {} came first", stop::signal_name(s))
-                    });
+                    // After a stop request only complete runs go on (to be skipped).
+                    let stopped = opts
+                        .stop
+                        .requested()
+                        .filter(|_| state(&p.exp).ok() != Some(State::Complete))
+                        .map(|s| format!("not started: {} came first", stop::signal_name(s)));
                     let outcome = match (stopped, blocked) {
                         (Some(why), _) => Outcome::Interrupted(why),
                         (None, Some(b)) => record_blocked(p, opts, b),
