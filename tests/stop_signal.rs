@@ -82,7 +82,11 @@ fn sigusr1_stops_after_the_step_with_a_checkpoint_and_resuming_matches_an_uninte
     signal(child.id(), libc::SIGUSR1);
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(i32::from(INTERRUPTED_EXIT)), "{err}");
+    assert_eq!(
+        out.status.code(),
+        Some(i32::from(INTERRUPTED_EXIT)),
+        "{err}"
+    );
     assert_contains(&err, &["stopped by SIGUSR1 at step", "last.safetensors"]);
     // The checkpoint holds the step it stopped at (not a multiple of 50 in general: written on
     // the signal), before the end; no summary, so the sweep would resume it.
@@ -108,7 +112,10 @@ fn sigusr1_stops_after_the_step_with_a_checkpoint_and_resuming_matches_an_uninte
     let other = dir.join("uninterrupted");
     std::fs::create_dir_all(&other).unwrap();
     let file2 = toy(&other, "stopped");
-    ok(calibconv_in(&other, &["train", file2.to_str().unwrap(), "-q"]));
+    ok(calibconv_in(
+        &other,
+        &["train", file2.to_str().unwrap(), "-q"],
+    ));
     let a = weights(&run.last_checkpoint());
     let b = weights(&RunDir::new(other.join("runs/stopped")).last_checkpoint());
     assert_eq!(a.len(), b.len());

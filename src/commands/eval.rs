@@ -5,8 +5,8 @@ use std::io::IsTerminal;
 
 use anyhow::{bail, Context, Result};
 
-use calibconv::train::stop::StopFlag;
 use calibconv::experiment::{self, DefaultOpener, RunOptions};
+use calibconv::train::stop::StopFlag;
 
 use crate::cli::EvalArgs;
 

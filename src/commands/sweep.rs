@@ -60,7 +60,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
         let files = emit_slurm(
             &plan, &args.dir, &profile, &overrides, &seeds, &args.only, &spec, out,
         )
-            .with_context(|| format!("cannot write SLURM scripts to {}", out.display()))?;
+        .with_context(|| format!("cannot write SLURM scripts to {}", out.display()))?;
         write_study()?;
         for f in &files {
             println!("wrote {}", f.display());

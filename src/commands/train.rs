@@ -4,8 +4,8 @@ use std::io::IsTerminal;
 
 use anyhow::{Context, Result};
 
-use calibconv::train::stop::{self, StopFlag};
 use calibconv::experiment::{self, DefaultOpener, RunOptions};
+use calibconv::train::stop::{self, StopFlag};
 
 use crate::cli::TrainArgs;
 

@@ -169,7 +169,10 @@ fn end_segment<T>(exp: &Experiment, result: &Result<T>) -> Result<()> {
     (seg.reason, seg.message) = match result {
         Ok(_) => (Some(SegmentEnd::Complete), None),
         Err(e) if e.is_interrupted() => (Some(SegmentEnd::Interrupted), Some(e.to_string())),
-        Err(e) => (Some(SegmentEnd::Failed), e.to_string().lines().next().map(String::from)),
+        Err(e) => (
+            Some(SegmentEnd::Failed),
+            e.to_string().lines().next().map(String::from),
+        ),
     };
     write_record(&dir.run_json(), &doc)
 }

@@ -404,10 +404,18 @@ mod tests {
         checkpoint_at(&stopped, 4);
         segments(
             &stopped,
-            vec![ended(SegmentEnd::Interrupted, "stopped by SIGUSR1 at step 4")],
+            vec![ended(
+                SegmentEnd::Interrupted,
+                "stopped by SIGUSR1 at step 4",
+            )],
         );
         let r = row(&stopped);
-        assert_eq!(r.state, RunState::Interrupted { evaluations_left: false });
+        assert_eq!(
+            r.state,
+            RunState::Interrupted {
+                evaluations_left: false
+            }
+        );
         assert_eq!(r.steps, Some(4));
         assert!(r.last_checkpoint.is_some());
         assert_eq!(r.state.describe(r.steps), "interrupted at step 4");
@@ -430,7 +438,10 @@ mod tests {
         checkpoint_at(&failed, 2);
         segments(
             &failed,
-            vec![ended(SegmentEnd::Failed, "cannot write x: No space left on device")],
+            vec![ended(
+                SegmentEnd::Failed,
+                "cannot write x: No space left on device",
+            )],
         );
         assert_eq!(
             row(&failed).state,
@@ -439,7 +450,11 @@ mod tests {
 
         // A failure recorded by the sweep (before any training): sweep.json's error.
         let refused = dir("refused");
-        write_record(&refused.sweep_json(), &sweep_failure("holds another run\nmore")).unwrap();
+        write_record(
+            &refused.sweep_json(),
+            &sweep_failure("holds another run\nmore"),
+        )
+        .unwrap();
         assert_eq!(
             row(&refused).state,
             RunState::Failed("holds another run".into())
@@ -451,7 +466,9 @@ mod tests {
         write_record(&done.summary_json(), &summary(10)).unwrap();
         assert_eq!(
             row(&done).state,
-            RunState::Interrupted { evaluations_left: true }
+            RunState::Interrupted {
+                evaluations_left: true
+            }
         );
         std::fs::create_dir_all(done.eval_dir("test")).unwrap();
         std::fs::write(done.metrics_json("test"), "{}").unwrap();
@@ -497,19 +514,35 @@ mod tests {
                 last_checkpoint: None,
             },
         ];
-        let text = render(&rows, at + 150.0);
+        let text = render(&rows, at + 170.0);
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 5, "{text}");
-        assert!(lines[0].starts_with("run               state"), "{text}");
-        assert_eq!(
-            lines[1],
-            "seed-0/a          complete                             400/400  2025-12-05 12:00 UTC (2 min ago)"
-        );
-        assert!(
-            lines[2].contains("running (SLURM 12_3, pid 7) on n1  120 "),
-            "{text}"
-        );
-        assert!(lines[3].ends_with("not started                          0/150    -"), "{text}");
+        // Columns aligned: each column starts where its header does.
+        for (header, cells) in [
+            (
+                "state",
+                [
+                    "complete",
+                    "running (SLURM 12_3, pid 7) on n1",
+                    "not started",
+                ],
+            ),
+            ("steps", ["400/400", "120", "0/150"]),
+            (
+                "last checkpoint",
+                [
+                    "2025-12-05 12:00 UTC (3 min ago)",
+                    "2025-12-05 12:00 UTC (2 min ago)",
+                    "-",
+                ],
+            ),
+        ] {
+            let at = lines[0].find(header).unwrap();
+            for (line, cell) in lines[1..4].iter().zip(cells) {
+                assert_eq!(line.find(cell), Some(at), "{cell}: {text}");
+            }
+        }
+        assert!(lines[1].starts_with("seed-0/a "), "{text}");
         assert_eq!(
             lines[4],
             "3 run(s): 1 complete, 1 running, 0 interrupted, 0 failed, 1 not started"
