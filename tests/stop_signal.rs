@@ -23,7 +23,7 @@ use common::{assert_contains, calibconv_command, calibconv_in, ok};
 
 /// Steps of the interrupted run: far more than happen between its first log row and the signal
 /// (the test fails, rather than passing vacuously, if the run ends before the signal).
-const STEPS: i64 = 400;
+const STEPS: i64 = 200;
 
 /// How often the tests look for the file they wait on.
 const POLL: Duration = Duration::from_millis(20);
