@@ -37,7 +37,7 @@ RUN=(sweep experiments/paper --profile quick --seeds 0 --only "$NAME" --threads 
      --set "train.steps=$STEPS" --set train.checkpoint_every=1 --set "train.val_every=$STEPS")
 
 # The reference, on the ordinary disk; its checkpoint pair gives the size to leave free.
-"$BIN" "${RUN[@]}" --set "output=$WORK/reference" >/dev/null
+"$BIN" "${RUN[@]}" --set "output=$WORK/reference" >/dev/null 2>&1
 REF=$WORK/reference/seed-0/$NAME/checkpoints
 pair=$(( $(stat -c %s "$REF/last.safetensors") + $(stat -c %s "$REF/last.optim.safetensors") ))
 
@@ -85,7 +85,7 @@ echo "$status" | grep -q "failed: .*No space left on device" || die "--status do
 
 # Space freed: the same sweep resumes and completes with the reference's weights.
 rm "$SMALL/filler"
-"$BIN" "${SWEEP[@]}" >/dev/null
-"$BIN" "${SWEEP[@]}" --status | grep -q "^seed-0/$NAME  *complete " || die "not complete after the resume"
+"$BIN" "${SWEEP[@]}" > "$WORK/resume.log" 2>&1 || { cat "$WORK/resume.log" >&2; die "the resume failed"; }
+"$BIN" "${SWEEP[@]}" --status | grep -q "^seed-0/$NAME .* complete$" || die "not complete after the resume"
 python3 tools/same_weights.py "$CKPT" "$REF" | sed 's/^/disk-full-test: /'
 echo "disk-full-test: ok: a full disk stopped the run with its last checkpoint whole, and the resume ended with the uninterrupted run's weights, in $(( $(date +%s) - t0 )) s"

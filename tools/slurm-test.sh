@@ -116,7 +116,7 @@ wait "$reference" || { cat "$WORK/reference.log" >&2; echo "slurm-test: the refe
 status=$("$BIN" "${LONG[@]}" --set "output=$WORK/requeue" --status)
 echo "$status" | sed 's/^/slurm-test: status: /'
 RUN=$WORK/requeue/seed-0/$REQUEUE_RUN
-if ! echo "$status" | grep -q "^seed-0/$REQUEUE_RUN  *complete "; then
+if ! echo "$status" | grep -q "^seed-0/$REQUEUE_RUN .* complete$"; then
   for f in "$WORK"/slurm-requeue/slurm-*.out; do echo "== $f" >&2; tail -n 20 "$f" >&2; done
   echo "slurm-test: the run with a one-minute limit did not complete" >&2
   exit 1

@@ -236,10 +236,11 @@ fn ago(t: f64, now: f64) -> String {
     }
 }
 
-/// The table of `rows` as text (columns aligned, a header, a count of runs per state), ages
-/// relative to `now` (Unix seconds).
+/// The table of `rows` as text (columns aligned: run, steps, last checkpoint, state; a header;
+/// a count of runs per state), ages relative to `now` (Unix seconds).
 pub fn render(rows: &[StatusRow], now: f64) -> String {
-    let header = ["run", "state", "steps", "last checkpoint"];
+    // The state last: a failure's message is as long as it is without widening the others.
+    let header = ["run", "steps", "last checkpoint", "state"];
     let cells: Vec<[String; 4]> = rows
         .iter()
         .map(|r| {
@@ -253,7 +254,7 @@ pub fn render(rows: &[StatusRow], now: f64) -> String {
                 .last_checkpoint
                 .map(|t| format!("{} ({})", utc(t), ago(t, now)))
                 .unwrap_or_else(|| "-".into());
-            [r.run.clone(), r.state.describe(r.steps), steps, when]
+            [r.run.clone(), steps, when, r.state.describe(r.steps)]
         })
         .collect();
     let mut width = header.map(str::len);
