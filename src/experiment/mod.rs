@@ -95,6 +95,7 @@
 //! ```
 
 pub mod layout;
+pub mod lock;
 pub mod profile;
 pub mod resolve;
 pub mod run;
