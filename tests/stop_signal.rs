@@ -182,6 +182,9 @@ fn the_emitted_script_passes_signals_on_and_requeues_on_status_75_only() {
             "#SBATCH --open-mode=append\n",
         ],
     );
+    // The traps come first: a signal before them would end the shell.
+    let trap = text.find("trap 'pass_on USR1' USR1").unwrap();
+    assert!(trap < text.find("\ncd ").unwrap(), "{text}");
     let submit = std::fs::read_to_string(out.join("submit.sh")).unwrap();
     assert_contains(&submit, &["watch with: ", " --status"]);
 

@@ -257,10 +257,10 @@ fn level_script(
          #SBATCH --output=slurm-%A_%a.out\n\
          # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
          set -euo pipefail\n\
+         {RUN_AND_REQUEUE_HEAD}\
          cd {root}\n\
          RUNS=({runs})\n\
          {seed_line}\
-         {RUN_AND_REQUEUE_HEAD}\
          srun {common}{only_seed} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\" \
          ${{SLURM_CPUS_PER_TASK:+--threads $SLURM_CPUS_PER_TASK}} -q &\n\
          {RUN_AND_REQUEUE_TAIL}",
@@ -272,8 +272,9 @@ fn level_script(
     )
 }
 
-/// Before the task's `srun ... &`: the batch shell (the only process SLURM's `B:` signal
-/// reaches) passes SIGUSR1, SIGTERM and SIGINT on to srun, which passes them to calibconv.
+/// At the top of the script (a signal before it would end the shell): the batch shell (the only
+/// process SLURM's `B:` signal reaches) passes SIGUSR1, SIGTERM and SIGINT on to srun, which
+/// passes them to calibconv; one that comes before srun starts is passed on once it has.
 const RUN_AND_REQUEUE_HEAD: &str = "\
 # SIGUSR1 (before the time limit), SIGTERM (preemption, scancel) and SIGINT (sent on as SIGTERM:
 # srun keeps SIGINT for itself) go to calibconv, which finishes its step, writes its checkpoint
