@@ -55,7 +55,9 @@ pub enum Command {
     Export(crate::commands::export::ExportArgs),
     /// Run every experiment of a folder (e.g. experiments/paper) with a profile, in dependency
     /// order (fine-tunings after their baseline): complete runs are skipped, interrupted ones
-    /// resumed, failures reported at the end (exit status 1) without stopping the others.
+    /// resumed, failures reported at the end (exit status 1) without stopping the others. On
+    /// SIGUSR1, SIGTERM or SIGINT the runs in progress finish their step, write their checkpoint
+    /// and the sweep exits with status 75 (the next sweep resumes them).
     Sweep(SweepArgs),
     /// What this build runs on: libtorch (version, folder), tch, whether libtorch's CUDA backend
     /// is linked, CUDA devices, cuDNN, the native CPU kernels and threads.
@@ -144,6 +146,13 @@ pub struct SweepArgs {
     /// List the plan (level, state) and stop.
     #[arg(long)]
     pub dry_run: bool,
+    /// Print where each run stands and stop: complete, running (PID or SLURM job and task),
+    /// interrupted at step N, failed (the error's first line) or not started, with the steps
+    /// done and the last checkpoint's time. Reads the run directories' records only (safe
+    /// while the runs train, here or on SLURM nodes); give the same profile, --set and
+    /// --seeds as the sweep.
+    #[arg(long, conflicts_with_all = ["dry_run", "emit_slurm"])]
+    pub status: bool,
     /// No progress bar.
     #[arg(long, short)]
     pub quiet: bool,

@@ -69,6 +69,20 @@ pub enum Error {
         value: f64,
         last_good: Option<PathBuf>,
     },
+    /// A run stopped on a signal (see [`crate::train::stop`]) after writing what it needs to
+    /// continue; running it again resumes it. `what` says where it stopped.
+    #[error(
+        "stopped by {signal} {what}; resume it to continue (`calibconv train --resume`, or the \
+         same sweep again)"
+    )]
+    Interrupted { signal: String, what: String },
+    /// Writing a file failed (a full disk, an I/O error): `path` was not replaced, so the
+    /// previous file, if there was one, is whole.
+    #[error("cannot write {path}: {error} (the previous file, if any, is whole)")]
+    Write {
+        path: PathBuf,
+        error: std::io::Error,
+    },
 }
 
 /// Result with the library's [`Error`].
@@ -87,6 +101,11 @@ impl Error {
     /// the I/O error as its source), through [`Error::Geometry`].
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Geometry(calibconv_geometry::Error::io(path, source))
+    }
+
+    /// Whether this is an [`Error::Interrupted`].
+    pub fn is_interrupted(&self) -> bool {
+        matches!(self, Error::Interrupted { .. })
     }
 
     /// An [`Error::Data`] for `path`.

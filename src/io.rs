@@ -1,13 +1,19 @@
-//! Atomic file output: write to a temporary file in the destination folder, then rename, so an
-//! interrupted or failed write never leaves a truncated file or destroys the previous one.
+//! Atomic file output: write to a temporary file in the destination folder, flush it to the
+//! disk, then rename, so an interrupted or failed write (a crash, a full disk, an I/O error)
+//! never leaves a truncated file or destroys the previous one. A failed write is an
+//! [`Error::Write`] naming the destination.
+//!
+//! [`stage_bytes`] splits the two halves, for files that must change together (a checkpoint's
+//! weights and optimiser state): write every file first, where a full disk shows, then rename
+//! them, which takes no space.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 
-/// Runs `write` on a temporary path next to `path`, then renames it onto `path`. The parent
-/// folder is created if needed. On error the temporary file is removed and `path` is untouched.
-pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+/// The temporary file next to `path` (`.NAME.tmp-PID`), its parent folder created.
+fn temp_path(path: &Path) -> Result<PathBuf> {
     let parent = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -16,24 +22,98 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
     let name = path
         .file_name()
         .ok_or_else(|| Error::InvalidArgument(format!("{}: not a file path", path.display())))?;
-    let tmp = parent.join(format!(
+    Ok(parent.join(format!(
         ".{}.tmp-{}",
         name.to_string_lossy(),
         std::process::id()
-    ));
-    let result =
-        write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e)));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    )))
+}
+
+/// Flushes `tmp` to the disk: where a file system reports a full disk or an I/O error only at
+/// `fsync` (network file systems, delayed allocation), it shows here, before the rename.
+fn sync_file(tmp: &Path, path: &Path) -> Result<()> {
+    std::fs::File::open(tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| write_error(path, e))
+}
+
+/// An [`Error::Write`] of `path`.
+fn write_error(path: &Path, error: std::io::Error) -> Error {
+    Error::Write {
+        path: path.to_path_buf(),
+        error,
     }
-    result
+}
+
+/// A file written in full next to its destination, not yet in place: [`Staged::commit`]
+/// renames it onto the destination; dropped uncommitted, it is removed.
+#[derive(Debug)]
+pub struct Staged {
+    tmp: PathBuf,
+    path: PathBuf,
+}
+
+impl Staged {
+    /// Puts the file in place (a rename within one folder).
+    pub fn commit(self) -> Result<()> {
+        std::fs::rename(&self.tmp, &self.path).map_err(|e| write_error(&self.path, e))
+    }
+
+    /// The destination.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        // After a commit the temporary file no longer exists; this is then a no-op.
+        let _ = std::fs::remove_file(&self.tmp);
+    }
+}
+
+/// Writes `bytes` to a temporary file next to `path` and flushes it; nothing replaces `path`
+/// until [`Staged::commit`]. On error nothing is left behind and `path` is untouched.
+pub fn stage_bytes(path: &Path, bytes: &[u8]) -> Result<Staged> {
+    let staged = Staged {
+        tmp: temp_path(path)?,
+        path: path.to_path_buf(),
+    };
+    std::fs::File::create(&staged.tmp)
+        .and_then(|mut f| {
+            f.write_all(bytes)?;
+            f.sync_all()
+        })
+        .map_err(|e| write_error(path, e))?;
+    Ok(staged)
+}
+
+/// Runs `write` on a temporary path next to `path` and flushes the file; nothing replaces
+/// `path` until [`Staged::commit`]. The parent folder is created if needed. On error the
+/// temporary file is removed and `path` is untouched.
+pub fn stage_with(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<Staged> {
+    let staged = Staged {
+        tmp: temp_path(path)?,
+        path: path.to_path_buf(),
+    };
+    write(&staged.tmp)?;
+    sync_file(&staged.tmp, path)?;
+    Ok(staged)
+}
+
+/// [`stage_with`], then [`Staged::commit`]: `path` is replaced in one rename, or not at all.
+pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    stage_with(path, write)?.commit()
+}
+
+/// An I/O error while writing `path` (for writers other than [`stage_bytes`]).
+pub fn write_failed(path: &Path, error: std::io::Error) -> Error {
+    write_error(path, error)
 }
 
 /// [`write_atomic`] for bytes already in memory.
 pub fn write_bytes_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_atomic(path, |tmp| {
-        std::fs::write(tmp, bytes).map_err(|e| Error::io(tmp, e))
-    })
+    stage_bytes(path, bytes)?.commit()
 }
 
 /// Encodes `img` as PNG and writes it atomically; an encoding failure is an [`Error::Image`]
@@ -105,5 +185,26 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), b"first");
         // No temporary file left behind.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn staged_files_replace_their_destination_only_when_committed() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+        write_bytes_atomic(&a, b"a1").unwrap();
+        let staged = stage_bytes(&a, b"a2").unwrap();
+        assert_eq!(std::fs::read(&a).unwrap(), b"a1");
+        drop(staged);
+        assert_eq!(std::fs::read(&a).unwrap(), b"a1");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        let (sa, sb) = (
+            stage_bytes(&a, b"a3").unwrap(),
+            stage_bytes(&b, b"b1").unwrap(),
+        );
+        sa.commit().unwrap();
+        sb.commit().unwrap();
+        assert_eq!(std::fs::read(&a).unwrap(), b"a3");
+        assert_eq!(std::fs::read(&b).unwrap(), b"b1");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
     }
 }

@@ -13,7 +13,16 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::FAILURE
+            // Stopped on a signal with its checkpoint written: the status SLURM scripts requeue.
+            let interrupted = e.chain().any(|c| {
+                c.downcast_ref::<calibconv::Error>()
+                    .is_some_and(calibconv::Error::is_interrupted)
+            });
+            if interrupted {
+                ExitCode::from(calibconv::train::stop::INTERRUPTED_EXIT)
+            } else {
+                ExitCode::FAILURE
+            }
         }
     }
 }

@@ -8,8 +8,10 @@ use std::path::Path;
 
 use calibconv::experiment::layout::{RunDir, SweepStatus};
 use calibconv::experiment::profile::Override;
+use calibconv::experiment::status;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
+use calibconv::train::stop::StopFlag;
 use common::experiment::ExperimentFile;
 use common::{assert_contains, calibconv_in, failed, file_containing, ok, synth_tiny_f195};
 
@@ -72,6 +74,7 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
         jobs: 2,
         progress: false,
         opener: &DefaultOpener,
+        stop: StopFlag::detached(),
     };
     let out = sweep::run_sweep(&plan, &opts);
     let by = |n: &str| out.iter().find(|(m, _)| m == n).unwrap().1.clone();
@@ -133,6 +136,30 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
         "{out:?}"
     );
     assert_eq!(sweep::state(&plan[3].exp).unwrap(), State::Complete);
+
+    // The status table from these records: a row per run, failures with their first line.
+    let rows = status::status(&plan);
+    let states: Vec<String> = rows.iter().map(|r| r.state.describe(r.steps)).collect();
+    assert_eq!(states[0], "complete");
+    assert!(
+        states[1].starts_with("failed: ") && states[1].contains("no-such-folder"),
+        "{states:?}"
+    );
+    // Blocked before it had a folder: nothing on disk says more than that it never started.
+    assert_eq!(states[2], "not started");
+    assert_eq!(states[3], "complete");
+    // The profile's 2 steps, done.
+    assert_eq!((rows[3].steps, rows[3].total), (Some(2), Some(2)));
+
+    // A stop requested before the sweep: complete runs are still skipped, no other run starts.
+    let stop = StopFlag::detached();
+    stop.request(libc::SIGTERM);
+    let out = sweep::run_sweep(&plan, &SweepOptions { stop, ..opts });
+    assert_eq!(out[0].1, Outcome::Skipped);
+    match &out[1].1 {
+        Outcome::Interrupted(e) => assert!(e.contains("not started: SIGTERM"), "{e}"),
+        o => panic!("{o:?}"),
+    }
 
     // Another configuration in the same run directory is refused, not overwritten.
     let other: Vec<Override> = vec!["optimizer.lr=0.1".parse().unwrap()];

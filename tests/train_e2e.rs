@@ -244,6 +244,7 @@ fn a_nan_stops_training_and_keeps_the_last_good_checkpoint() {
         device: Device::Cpu,
         progress: false,
         verbose: false,
+        stop: train::stop::StopFlag::detached(),
     };
     let err = train::train(
         TrainRun {

@@ -69,6 +69,11 @@ SchedulerType=sched/backfill
 MpiDefault=none
 ReturnToService=2
 SlurmdTimeout=300
+# A requeued job waits cred_expire seconds (default 120) before it may start again, then for the
+# scheduler's next pass (default every 30-60 s): short here, so that tools/slurm-test.sh's
+# requeued task restarts in seconds, not minutes.
+AuthInfo=cred_expire=10
+SchedulerParameters=sched_interval=5,bf_interval=5
 $node NodeAddr=127.0.0.1 State=UNKNOWN
 PartitionName=local Nodes=$host Default=YES MaxTime=INFINITE State=UP
 EOF

@@ -6,6 +6,7 @@ use std::io::IsTerminal;
 use anyhow::{bail, Context, Result};
 
 use calibconv::experiment::{self, DefaultOpener, RunOptions};
+use calibconv::train::stop::StopFlag;
 
 use crate::cli::EvalArgs;
 
@@ -23,6 +24,8 @@ pub fn run(args: EvalArgs) -> Result<()> {
         progress: !args.quiet && std::io::stderr().is_terminal(),
         verbose: !args.quiet,
         opener: &DefaultOpener,
+        // No signal handlers here: Ctrl-C ends an evaluation at once (it writes no state).
+        stop: StopFlag::detached(),
     };
     let outcomes = experiment::evaluate(&exp, args.checkpoint.as_deref(), &args.only, &opts)
         .with_context(|| format!("evaluating {} failed", exp.name))?;

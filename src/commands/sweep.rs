@@ -1,5 +1,5 @@
 //! `calibconv sweep DIR [--profile P] [--seeds S,..] [--only PATTERN] [--jobs N] [--set K=V]
-//! [--emit-slurm D [--slurm-set K=V]]`.
+//! [--emit-slurm D [--slurm-set K=V] | --status | --dry-run]`.
 
 use std::io::IsTerminal;
 use std::path::Path;
@@ -8,9 +8,11 @@ use anyhow::{bail, Context, Result};
 
 use calibconv::experiment::layout::{write_record, ResultsDir};
 use calibconv::experiment::profile::{Override, Profile};
-use calibconv::experiment::slurm::{emit_slurm, SlurmSpec};
+use calibconv::experiment::slurm::{emit_slurm, status_command, SlurmSpec};
+use calibconv::experiment::status;
 use calibconv::experiment::sweep::{self, Outcome, Planned, Seeds, SweepOptions};
 use calibconv::experiment::DefaultOpener;
+use calibconv::train::stop::{self, StopFlag};
 
 use crate::cli::SweepArgs;
 
@@ -34,6 +36,10 @@ pub fn run(args: SweepArgs) -> Result<()> {
     }
     let plan = sweep::plan_seeds(&args.dir, &profile, &overrides, &args.only, &seeds)
         .with_context(|| format!("cannot plan the sweep of {}", args.dir.display()))?;
+    if args.status {
+        print!("{}", status::table(&plan));
+        return Ok(());
+    }
     // The study's record, for a sweep of the whole study (not one task of it).
     let whole = args.only.is_empty() && args.only_seed.is_empty() && !args.dry_run;
     let write_study = || -> Result<()> {
@@ -51,13 +57,19 @@ pub fn run(args: SweepArgs) -> Result<()> {
     );
     if let Some(out) = &args.emit_slurm {
         let spec = SlurmSpec::resolve(&profile, &slurm_sets)?;
-        let files = emit_slurm(&plan, &args.dir, &profile, &overrides, &seeds, &spec, out)
-            .with_context(|| format!("cannot write SLURM scripts to {}", out.display()))?;
+        let files = emit_slurm(
+            &plan, &args.dir, &profile, &overrides, &seeds, &args.only, &spec, out,
+        )
+        .with_context(|| format!("cannot write SLURM scripts to {}", out.display()))?;
         write_study()?;
         for f in &files {
             println!("wrote {}", f.display());
         }
-        println!("submit with: {}", out.join("submit.sh").display());
+        println!("submit with: bash {}", out.join("submit.sh").display());
+        println!(
+            "watch with: {}",
+            status_command(&args.dir, &profile, &overrides, &seeds, &args.only)
+        );
         return Ok(());
     }
     print_plan(&plan)?;
@@ -66,6 +78,9 @@ pub fn run(args: SweepArgs) -> Result<()> {
     }
     announce_devices(&plan)?;
     write_study()?;
+    // SIGUSR1, SIGTERM, SIGINT: the runs in progress finish their step and write their
+    // checkpoint, no other run starts, and the sweep exits with status 75.
+    stop::install().context("cannot install the signal handlers")?;
     let start = std::time::Instant::now();
     let outcomes = sweep::run_sweep(
         &plan,
@@ -75,6 +90,7 @@ pub fn run(args: SweepArgs) -> Result<()> {
             jobs: args.jobs,
             progress: !args.quiet && std::io::stderr().is_terminal(),
             opener: &DefaultOpener,
+            stop: StopFlag::process(),
         },
     );
     summarise(&args.dir, &plan, &outcomes, start.elapsed().as_secs_f64())
@@ -158,6 +174,30 @@ fn summarise(
             }
         }
         bail!("{} of {} run(s) failed", failed.len(), outcomes.len());
+    }
+    let interrupted: Vec<_> = outcomes
+        .iter()
+        .filter(|(_, o)| matches!(o, Outcome::Interrupted(_)))
+        .collect();
+    if !interrupted.is_empty() {
+        for (name, o) in &interrupted {
+            if let Outcome::Interrupted(e) = o {
+                eprintln!("INTERRUPTED {name}: {e}");
+            }
+        }
+        let signal = StopFlag::process()
+            .requested()
+            .map_or_else(|| "a signal".to_string(), stop::signal_name);
+        // The library's error, so that the binary exits with the status SLURM scripts requeue.
+        return Err(calibconv::Error::Interrupted {
+            signal,
+            what: format!(
+                "with {} of {} run(s) not finished",
+                interrupted.len(),
+                outcomes.len()
+            ),
+        }
+        .into());
     }
     Ok(())
 }

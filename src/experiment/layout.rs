@@ -14,7 +14,8 @@
 //!                               the holder's PID (see RunLock)
 //!   experiment.toml             the experiment file as given (the last invocation's)
 //!   config.json                 the resolved experiment: every default, absolute paths
-//!   run.json                    one record per invocation (RunRecord)
+//!   run.json                    one record per invocation, one segment per process that
+//!                               trained it (RunRecord)
 //!   summary.json                what the last training call did, with a timing breakdown
 //!                               (Summary)
 //!   sweep.json                  the sweep that ran it: profile, overrides, outcome
@@ -27,8 +28,6 @@
 //!   evaluations.csv             one row per evaluation in eval/
 //! ```
 
-use std::fs::{File, OpenOptions, TryLockError};
-use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use serde::de::DeserializeOwned;
@@ -37,6 +36,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
 use crate::train::{best_path, last_path};
+
+pub use super::lock::RunLock;
 
 const EXPERIMENT_TOML: &str = "experiment.toml";
 const CONFIG_JSON: &str = "config.json";
@@ -461,11 +462,90 @@ pub struct Invocation {
     pub details: InvocationDetails,
 }
 
-/// `run.json`: every invocation on a run directory, oldest first.
+/// How a [`Segment`] ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SegmentEnd {
+    /// Trained to the end and evaluated.
+    Complete,
+    /// Stopped on a signal after writing its checkpoint (SLURM's warning before a time limit,
+    /// preemption, Ctrl-C): running it again resumes.
+    Interrupted,
+    /// Stopped by an error.
+    Failed,
+}
+
+/// One process's stretch of training on a run: a run that SLURM requeued twice has three.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Segment {
+    /// When it started and ended (Unix seconds). `end` is absent while it runs, and stays
+    /// absent when the process was killed before it could record it (`kill -9`, a lost node).
+    pub start: f64,
+    pub end: Option<f64>,
+    /// The machine and the process.
+    pub host: String,
+    pub pid: u32,
+    /// The SLURM job (`JOB_TASK` for an array task) and SLURM's restart count (requeues).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slurm_job: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slurm_restarts: Option<u32>,
+    /// The step it started from and, when it ended, the step of the run's last checkpoint.
+    pub first_step: u64,
+    pub last_step: Option<u64>,
+    /// How it ended (absent while it runs).
+    pub reason: Option<SegmentEnd>,
+    /// Interrupted: the signal and where; failed: the error (first line).
+    pub message: Option<String>,
+}
+
+impl Segment {
+    /// A segment of this process starting now at `first_step`, with the host name and the SLURM
+    /// job of the environment (`SLURM_ARRAY_JOB_ID`/`SLURM_ARRAY_TASK_ID`, else `SLURM_JOB_ID`;
+    /// `SLURM_RESTART_COUNT`).
+    pub fn begin(first_step: u64) -> Segment {
+        let env = |k: &str| std::env::var(k).ok().filter(|v| !v.is_empty());
+        let slurm_job = match (env("SLURM_ARRAY_JOB_ID"), env("SLURM_ARRAY_TASK_ID")) {
+            (Some(j), Some(t)) => Some(format!("{j}_{t}")),
+            _ => env("SLURM_JOB_ID"),
+        };
+        Segment {
+            start: unix_now(),
+            end: None,
+            host: host_name(),
+            pid: std::process::id(),
+            slurm_job,
+            slurm_restarts: env("SLURM_RESTART_COUNT").and_then(|c| c.parse().ok()),
+            first_step,
+            last_step: None,
+            reason: None,
+            message: None,
+        }
+    }
+}
+
+/// This machine's host name (`?` if the OS does not say).
+pub fn host_name() -> String {
+    let mut buf = [0u8; 256];
+    // SAFETY: gethostname writes at most `buf.len()` bytes into the buffer it is given.
+    let rc = unsafe { libc::gethostname(buf.as_mut_ptr().cast(), buf.len()) };
+    let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+    if rc == 0 && end > 0 {
+        String::from_utf8_lossy(&buf[..end]).into_owned()
+    } else {
+        "?".into()
+    }
+}
+
+/// `run.json`: every invocation on a run directory, oldest first, and the segments of its
+/// training (one per process that trained it).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
     pub experiment: String,
     pub invocations: Vec<Invocation>,
+    /// Oldest first (absent in records of older versions).
+    #[serde(default)]
+    pub segments: Vec<Segment>,
 }
 
 impl RunRecord {
@@ -482,6 +562,8 @@ pub enum SweepStatus {
     Done,
     Failed,
     Blocked,
+    /// Stopped on a signal after writing its checkpoint; the next sweep resumes it.
+    Interrupted,
 }
 
 /// `sweep.json`: the sweep invocation that last ran (or failed to run) a run directory.
@@ -554,83 +636,9 @@ pub struct StudyRecord {
     pub runs: Vec<StudyRun>,
 }
 
-/// An exclusive lock on a run directory, held while a process trains or evaluates it.
-///
-/// It is an advisory lock (`flock`) on `RUN/lock`, which holds the holder's PID: the OS
-/// releases it when the process ends, however it ends (`kill -9` included), so it never goes
-/// stale; the file itself stays. A second process (or a second lock in one process) fails at
-/// once with [`Error::Busy`] naming the holder's PID.
-#[derive(Debug)]
-pub struct RunLock {
-    file: File,
-    path: PathBuf,
-}
-
-impl RunLock {
-    fn acquire(run: &RunDir) -> Result<RunLock> {
-        std::fs::create_dir_all(run.path()).map_err(|e| Error::io(run.path(), e))?;
-        let path = run.lock_file();
-        let mut file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(|e| Error::io(&path, e))?;
-        match file.try_lock() {
-            Ok(()) => {}
-            Err(TryLockError::WouldBlock) => {
-                let mut text = String::new();
-                let _ = file.read_to_string(&mut text);
-                return Err(Error::Busy {
-                    path: run.path().to_path_buf(),
-                    holder: text
-                        .trim()
-                        .parse::<u32>()
-                        .map(|pid| format!("process {pid}"))
-                        .unwrap_or_else(|_| "another process".into()),
-                });
-            }
-            Err(TryLockError::Error(e)) => return Err(Error::io(&path, e)),
-        }
-        let pid = std::process::id();
-        file.set_len(0)
-            .and_then(|()| file.seek(SeekFrom::Start(0)))
-            .and_then(|_| writeln!(file, "{pid}"))
-            .and_then(|()| file.flush())
-            .map_err(|e| Error::io(&path, e))?;
-        Ok(RunLock { file, path })
-    }
-
-    /// The lock file.
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-}
-
-impl Drop for RunLock {
-    fn drop(&mut self) {
-        let _ = self.file.unlock();
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_second_lock_fails_naming_the_holder_and_dropping_releases_it() {
-        let tmp = tempfile::tempdir().unwrap();
-        let run = RunDir::new(tmp.path().join("r"));
-        let held = run.lock().unwrap();
-        let e = run.lock().unwrap_err().to_string();
-        assert!(
-            e.contains(&format!("process {}", std::process::id())),
-            "{e}"
-        );
-        drop(held);
-        run.lock().unwrap();
-    }
 
     #[test]
     fn summaries_round_trip_with_nan_as_null_and_old_ones_read() {

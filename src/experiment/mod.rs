@@ -95,6 +95,7 @@
 //! ```
 
 pub mod layout;
+pub mod lock;
 pub mod profile;
 pub mod resolve;
 pub mod run;
@@ -102,6 +103,7 @@ pub mod schema;
 pub mod slurm;
 pub mod source;
 pub mod spec;
+pub mod status;
 pub mod suggest;
 pub mod sweep;
 

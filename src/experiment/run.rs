@@ -13,8 +13,8 @@ use tch::nn::VarStore;
 use tch::Device;
 
 use super::layout::{
-    write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord, Summary,
-    Timing,
+    self, write_record, BestRecord, Invocation, InvocationDetails, RunDir, RunLock, RunRecord,
+    Segment, SegmentEnd, Summary, Timing,
 };
 
 use super::{EvalSpec, Experiment, InitSpec, InputSpec, KernelName, SourceOpener, SourceRequest};
@@ -29,6 +29,7 @@ use crate::nn::UNet;
 use crate::plots;
 use crate::train::checkpoint::{self, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION};
 use crate::train::csv::CsvLog;
+use crate::train::stop::{self, StopFlag};
 use crate::train::tensorboard::TensorBoard;
 use crate::train::{self, Reporter, TrainConfig, TrainRun, TrainSummary};
 use crate::util::fmt_f64;
@@ -44,6 +45,10 @@ pub struct RunOptions<'a> {
     pub verbose: bool,
     /// Opens the data sources ([`super::DefaultOpener`] on the command line).
     pub opener: &'a dyn SourceOpener,
+    /// Read once per training step and before each evaluation: when set, the run writes its
+    /// checkpoint and stops with [`Error::Interrupted`] ([`StopFlag::process`] on the command
+    /// line, where signals set it).
+    pub stop: StopFlag,
 }
 
 /// One finished evaluation.
@@ -106,14 +111,22 @@ pub fn best_or_last(dir: &Path) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
-/// Appends an invocation record to `run.json` (an unreadable `run.json` is an error: it is
-/// never replaced).
-fn record_invocation(exp: &Experiment, command: &str, details: InvocationDetails) -> Result<()> {
+/// Appends an invocation record to `run.json`, and for training a [`Segment`] starting at
+/// `segment` (the step it starts from); an unreadable `run.json` is an error: it is never
+/// replaced.
+fn record_invocation(
+    exp: &Experiment,
+    command: &str,
+    details: InvocationDetails,
+    segment: Option<u64>,
+) -> Result<()> {
     let dir = run_dir(exp);
     let mut doc = dir.run_if_any()?.unwrap_or_else(|| RunRecord {
         experiment: exp.name.clone(),
         invocations: Vec::new(),
+        segments: Vec::new(),
     });
+    doc.segments.extend(segment.map(Segment::begin));
     doc.invocations.push(Invocation {
         command: command.into(),
         unix_time: std::time::SystemTime::now()
@@ -129,6 +142,38 @@ fn record_invocation(exp: &Experiment, command: &str, details: InvocationDetails
         pid: Some(std::process::id()),
         details,
     });
+    write_record(&dir.run_json(), &doc)
+}
+
+/// Ends this process's open [`Segment`] in `run.json` (if it has one) with how training and
+/// evaluating ended, and the step of the run's last checkpoint.
+fn end_segment<T>(exp: &Experiment, result: &Result<T>) -> Result<()> {
+    let dir = run_dir(exp);
+    let Some(mut doc) = dir.run_if_any()? else {
+        return Ok(());
+    };
+    let pid = std::process::id();
+    let Some(seg) = doc
+        .segments
+        .iter_mut()
+        .rev()
+        .find(|s| s.pid == pid && s.end.is_none())
+    else {
+        return Ok(());
+    };
+    seg.end = Some(layout::unix_now());
+    seg.last_step = checkpoint::read_info(&dir.last_checkpoint())
+        .ok()
+        .flatten()
+        .map(|i| i.step);
+    (seg.reason, seg.message) = match result {
+        Ok(_) => (Some(SegmentEnd::Complete), None),
+        Err(e) if e.is_interrupted() => (Some(SegmentEnd::Interrupted), Some(e.to_string())),
+        Err(e) => (
+            Some(SegmentEnd::Failed),
+            e.to_string().lines().next().map(String::from),
+        ),
+    };
     write_record(&dir.run_json(), &doc)
 }
 
@@ -279,6 +324,7 @@ fn start_weights(
             resume_step,
             init: init_from,
         },
+        Some(resume_step.unwrap_or(0)),
     )?;
     Ok(resume_step)
 }
@@ -320,7 +366,6 @@ pub fn train_locked(
     check_lock(exp, lock)?;
     let dir = run_dir(exp);
     let device = exp.device()?;
-    let ckdir = dir.checkpoints();
     let last = dir.last_checkpoint();
     prepare_run_dir(exp, opts, &dir)?;
     let stored = dir.experiment_toml();
@@ -339,7 +384,46 @@ pub fn train_locked(
     let model = build_model(exp, &vs, exp.kernel, &exp.input)?;
     let build_seconds = t_build.elapsed().as_secs_f64();
     let resume_step = start_weights(exp, opts, &vs, &last)?;
+    let started = Started {
+        vs: &vs,
+        model: &model,
+        resume_step,
+        build_seconds,
+        describe_run: &describe_run,
+    };
+    let result = train_started(exp, opts, lock, started);
+    // Best effort: when the disk is full this write fails too, and the error that matters is
+    // the training's.
+    let _ = end_segment(exp, &result);
+    result
+}
 
+/// A training call past its start: the network built and its weights loaded.
+struct Started<'a> {
+    vs: &'a VarStore,
+    model: &'a UNet,
+    resume_step: Option<u64>,
+    build_seconds: f64,
+    describe_run: &'a dyn Fn() -> Result<()>,
+}
+
+/// Trains and evaluates a started run (see [`train_locked`]).
+fn train_started(
+    exp: &Experiment,
+    opts: &RunOptions<'_>,
+    lock: &RunLock,
+    started: Started<'_>,
+) -> Result<TrainOutcome> {
+    let Started {
+        vs,
+        model,
+        resume_step,
+        build_seconds,
+        describe_run,
+    } = started;
+    let dir = run_dir(exp);
+    let device = exp.device()?;
+    let ckdir = dir.checkpoints();
     let t = &exp.train;
     let t_data = Instant::now();
     let train_src = open_training_source(exp, opts.opener)?;
@@ -368,8 +452,8 @@ pub fn train_locked(
     }
     let summary = train::train(
         TrainRun {
-            model: &model,
-            vs: &vs,
+            model,
+            vs,
             train: train_src.as_ref(),
             val: val_src.as_deref().map(|s| (s, val_opts)),
             checkpoint_dir: &ckdir,
@@ -431,6 +515,7 @@ fn train_config(
         device,
         progress: opts.progress,
         verbose: opts.verbose,
+        stop: opts.stop,
     }
 }
 
@@ -558,10 +643,17 @@ pub fn evaluate_locked(
             checkpoint: ckpt.clone(),
             evaluations: selected.iter().map(|e| e.name.clone()).collect(),
         },
+        None,
     )?;
     let step = TensorFile::open(&ckpt)?.info()?.map(|i| i.step);
     let mut out = Vec::new();
     for spec in selected {
+        if let Some(signal) = opts.stop.requested() {
+            return Err(Error::Interrupted {
+                signal: stop::signal_name(signal),
+                what: format!("before evaluation `{}` of {}", spec.name, exp.name),
+            });
+        }
         out.push(evaluate_one(exp, spec, &ckpt, step, device, opts)?);
     }
     write_evaluations_csv(&exp.run_dir)?;

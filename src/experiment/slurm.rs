@@ -10,6 +10,7 @@
 //! cpus_per_task = 8            # --cpus-per-task; also the run's libtorch threads
 //! mem = "32G"                  # --mem
 //! gres = "gpu:1"               # --gres (absent: no generic resources, e.g. no GPU)
+//! signal_seconds = 120         # --signal=B:USR1@S: the warning before the time limit
 //! extra = ["--qos=normal"]     # more #SBATCH lines, as written after `#SBATCH `
 //! ```
 //!
@@ -17,6 +18,19 @@
 //! `calibconv sweep DIR --profile P [--set ...] [--seeds LIST --only-seed S_i] --only NAME_i`,
 //! so skipping, resuming and the run-directory lock work as on one machine. `submit.sh`
 //! submits the levels in order; the scripts run as written (`bash OUT/submit.sh`).
+//!
+//! # Time limits and preemption
+//!
+//! The tasks are requeueable (`--requeue`, log files appended: `--open-mode=append`) and ask
+//! SLURM for SIGUSR1 `signal_seconds` before their time limit (`--signal=B:USR1@S`, default
+//! [`DEFAULT_SIGNAL_SECONDS`]; SLURM may send it up to a minute early). The batch script
+//! passes SIGUSR1, SIGTERM (preemption, `scancel`) and SIGINT on to calibconv, which finishes
+//! its step, writes its checkpoint and exits with status 75
+//! ([`crate::train::stop::INTERRUPTED_EXIT`]); on that status alone the script runs `scontrol
+//! requeue` of its own array task, which starts again later and resumes exactly where it
+//! stopped. Any other failure ends the task as failed and is not requeued. S must leave time
+//! for one training step, one checkpoint and the task's start-up; a step that outlasts it is
+//! killed at the limit, and the task resumes from its previous checkpoint when run again.
 
 use std::path::{Path, PathBuf};
 
@@ -38,18 +52,29 @@ pub struct SlurmSpec {
     pub cpus_per_task: Option<u32>,
     pub mem: Option<String>,
     pub gres: Option<String>,
+    /// Seconds before the time limit at which SLURM sends SIGUSR1 (absent:
+    /// [`DEFAULT_SIGNAL_SECONDS`]).
+    pub signal_seconds: Option<u32>,
     #[serde(default)]
     pub extra: Vec<String>,
 }
 
+/// The warning before the time limit when `[slurm]` has no `signal_seconds`: two minutes, room
+/// for a step and a checkpoint of the paper profile's networks on one GPU with a margin.
+pub const DEFAULT_SIGNAL_SECONDS: u32 = 120;
+
+/// The most seconds `--signal` accepts (SLURM's limit).
+const MAX_SIGNAL_SECONDS: u32 = 65_535;
+
 /// The keys of `[slurm]`.
-pub const SLURM_KEYS: [&str; 7] = [
+pub const SLURM_KEYS: [&str; 8] = [
     "partition",
     "account",
     "time",
     "cpus_per_task",
     "mem",
     "gres",
+    "signal_seconds",
     "extra",
 ];
 
@@ -76,7 +101,7 @@ impl SlurmSpec {
                     lines.push(Value::String(line.clone()));
                     table.insert("extra".into(), Value::Array(lines));
                 }
-                ("cpus_per_task", v) => {
+                ("cpus_per_task" | "signal_seconds", v) => {
                     profile::set(&mut table, &o.key, v.clone());
                 }
                 (_, Value::Integer(i)) => {
@@ -99,6 +124,14 @@ impl SlurmSpec {
             .map_err(|e: toml::de::Error| field(e.message().to_string()))?;
         if spec.cpus_per_task == Some(0) {
             return Err(field("cpus_per_task must be positive".into()));
+        }
+        if spec
+            .signal_seconds
+            .is_some_and(|s| s == 0 || s > MAX_SIGNAL_SECONDS)
+        {
+            return Err(field(format!(
+                "signal_seconds must be 1 to {MAX_SIGNAL_SECONDS}"
+            )));
         }
         for (k, v) in [
             ("partition", &spec.partition),
@@ -133,6 +166,17 @@ impl SlurmSpec {
         out.extend(self.extra.iter().map(|l| format!("#SBATCH {l}")));
         out
     }
+
+    /// The `#SBATCH` lines that make a task survive its time limit and preemption: the warning
+    /// signal, requeueable, logs appended across requeues.
+    pub fn requeue_directives(&self) -> [String; 3] {
+        let s = self.signal_seconds.unwrap_or(DEFAULT_SIGNAL_SECONDS);
+        [
+            format!("#SBATCH --signal=B:USR1@{s}"),
+            "#SBATCH --requeue".into(),
+            "#SBATCH --open-mode=append".into(),
+        ]
+    }
 }
 
 fn quote(s: &str) -> String {
@@ -162,6 +206,22 @@ fn sweep_command(dir: &Path, profile: &Profile, overrides: &[Override], seeds: &
         common += &format!(" --seeds {}", list.join(","));
     }
     common
+}
+
+/// The `calibconv sweep ... --status` command that shows where the emitted sweep stands (the
+/// same binary, folder, profile, overrides, seeds and `--only` patterns).
+pub fn status_command(
+    dir: &Path,
+    profile: &Profile,
+    overrides: &[Override],
+    seeds: &Seeds,
+    only: &[String],
+) -> String {
+    let mut cmd = sweep_command(dir, profile, overrides, seeds);
+    for o in only {
+        cmd += &format!(" --only {}", quote(o));
+    }
+    cmd + " --status"
 }
 
 /// `level-K.sbatch`: one array task per run of dependency level `level`, run from `root`
@@ -197,11 +257,13 @@ fn level_script(
          #SBATCH --output=slurm-%A_%a.out\n\
          # Dependency level {level}: {n} run(s); submit with submit.sh (afterok on level {prev}).\n\
          set -euo pipefail\n\
+         {RUN_AND_REQUEUE_HEAD}\
          cd {root}\n\
          RUNS=({runs})\n\
          {seed_line}\
          srun {common}{only_seed} --only \"${{RUNS[$SLURM_ARRAY_TASK_ID]}}\" \
-         ${{SLURM_CPUS_PER_TASK:+--threads $SLURM_CPUS_PER_TASK}} -q\n",
+         ${{SLURM_CPUS_PER_TASK:+--threads $SLURM_CPUS_PER_TASK}} -q &\n\
+         {RUN_AND_REQUEUE_TAIL}",
         last = names.len() - 1,
         sep = if directives.is_empty() { "" } else { "\n" },
         n = names.len(),
@@ -210,14 +272,47 @@ fn level_script(
     )
 }
 
+/// At the top of the script (a signal before it would end the shell): the batch shell (the only
+/// process SLURM's `B:` signal reaches) passes SIGUSR1, SIGTERM and SIGINT on to srun, which
+/// passes them to calibconv; one that comes before srun starts is passed on once it has.
+const RUN_AND_REQUEUE_HEAD: &str = "\
+# SIGUSR1 (before the time limit), SIGTERM (preemption, scancel) and SIGINT (sent on as SIGTERM:
+# srun keeps SIGINT for itself) go to calibconv, which finishes its step, writes its checkpoint
+# and exits with status 75.
+child=\"\"
+stop=\"\"
+pass_on() { stop=$1; if [ -n \"$child\" ]; then kill -s \"$1\" \"$child\" 2>/dev/null || true; fi; }
+trap 'pass_on USR1' USR1
+trap 'pass_on TERM' TERM
+trap 'pass_on TERM' INT
+";
+
+/// After the task's `srun ... &`: waits for it (a trapped signal interrupts `wait`), then on
+/// status 75, and on it alone, requeues this array task.
+const RUN_AND_REQUEUE_TAIL: &str = "\
+child=$!
+if [ -n \"$stop\" ]; then kill -s \"$stop\" \"$child\" 2>/dev/null || true; fi
+while kill -0 \"$child\" 2>/dev/null; do wait \"$child\" || true; done
+status=0
+wait \"$child\" || status=$?
+if [ \"$status\" = 75 ]; then
+  task=\"${SLURM_ARRAY_JOB_ID:-$SLURM_JOB_ID}${SLURM_ARRAY_TASK_ID:+_$SLURM_ARRAY_TASK_ID}\"
+  echo \"calibconv stopped with its checkpoint written (restart ${SLURM_RESTART_COUNT:-0}); requeueing $task\"
+  scontrol requeue \"$task\"
+fi
+exit \"$status\"
+";
+
 /// Writes `level-K.sbatch` (one job array per dependency level) and `submit.sh` into `out`
-/// for `plan`; returns the files written.
+/// for `plan` (planned with the `--only` patterns `only`); returns the files written.
+#[allow(clippy::too_many_arguments)]
 pub fn emit_slurm(
     plan: &[Planned],
     dir: &Path,
     profile: &Profile,
     overrides: &[Override],
     seeds: &Seeds,
+    only: &[String],
     spec: &SlurmSpec,
     out: &Path,
 ) -> Result<Vec<PathBuf>> {
@@ -231,7 +326,12 @@ pub fn emit_slurm(
         "#!/bin/bash\n# Submits the sweep's job arrays, each level after the one before succeeded.\n\
          set -euo pipefail\ncd \"$(dirname \"$0\")\"\n",
     );
-    let directives = spec.directives().join("\n");
+    let directives = spec
+        .directives()
+        .into_iter()
+        .chain(spec.requeue_directives())
+        .collect::<Vec<_>>()
+        .join("\n");
     for level in 0..=max_level {
         let runs: Vec<&Planned> = plan.iter().filter(|p| p.level == level).collect();
         let file = out.join(format!("level-{level}.sbatch"));
@@ -252,6 +352,13 @@ pub fn emit_slurm(
         submit += &format!(" $j{level}");
     }
     submit += "\"\n";
+    submit += &format!(
+        "echo {}\n",
+        quote(&format!(
+            "watch with: {}",
+            status_command(dir, profile, overrides, seeds, only)
+        ))
+    );
     let sub = out.join("submit.sh");
     write_bytes_atomic(&sub, submit.as_bytes())?;
     #[cfg(unix)]

@@ -22,6 +22,10 @@
 //! seed's folder, and the fine-tunings of every seed start from them. `OUTPUT/study.json`
 //! records the plan: profile, seeds, runs ([`super::layout::StudyRecord`]).
 //!
+//! When [`SweepOptions::stop`] is set (a signal: see [`crate::train::stop`]), the runs in
+//! progress write their checkpoints and stop, no other run starts, and their outcome is
+//! [`Outcome::Interrupted`]: the next sweep resumes them.
+//!
 //! A run directory that holds another configuration (its `experiment.toml` differs from the
 //! merged text as TOML) is a failure of that run, never overwritten. A failed run does not stop
 //! the sweep; runs that depend on it are reported as blocked. Each run directory gets
@@ -39,6 +43,7 @@ use super::profile::{self, Override, Profile};
 use super::run::{self, git_revision, RunOptions};
 use super::{Experiment, InitSpec, SourceOpener};
 use crate::error::{Error, Result};
+use crate::train::stop::{self, StopFlag};
 
 /// One run of a sweep.
 #[derive(Clone, Debug)]
@@ -123,6 +128,9 @@ pub enum Outcome {
     Failed(String),
     /// Not run: a dependency failed or is blocked.
     Blocked(String),
+    /// Stopped on a signal (checkpoint written; the next sweep resumes it), or not started
+    /// because a signal came first: why.
+    Interrupted(String),
 }
 
 impl Outcome {
@@ -508,6 +516,9 @@ pub struct SweepOptions<'a> {
     /// An overall progress bar on stderr.
     pub progress: bool,
     pub opener: &'a (dyn SourceOpener + Sync),
+    /// When set, the runs in progress stop after their step (checkpoint written) and no other
+    /// run starts ([`StopFlag::process`] on the command line, where signals set it).
+    pub stop: StopFlag,
 }
 
 /// Runs `p` holding its lock (taken first: a run another process holds fails at once and its
@@ -517,12 +528,24 @@ fn run_one(p: &Planned, opts: &SweepOptions<'_>) -> Outcome {
         Ok(l) => l,
         Err(e) => return Outcome::Failed(cause_chain(&e)),
     };
-    let outcome = run_locked(p, opts, &lock).unwrap_or_else(|e| Outcome::Failed(cause_chain(&e)));
-    record(p, opts, &outcome, &lock)
-        .map(|()| outcome.clone())
-        .unwrap_or_else(|e| {
-            Outcome::Failed(format!("cannot write sweep.json: {}", cause_chain(&e)))
-        })
+    let outcome = run_locked(p, opts, &lock).unwrap_or_else(|e| {
+        if e.is_interrupted() {
+            Outcome::Interrupted(e.to_string())
+        } else {
+            Outcome::Failed(cause_chain(&e))
+        }
+    });
+    match record(p, opts, &outcome, &lock) {
+        Ok(()) => outcome,
+        // A full disk refuses sweep.json too: keep the run's own error first.
+        Err(e) => match outcome {
+            Outcome::Failed(first) => Outcome::Failed(format!(
+                "{first}; and cannot write sweep.json: {}",
+                cause_chain(&e)
+            )),
+            _ => Outcome::Failed(format!("cannot write sweep.json: {}", cause_chain(&e))),
+        },
+    }
 }
 
 /// An error and its causes, `: `-separated.
@@ -548,6 +571,7 @@ fn run_locked(p: &Planned, opts: &SweepOptions<'_>, lock: &RunLock) -> Result<Ou
         progress: false,
         verbose: false,
         opener: opts.opener,
+        stop: opts.stop,
     };
     let start = Instant::now();
     let action = match before {
@@ -584,6 +608,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
         ),
         Outcome::Failed(e) => (SweepStatus::Failed, None, None, Some(e.clone())),
         Outcome::Blocked(e) => (SweepStatus::Blocked, None, None, Some(e.clone())),
+        Outcome::Interrupted(e) => (SweepStatus::Interrupted, None, None, Some(e.clone())),
     };
     let doc = SweepRecord {
         experiment: p.exp.name.clone(),
@@ -665,9 +690,16 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                             .map(|d| format!("its initial weights come from `{d}`, which failed"))
                     };
                     bar.set_message(p.key());
-                    let outcome = match blocked {
-                        Some(b) => record_blocked(p, opts, b),
-                        None => run_one(p, opts),
+                    // After a stop request only complete runs go on (to be skipped).
+                    let stopped = opts
+                        .stop
+                        .requested()
+                        .filter(|_| state(&p.exp).ok() != Some(State::Complete))
+                        .map(|s| format!("not started: {} came first", stop::signal_name(s)));
+                    let outcome = match (stopped, blocked) {
+                        (Some(why), _) => Outcome::Interrupted(why),
+                        (None, Some(b)) => record_blocked(p, opts, b),
+                        (None, None) => run_one(p, opts),
                     };
                     let line = match &outcome {
                         Outcome::Skipped => "complete, skipped".to_string(),
@@ -682,6 +714,7 @@ pub fn run_sweep(plan: &[Planned], opts: &SweepOptions<'_>) -> Vec<(String, Outc
                         }
                         Outcome::Failed(e) => format!("FAILED: {e}"),
                         Outcome::Blocked(e) => format!("blocked: {e}"),
+                        Outcome::Interrupted(e) => format!("interrupted: {e}"),
                     };
                     say(&bar, format!("{}: {line}", p.key()));
                     bar.inc(1);

@@ -22,8 +22,9 @@ use tch::nn::VarStore;
 use tch::Tensor;
 
 use super::pytorch::dropped_on_import;
-use super::tensors::{write_tensors, TensorFile};
+use super::tensors::{stage_tensors, TensorFile};
 use crate::error::{Error, Result};
+use crate::io::Staged;
 
 /// Optimiser settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -152,6 +153,12 @@ impl Adam {
     /// Saves the moments and step count to `path` (safetensors: `m.NAME`, `v.NAME`; metadata
     /// `adam_step`), atomically.
     pub fn save(&self, path: &Path, extra: HashMap<String, String>) -> Result<()> {
+        self.stage(path, extra)?.commit()
+    }
+
+    /// [`Adam::save`] up to the rename (see [`crate::io::stage_bytes`]): the trainer writes the
+    /// optimiser state and the weights in full before it replaces either.
+    pub fn stage(&self, path: &Path, extra: HashMap<String, String>) -> Result<Staged> {
         let mut tensors = Vec::with_capacity(2 * self.params.len());
         for (i, (name, _)) in self.params.iter().enumerate() {
             tensors.push((format!("m.{name}"), self.m[i].shallow_clone()));
@@ -163,7 +170,7 @@ impl Adam {
             "adam_config".to_string(),
             serde_json::to_string(&self.cfg).expect("config serialises"),
         );
-        write_tensors(path, &tensors, meta)
+        stage_tensors(path, &tensors, meta)
     }
 
     /// Restores the state written by [`Adam::save`] (same parameter names and shapes, else an

@@ -22,15 +22,22 @@ use std::path::Path;
 use tch::nn::VarStore;
 
 use crate::error::Result;
+use crate::io::Staged;
 use crate::nn::UNetConfig;
 use crate::train::pytorch::{self, TorchArchitecture};
 use crate::train::tensors::ckpt_error;
 pub use crate::train::tensors::{
-    named_variables, write_tensors, CheckpointInfo, TensorFile, FORMAT, FORMAT_VERSION,
+    named_variables, read_info, stage_tensors, write_tensors, CheckpointInfo, TensorFile, FORMAT,
+    FORMAT_VERSION,
 };
 
 /// Saves every variable of `vs` with `info` as metadata, atomically.
 pub fn save(path: &Path, vs: &VarStore, info: &CheckpointInfo) -> Result<()> {
+    stage(path, vs, info)?.commit()
+}
+
+/// [`save`] up to the rename (see [`crate::io::stage_bytes`]).
+pub fn stage(path: &Path, vs: &VarStore, info: &CheckpointInfo) -> Result<Staged> {
     let mut meta = HashMap::new();
     meta.insert("format".to_string(), FORMAT.to_string());
     meta.insert("step".to_string(), info.step.to_string());
@@ -42,7 +49,7 @@ pub fn save(path: &Path, vs: &VarStore, info: &CheckpointInfo) -> Result<()> {
         "calibconv".to_string(),
         serde_json::to_string(&info).expect("checkpoint info serialises"),
     );
-    write_tensors(path, &named_variables(vs), meta)
+    stage_tensors(path, &named_variables(vs), meta)
 }
 
 /// What [`load`] found.
@@ -165,6 +172,8 @@ mod tests {
         let loaded = load(&path, &b, &cfg).unwrap();
         let got = loaded.info.unwrap();
         assert_eq!(got.step, 12);
+        // The header alone gives the same metadata.
+        assert_eq!(read_info(&path).unwrap().unwrap().step, 12);
         // Non-finite metrics are dropped (JSON cannot hold them).
         assert_eq!(got.metrics.keys().collect::<Vec<_>>(), ["rmse"]);
         for ((na, ta), (nb, tb)) in named_variables(&a).iter().zip(named_variables(&b).iter()) {

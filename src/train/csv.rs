@@ -114,14 +114,17 @@ pub fn read_log(path: &Path) -> Result<Option<LogTable>> {
 
 fn truncate_after(path: &Path, step: u64) -> Result<()> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let columns = text.lines().next().map_or(0, |h| h.split(',').count());
     let mut out = String::new();
     for (i, line) in text.lines().enumerate() {
+        // A row cut short (a write that failed on a full disk) is dropped with the later ones.
         let keep = i == 0
-            || line
-                .split(',')
-                .next()
-                .and_then(|s| s.parse::<u64>().ok())
-                .is_some_and(|s| s <= step);
+            || (line.split(',').count() == columns
+                && line
+                    .split(',')
+                    .next()
+                    .and_then(|s| s.parse::<u64>().ok())
+                    .is_some_and(|s| s <= step));
         if keep {
             out.push_str(line);
             out.push('\n');
@@ -228,5 +231,18 @@ mod tests {
             .scalars("train", 40, &[("loss".into(), 1.0)])
             .unwrap_err();
         assert!(err.to_string().contains("columns changed"), "{err}");
+    }
+
+    #[test]
+    fn a_row_cut_short_by_a_full_disk_is_dropped_on_resume() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("train.csv");
+        // The row of step 15 was cut after its first digit.
+        std::fs::write(&path, "step,loss,lr\n10,1,0.1\n1").unwrap();
+        drop(CsvLog::create(dir.path(), Some(10)).unwrap());
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            "step,loss,lr\n10,1,0.1\n"
+        );
     }
 }

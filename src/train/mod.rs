@@ -18,7 +18,17 @@
 //!   `checkpoint_every` steps and at the end);
 //! - `best.safetensors`: the weights with the best validation value of `val_metric`.
 //!
-//! All are written atomically, so a crash never leaves a truncated checkpoint. A non-finite
+//! All are written atomically, so a crash never leaves a truncated checkpoint; the pair `last.*`
+//! is written in full (two temporary files) before either is replaced, so a full disk or an
+//! I/O error leaves the previous pair whole and the run stops with
+//! [`Error::Write`](crate::error::Error::Write) naming the file.
+//!
+//! # Stopping on a signal
+//!
+//! The trainer reads [`TrainConfig::stop`] after every step: when a stop was requested (by
+//! SIGUSR1, SIGTERM or SIGINT, see [`stop`]), it writes `last.*` and returns
+//! [`Error::Interrupted`](crate::error::Error::Interrupted); resuming from there gives the
+//! weights of an uninterrupted run. A non-finite
 //! loss or gradient norm stops training *before* the update with
 //! [`Error::NonFinite`](crate::error::Error::NonFinite), naming the step and the last good
 //! checkpoint (which the failed step never touched).
@@ -28,6 +38,7 @@ pub mod checkpoint;
 pub mod csv;
 pub mod pytorch;
 pub mod schedule;
+pub mod stop;
 pub mod tensorboard;
 pub mod tensors;
 mod trainer;
@@ -119,6 +130,9 @@ pub struct TrainConfig {
     pub progress: bool,
     /// Print a status line at every validation (stderr).
     pub verbose: bool,
+    /// Read once per step: when set, training writes `last.*` after the step and stops with
+    /// [`Error::Interrupted`](crate::error::Error::Interrupted) (see [`stop`]).
+    pub stop: stop::StopFlag,
 }
 
 /// One training run.

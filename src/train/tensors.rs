@@ -13,7 +13,7 @@ use tch::nn::VarStore;
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
-use crate::io::write_atomic;
+use crate::io::{stage_with, write_failed, Staged};
 use crate::nn::UNetConfig;
 
 /// Value of the `format` metadata key of calibconv model checkpoints.
@@ -111,12 +111,23 @@ pub(crate) fn ckpt_error(path: &Path, message: impl Into<String>) -> Error {
     }
 }
 
-/// Writes named tensors and string metadata to `path` atomically (temporary file + rename).
+/// Writes named tensors and string metadata to `path` atomically (temporary file + rename); a
+/// failed write (a full disk) is an [`Error::Write`] naming `path`, which stays as it was.
 pub fn write_tensors(
     path: &Path,
     tensors: &[(String, Tensor)],
     metadata: HashMap<String, String>,
 ) -> Result<()> {
+    stage_tensors(path, tensors, metadata)?.commit()
+}
+
+/// [`write_tensors`] up to the rename: the file is written in full next to `path` and put in
+/// place by [`Staged::commit`] (see [`crate::io::stage_with`]).
+pub fn stage_tensors(
+    path: &Path,
+    tensors: &[(String, Tensor)],
+    metadata: HashMap<String, String>,
+) -> Result<Staged> {
     let mut buffers = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
         let t = t.detach().to_device(Device::Cpu).contiguous();
@@ -133,10 +144,62 @@ pub fn write_tensors(
         buffers.push((name.clone(), Buffer { dtype, shape, data }));
     }
     let views: Vec<(&str, &Buffer)> = buffers.iter().map(|(n, b)| (n.as_str(), b)).collect();
-    write_atomic(path, |tmp| {
-        safetensors::serialize_to_file(views, &Some(metadata), tmp)
-            .map_err(|e| ckpt_error(path, e.to_string()))
+    stage_with(path, |tmp| {
+        safetensors::serialize_to_file(views, &Some(metadata), tmp).map_err(|e| match e {
+            safetensors::SafeTensorError::IoError(e) => write_failed(path, e),
+            e => ckpt_error(path, e.to_string()),
+        })
     })
+}
+
+/// The calibconv `metadata` of the checkpoint at `path`, checked against this build's format.
+fn parse_info(path: &Path, metadata: Option<&String>) -> Result<Option<CheckpointInfo>> {
+    let Some(json) = metadata else {
+        return Ok(None);
+    };
+    let info: CheckpointInfo = serde_json::from_str(json)
+        .map_err(|e| ckpt_error(path, format!("unreadable `calibconv` metadata: {e}")))?;
+    if info.format != FORMAT || info.version != FORMAT_VERSION {
+        return Err(ckpt_error(
+            path,
+            format!(
+                "format {} version {}, this build reads {FORMAT} version {FORMAT_VERSION}",
+                info.format, info.version
+            ),
+        ));
+    }
+    Ok(Some(info))
+}
+
+/// Largest safetensors header [`read_info`] reads (the format's own limit is 100 MB; a
+/// checkpoint's header is a few kB).
+const MAX_HEADER: u64 = 100_000_000;
+
+/// The calibconv [`CheckpointInfo`] of the checkpoint at `path` (`None` for a file without it)
+/// from the file's header alone, without reading its tensors: what a status view needs of a
+/// checkpoint that may be large and on a network file system.
+pub fn read_info(path: &Path) -> Result<Option<CheckpointInfo>> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n).map_err(|e| Error::io(path, e))?;
+    let n = u64::from_le_bytes(n);
+    if n > MAX_HEADER {
+        return Err(ckpt_error(
+            path,
+            format!("header of {n} bytes: not a checkpoint"),
+        ));
+    }
+    let mut header = vec![0u8; n as usize];
+    f.read_exact(&mut header).map_err(|e| Error::io(path, e))?;
+    let header: serde_json::Value = serde_json::from_slice(&header)
+        .map_err(|e| ckpt_error(path, format!("not a readable safetensors header: {e}")))?;
+    let meta = header
+        .get("__metadata__")
+        .and_then(|m| m.get("calibconv"))
+        .and_then(|c| c.as_str())
+        .map(String::from);
+    parse_info(path, meta.as_ref())
 }
 
 /// A safetensors file read into memory.
@@ -171,25 +234,7 @@ impl TensorFile {
 
     /// The calibconv [`CheckpointInfo`], or `None` for a file without it (a foreign state dict).
     pub fn info(&self) -> Result<Option<CheckpointInfo>> {
-        match self.metadata()?.get("calibconv") {
-            None => Ok(None),
-            Some(json) => {
-                let info: CheckpointInfo = serde_json::from_str(json).map_err(|e| {
-                    ckpt_error(&self.path, format!("unreadable `calibconv` metadata: {e}"))
-                })?;
-                if info.format != FORMAT || info.version != FORMAT_VERSION {
-                    return Err(ckpt_error(
-                        &self.path,
-                        format!(
-                            "format {} version {}, this build reads {FORMAT} version \
-                             {FORMAT_VERSION}",
-                            info.format, info.version
-                        ),
-                    ));
-                }
-                Ok(Some(info))
-            }
-        }
+        parse_info(&self.path, self.metadata()?.get("calibconv"))
     }
 
     /// Names and shapes of the tensors in the file, sorted by name.

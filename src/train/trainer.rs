@@ -222,16 +222,19 @@ impl<'a, 'c> Trainer<'a, 'c> {
                 if validate_now && self.val.is_some() {
                     self.validate()?;
                 }
-                if validate_now
+                let checkpointed = validate_now
                     || self
                         .cfg
                         .checkpoint_every
-                        .is_some_and(|n| step.is_multiple_of(n))
-                {
+                        .is_some_and(|n| step.is_multiple_of(n));
+                if checkpointed {
                     self.checkpoint(seen)?;
                 }
                 if step >= self.total {
                     break 'epochs;
+                }
+                if let Some(signal) = self.cfg.stop.requested() {
+                    return Err(self.interrupted(signal, seen, checkpointed));
                 }
                 t0 = Instant::now();
             }
@@ -382,8 +385,33 @@ impl<'a, 'c> Trainer<'a, 'c> {
         }
     }
 
-    /// Writes `last.optim` then `last` (with the position after `seen` batches of this epoch)
-    /// and flushes the reporter.
+    /// Stops after the current step on `signal`: writes `last.*` (unless this step already
+    /// did), flushes the reporter and returns the [`Error::Interrupted`] to report; a failed
+    /// write is returned instead.
+    fn interrupted(&mut self, signal: i32, seen: u64, checkpointed: bool) -> Error {
+        let saved = if checkpointed {
+            self.reporter.flush()
+        } else {
+            self.checkpoint(seen)
+        };
+        if let Err(e) = saved {
+            return e;
+        }
+        self.bar.finish_and_clear();
+        Error::Interrupted {
+            signal: super::stop::signal_name(signal),
+            what: format!(
+                "at step {} of {}; {} holds it",
+                self.step,
+                self.total,
+                self.last.display()
+            ),
+        }
+    }
+
+    /// Writes `last.optim` and `last` (with the position after `seen` batches of this epoch)
+    /// and flushes the reporter. Both files are written in full before either replaces its
+    /// predecessor: a failed write (a full disk) leaves the previous pair whole.
     fn checkpoint(&mut self, seen: u64) -> Result<()> {
         let t_ckpt = Instant::now();
         self.info
@@ -405,10 +433,12 @@ impl<'a, 'c> Trainer<'a, 'c> {
             meta.insert("best_value".into(), format!("{:e}", b.value));
             meta.insert("best_step".into(), b.step.to_string());
         }
-        // Optimiser first: if the weights' write fails, the pair stays consistent on resume
-        // (resume checks both steps agree).
-        self.adam.save(&self.last_optim, meta)?;
-        checkpoint::save(&self.last, self.vs, &self.info)?;
+        // Both written before either is renamed: the renames take no space, so the pair can
+        // only disagree if the process dies between them (resume checks both steps agree).
+        let optim = self.adam.stage(&self.last_optim, meta)?;
+        let weights = checkpoint::stage(&self.last, self.vs, &self.info)?;
+        optim.commit()?;
+        weights.commit()?;
         self.reporter.flush()?;
         self.stats.ckpt_secs += t_ckpt.elapsed().as_secs_f64();
         Ok(())

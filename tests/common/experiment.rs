@@ -133,5 +133,6 @@ pub fn quiet() -> calibconv::experiment::RunOptions<'static> {
         progress: false,
         verbose: false,
         opener: &calibconv::experiment::DefaultOpener,
+        stop: calibconv::train::stop::StopFlag::detached(),
     }
 }
