@@ -140,7 +140,12 @@ fn paired(
     }
     ratio.sort_by(|a, b| a.total_cmp(b));
     let ci = super::paired::median_ci(&ratio);
-    (super::paired::median(r), super::paired::median(c), super::paired::median(ratio), ci)
+    (
+        super::paired::median(r),
+        super::paired::median(c),
+        super::paired::median(ratio),
+        ci,
+    )
 }
 
 /// Times one layer on `device`: calibrated (offsets of `camera`) against `conv2d` with the same

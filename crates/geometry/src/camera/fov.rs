@@ -122,7 +122,7 @@ impl CameraModel for Fov {
     }
 
     /// Eq. 14 in its angle form (module docs); `None` for `r_d w >= pi`, non-finite pixels, or
-    /// a ray whose forward map misses `r_d` by more than [`RESIDUAL_TOL`].
+    /// a ray whose forward map misses `r_d` by more than `RESIDUAL_TOL`.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let mx = (px[0] - self.cx) / self.fx;
         let my = (px[1] - self.cy) / self.fy;

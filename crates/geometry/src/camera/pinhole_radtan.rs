@@ -206,12 +206,12 @@ impl PinholeRadTan {
         self.distortion.distort(m)
     }
 
-    /// The Jacobian `d(x'', y'') / d(x', y')`, row-major (see [`super::radtan`]).
+    /// The Jacobian `d(x'', y'') / d(x', y')`, row-major (see the `radtan` module).
     pub fn distort_jacobian(&self, m: [f64; 2]) -> [[f64; 2]; 2] {
         self.distortion.jacobian(m)
     }
 
-    /// Solves `distort(m) = target` (see [`super::radtan`]). Returns `(m, iterations)`, or
+    /// Solves `distort(m) = target` (see the `radtan` module). Returns `(m, iterations)`, or
     /// `None` where no point of the domain has a residual below its tolerance.
     pub(crate) fn undistort(&self, target: [f64; 2]) -> Option<([f64; 2], usize)> {
         self.distortion.undistort(target)
@@ -247,7 +247,7 @@ impl CameraModel for PinholeRadTan {
     }
 
     /// The unit ray along `[x', y', 1]` with `(x', y')` the undistorted point (Newton with a
-    /// residual check, see [`super::radtan`]); `None` past the fold.
+    /// residual check, see the `radtan` module); `None` past the fold.
     fn unproject(&self, px: [f64; 2]) -> Option<[f64; 3]> {
         let target = [(px[0] - self.cx) / self.fx, (px[1] - self.cy) / self.fy];
         let (m, _) = self.undistort(target)?;
