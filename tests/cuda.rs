@@ -59,9 +59,7 @@ fn op_results(
 ) -> Vec<Tensor> {
     let [x, off, w, b, probe] = t.each_ref().map(|v| v.to_device(device).to_kind(kind));
     let [x, w, b] = [x, w, b].map(|v| v.set_requires_grad(true));
-    let (h, wd) = (case.size[0], case.size[1]);
-    let geom = ConvGeometry::new(case.kernel, case.stride, case.padding, case.dilation);
-    let plan = ops::tensor_plan(&off, [h, wd], geom, kind, device).unwrap();
+    let plan = ops::tensor_plan(&off, case.size, case.geometry(), kind, device).unwrap();
     assert_eq!(plan.device(), device);
     let y = ops::deform_conv2d_planned_with(&x, &plan, &w, Some(&b), case.groups, backend).unwrap();
     let loss = (&y * &probe).sum(kind);
@@ -86,6 +84,12 @@ struct OpCase {
     per_item: bool,
     /// Offsets are standard normal times this (large: many samples off the image).
     reach: f64,
+}
+
+impl OpCase {
+    fn geometry(&self) -> ConvGeometry {
+        ConvGeometry::new(self.kernel, self.stride, self.padding, self.dilation)
+    }
 }
 
 const CASES: [OpCase; 5] = [
@@ -171,9 +175,8 @@ fn op_matches_the_cpu_float64_op_on_random_plans() {
             tch::manual_seed(i as i64);
             let opts = (Kind::Double, Device::Cpu);
             let [h, w] = case.size;
-            let (k, s, p, d) = (case.kernel, case.stride, case.padding, case.dilation);
-            let ho = (h + 2 * p[0] - d[0] * (k[0] - 1) - 1) / s[0] + 1;
-            let wo = (w + 2 * p[1] - d[1] * (k[1] - 1) - 1) / s[1] + 1;
+            let k = case.kernel;
+            let [ho, wo] = case.geometry().output_size([h, w]).unwrap();
             let taps = k[0] * k[1];
             let off_shape: Vec<i64> = if case.per_item {
                 vec![case.batch, 2 * taps, ho, wo]

@@ -61,6 +61,33 @@ pub(super) fn assert_round_trips<C: CameraModel>(
     }
 }
 
+/// `jacobian` (the model's `project_jacobian`) at each of `rays` against central differences of
+/// `cam.project` (step 1e-6: ~1e-10 px/unit truncation, ~1e-7 cancellation, so 1e-5 absolute).
+pub(super) fn assert_jacobian_matches_central_differences<C: CameraModel>(
+    cam: &C,
+    jacobian: impl Fn([f64; 3]) -> Option<[[f64; 3]; 2]>,
+    rays: &[[f64; 3]],
+) {
+    let h = 1e-6;
+    for &ray in rays {
+        let j = jacobian(ray).unwrap();
+        for k in 0..3 {
+            let (mut a, mut b) = (ray, ray);
+            a[k] += h;
+            b[k] -= h;
+            let (pa, pb) = (cam.project(a).unwrap(), cam.project(b).unwrap());
+            for r in 0..2 {
+                let fd = (pa[r] - pb[r]) / (2.0 * h);
+                assert!(
+                    (fd - j[r][k]).abs() < 1e-5,
+                    "{ray:?} {r}{k}: {fd} vs {}",
+                    j[r][k]
+                );
+            }
+        }
+    }
+}
+
 /// The authors' F195 calibration (CalibratedConvolutions, fisheye_calibration_FOV195.txt).
 pub(super) fn f195() -> KannalaBrandt {
     kb(
