@@ -19,6 +19,10 @@ pub const STANDARD_RED: [u8; 3] = [214, 39, 40];
 pub const CALIBRATED_BLUE: [u8; 3] = [31, 119, 180];
 /// Colour of the rectified-image baseline.
 pub const RECTIFIED_GREEN: [u8; 3] = [44, 160, 44];
+/// CAM-Convs (`camconv`).
+pub const CAMCONV_ORANGE: [u8; 3] = [255, 127, 14];
+/// Calibrated offsets that keep learning (`calibrated-learned`).
+pub const LEARNED_PURPLE: [u8; 3] = [148, 103, 189];
 
 static FONT: &[u8] = include_bytes!("../data/fonts/DejaVuSans.ttf");
 

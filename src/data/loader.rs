@@ -154,6 +154,7 @@ pub struct Sample {
     pub mask: Vec<bool>,
 }
 
+#[derive(Clone)]
 struct Inner {
     root: PathBuf,
     split: Split,
@@ -236,6 +237,33 @@ impl Dataset {
                 input,
                 inside,
             }),
+        })
+    }
+
+    /// The same split with only `fraction` of its samples, `(0, 1]`: `round(n * fraction)` (at
+    /// least one) drawn without replacement with `seed`, kept in manifest order. The draw is a
+    /// prefix of one permutation per seed, so for one seed the subsets are nested (the 1/16
+    /// subset lies inside the 1/8 one) and every fraction of the same seed shares its samples
+    /// with the larger ones. Batching, shuffling and augmentation are unchanged.
+    ///
+    /// # Errors
+    /// A fraction outside `(0, 1]`.
+    pub fn keep_fraction(self, fraction: f64, seed: u64) -> Result<Dataset> {
+        if !(fraction > 0.0 && fraction <= 1.0) {
+            return Err(Error::InvalidArgument(format!(
+                "a training-set fraction must lie in (0, 1], got {fraction}"
+            )));
+        }
+        let n = self.inner.ids.len();
+        let keep = ((n as f64 * fraction).round() as usize).clamp(1, n.max(1));
+        let mut order: Vec<usize> = (0..n).collect();
+        Rng::derive(seed, &[tag("subset")]).shuffle(&mut order);
+        let mut kept = order[..keep.min(n)].to_vec();
+        kept.sort_unstable();
+        let mut inner = (*self.inner).clone();
+        inner.ids = kept.iter().map(|&i| self.inner.ids[i].clone()).collect();
+        Ok(Dataset {
+            inner: Arc::new(inner),
         })
     }
 

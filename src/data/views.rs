@@ -143,23 +143,7 @@ pub struct View {
     pub mask: Vec<bool>,
 }
 
-/// The largest angle to the optical axis a pixel's ray may make to be inside the image:
-/// `fov_deg / 2` for the fisheye models (Kannala-Brandt, double sphere, unified, extended
-/// unified, Mei, FOV, Scaramuzza: the image circle of the declared field of view); `None` (the image
-/// rectangle is the only limit) for the perspective models and the equirectangular camera.
-pub fn max_ray_angle(camera: &Camera) -> Option<f64> {
-    let half = |fov_deg: f64| Some(fov_deg.to_radians() / 2.0);
-    match camera {
-        Camera::KannalaBrandt(m) => half(m.fov_deg),
-        Camera::DoubleSphere(m) => half(m.fov_deg),
-        Camera::Unified(m) => half(m.fov_deg),
-        Camera::ExtendedUnified(m) => half(m.fov_deg),
-        Camera::Scaramuzza(m) => half(m.fov_deg),
-        Camera::Mei(m) => half(m.fov_deg),
-        Camera::Fov(m) => half(m.fov_deg),
-        Camera::Pinhole(_) | Camera::PinholeRadTan(_) | Camera::Equirectangular(_) => None,
-    }
-}
+pub use crate::camera::max_ray_angle;
 
 /// The angle of the rays that [`rectified_camera`] uses to measure a fisheye's focal length
 /// at its principal point, radians: small enough that every model's distortion is negligible

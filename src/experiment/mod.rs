@@ -40,7 +40,10 @@
 //!
 //! [model]
 //! preset = "small"                    # classic | classic-bilinear | small | tiny
-//! kernel = "calibrated"               # standard | calibrated
+//! kernel = "calibrated"               # standard | calibrated | camconv | calibrated-learned
+//!                                     # (camconv: CAM-Convs' camera maps at the skip
+//!                                     # connections; calibrated-learned: calibrated offsets plus
+//!                                     # a learned offset branch; see calibconv::nn)
 //! # base = 16, depth = 4, up = "transposed" | "bilinear": override the preset
 //! # classes = 13                      # segmentation only (default 13)
 //! init = { experiment = "pers-depth-bl" }   # or { checkpoint = "path.safetensors" }
@@ -55,7 +58,8 @@
 //! convention = "half-pixel"           # or "paper"
 //!
 //! [data]
-//! train = { dataset = "data/synth/f195", split = "train" }
+//! train = { dataset = "data/synth/f195", split = "train" }   # fraction = 0.25: a subset
+//!                                     # drawn with the seed, nested across fractions
 //! val = { dataset = "data/synth/f195", split = "val" }
 //! test = { toy = 32, split = "test" }
 //!

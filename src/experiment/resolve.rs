@@ -57,10 +57,22 @@ impl RawSource {
         if self.split.is_empty() {
             return Err(bad("`split` must not be empty"));
         }
+        if let Some(f) = self.fraction {
+            if field != "data.train" {
+                return Err(bad("`fraction` applies to `data.train` only"));
+            }
+            if !(f > 0.0 && f <= 1.0) {
+                return Err(bad(&format!("`fraction` must lie in (0, 1], got {f}")));
+            }
+            if self.dataset.is_none() {
+                return Err(bad("`fraction` needs a `dataset` (the toy task has a size instead)"));
+            }
+        }
         match (self.dataset, self.toy) {
             (Some(p), None) => Ok(SourceSpec::Dataset {
                 path: absolute(&root.join(p))?,
                 split: self.split,
+                fraction: self.fraction,
             }),
             (None, Some(0)) => Err(bad("`toy` needs at least one sample")),
             (None, Some(n)) => Ok(SourceSpec::Toy {
@@ -537,7 +549,7 @@ impl EvalDefaults<'_> {
         let data = e.data.clone().resolve(cfg, &f("data"), self.root)?;
         let kernel = e.kernel.unwrap_or(self.kernel);
         let input = self.input(&f("camera"), &e)?;
-        if kernel == KernelName::Calibrated {
+        if kernel.uses_camera() {
             check_calibrated(cfg, &f("size"), self.model, &input)?;
         }
         let radial_bins = e.radial_bins.unwrap_or(self.train.radial_bins);
@@ -611,7 +623,7 @@ impl RawExperiment {
             i.size,
             i.convention,
         )?;
-        if kernel == KernelName::Calibrated {
+        if kernel.uses_camera() {
             check_calibrated(cfg, "input.size", &model, &input)?;
         }
 

@@ -313,7 +313,7 @@ fn start_weights(
         let info = TensorFile::open(last)?.info()?;
         resume_step = info.map(|i| i.step);
     } else if let Some(path) = init_checkpoint(exp)? {
-        checkpoint::load(&path, vs, &exp.model)?;
+        checkpoint::load_init(&path, vs, &exp.model)?;
         init_from = Some(path);
     }
     record_invocation(
@@ -768,6 +768,8 @@ fn write_radial_plots(dir: &Path, e: &Evaluation, spec: &EvalSpec) -> Result<()>
     let colour = match spec.kernel {
         KernelName::Standard => plots::STANDARD_RED,
         KernelName::Calibrated => plots::CALIBRATED_BLUE,
+        KernelName::CamConv => plots::CAMCONV_ORANGE,
+        KernelName::CalibratedLearned => plots::LEARNED_PURPLE,
     };
     for m in metrics {
         let (mut x, mut mean, mut std) = (Vec::new(), Vec::new(), Vec::new());

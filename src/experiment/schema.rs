@@ -25,15 +25,35 @@ pub enum Task {
 pub enum KernelName {
     Standard,
     Calibrated,
+    /// Standard kernels plus CAM-Convs' camera maps at the skip connections.
+    #[serde(rename = "camconv")]
+    CamConv,
+    /// Calibrated offsets plus a learned offset branch.
+    CalibratedLearned,
 }
 
 impl KernelName {
-    /// `standard` or `calibrated`.
+    /// Every kernel name, in the order tables list them.
+    pub const ALL: [KernelName; 4] = [
+        KernelName::Standard,
+        KernelName::Calibrated,
+        KernelName::CamConv,
+        KernelName::CalibratedLearned,
+    ];
+
+    /// `standard`, `calibrated`, `camconv` or `calibrated-learned`.
     pub fn as_str(&self) -> &'static str {
         match self {
             KernelName::Standard => "standard",
             KernelName::Calibrated => "calibrated",
+            KernelName::CamConv => "camconv",
+            KernelName::CalibratedLearned => "calibrated-learned",
         }
+    }
+
+    /// Whether the kind reads the camera calibration (all but `standard`).
+    pub fn uses_camera(&self) -> bool {
+        *self != KernelName::Standard
     }
 }
 
@@ -133,6 +153,10 @@ pub struct RawSource {
     pub dataset: Option<PathBuf>,
     pub toy: Option<usize>,
     pub split: String,
+    /// Train on this fraction of the split's samples only, `(0, 1]` (data sets only): a subset
+    /// drawn with the experiment's seed, nested across fractions (see
+    /// [`crate::data::loader::Dataset::keep_fraction`]).
+    pub fraction: Option<f64>,
 }
 
 /// `[train]`.

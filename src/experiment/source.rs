@@ -22,11 +22,18 @@ use crate::error::{Error, Result};
 use crate::kernel::InputFrame;
 
 /// A data source as an experiment names it (paths resolved).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SourceSpec {
-    /// A data set folder (with `manifest.json`, see [`crate::data`]) and a split name.
-    Dataset { path: PathBuf, split: String },
+    /// A data set folder (with `manifest.json`, see [`crate::data`]) and a split name; with a
+    /// `fraction`, only that share of the split's samples, drawn with the run's seed
+    /// ([`Dataset::keep_fraction`]).
+    Dataset {
+        path: PathBuf,
+        split: String,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        fraction: Option<f64>,
+    },
     /// `samples` samples of the toy task; the split name seeds the content.
     Toy { samples: usize, split: String },
 }
@@ -35,7 +42,16 @@ impl SourceSpec {
     /// A short description for logs and file metadata (`path:split` or `toy:split`).
     pub fn describe(&self) -> String {
         match self {
-            SourceSpec::Dataset { path, split } => format!("{}:{split}", path.display()),
+            SourceSpec::Dataset {
+                path,
+                split,
+                fraction: None,
+            } => format!("{}:{split}", path.display()),
+            SourceSpec::Dataset {
+                path,
+                split,
+                fraction: Some(f),
+            } => format!("{}:{split} (fraction {f})", path.display()),
             SourceSpec::Toy { samples, split } => format!("toy({samples}):{split}"),
         }
     }
@@ -102,7 +118,11 @@ pub fn open_source(req: &SourceRequest<'_>) -> Result<Box<dyn BatchSource>> {
                 req.shuffle,
             )?)
         }
-        SourceSpec::Dataset { path, split } => open_dataset_folder(path, split, req)?,
+        SourceSpec::Dataset {
+            path,
+            split,
+            fraction,
+        } => open_dataset_folder(path, split, *fraction, req)?,
     };
     if source.input_size() != req.input_size {
         return Err(Error::Data {
@@ -204,11 +224,13 @@ pub fn check_same_geometry(
 /// Opens split `split` of the data set folder `path` (written by `calibconv synth`, see
 /// [`crate::data::loader`]): batches of `req.batch_size`, shuffled per epoch with
 /// `req.shuffle`'s seed (else in manifest order), padded right / bottom to `req.input_size`,
-/// with `req.augment`. The data set's camera must describe the same geometry as the
-/// experiment's input camera ([`check_same_geometry`]).
+/// with `req.augment`; with a `fraction`, that share of the split drawn with `req.shuffle`'s
+/// seed ([`Dataset::keep_fraction`]). The data set's camera must describe the same geometry as
+/// the experiment's input camera ([`check_same_geometry`]).
 pub fn open_dataset_folder(
     path: &Path,
     split: &str,
+    fraction: Option<f64>,
     req: &SourceRequest<'_>,
 ) -> Result<Box<dyn BatchSource>> {
     let err = |message: String| Error::Data {
@@ -237,7 +259,10 @@ pub fn open_dataset_folder(
         augment: req.augment,
         prefetch: 2,
     };
-    let data = Dataset::open(path, split, config)?;
+    let mut data = Dataset::open(path, split, config)?;
+    if let Some(f) = fraction {
+        data = data.keep_fraction(f, req.shuffle.unwrap_or(0))?;
+    }
     check_same_geometry(path, data.camera(), &data.input_frame(), req)?;
     Ok(Box::new(data))
 }
@@ -253,10 +278,12 @@ mod tests {
         let missing = SourceSpec::Dataset {
             path: dir.path().join("nope"),
             split: "train".into(),
+            fraction: None,
         };
         let empty = SourceSpec::Dataset {
             path: dir.path().to_path_buf(),
             split: "train".into(),
+            fraction: None,
         };
         let req = |spec| SourceRequest {
             spec,

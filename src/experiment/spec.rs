@@ -52,6 +52,14 @@ impl InputSpec {
                 camera: self.camera.clone(),
                 frame: self.frame(),
             },
+            KernelName::CamConv => ConvKind::CamConv {
+                camera: self.camera.clone(),
+                frame: self.frame(),
+            },
+            KernelName::CalibratedLearned => ConvKind::CalibratedLearned {
+                camera: self.camera.clone(),
+                frame: self.frame(),
+            },
         }
     }
 }

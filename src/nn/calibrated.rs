@@ -34,6 +34,20 @@ pub struct Conv2dConfig {
     pub dilation: [i64; 2],
     pub groups: i64,
     pub bias: bool,
+    /// Where the convolution sits in its network (read by [`super::ConvKind::CamConv`]).
+    pub site: ConvSite,
+}
+
+/// Where a convolution sits in its network: what a network tells the conv factory so that a
+/// kind can treat some places differently without the network looking at the kind.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ConvSite {
+    /// Anywhere else.
+    #[default]
+    Body,
+    /// The first convolution after a decoder concatenates an encoder's skip connection (where
+    /// CAM-Convs add their camera maps).
+    AfterSkip,
 }
 
 impl Default for Conv2dConfig {
@@ -44,6 +58,7 @@ impl Default for Conv2dConfig {
             dilation: [1, 1],
             groups: 1,
             bias: true,
+            site: ConvSite::Body,
         }
     }
 }

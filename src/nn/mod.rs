@@ -1,18 +1,27 @@
 //! Layers: the calibrated convolution module and the conv-kind factory.
 //!
 //! The ablation axis of the paper (standard vs calibrated kernels) is one enum, [`ConvKind`],
-//! read by one factory, [`conv2d`]; networks never branch on it. Both kinds create the same
+//! read by one factory, [`conv2d`]; networks never branch on it. Every kind creates the same
 //! parameters (`weight` `[C_out, C_in/groups, kh, kw]`, `bias` `[C_out]`) with the same
 //! initialisation, so a checkpoint trained with standard kernels loads into a calibrated network
-//! unchanged.
+//! unchanged. Kinds beyond the paper's two add parameters of their own under an `added` path
+//! segment ([`is_added_parameter`]), zero-initialised so that the network starts as the one it
+//! was loaded from: [`ConvKind::CamConv`] (CAM-Convs' camera maps at the skip connections,
+//! [`CamMapsConv2d`]) and [`ConvKind::CalibratedLearned`] (calibrated offsets plus a learned
+//! offset branch, [`LearnedOffsetConv2d`]). Networks tell the factory where a convolution sits
+//! ([`ConvSite`]), never which kind it is.
 //!
 //! [`unet`] is the paper's network (the classic U-Net with milesial/Pytorch-UNet's parameter
 //! names), built from that factory.
 
 mod calibrated;
+mod camconv;
+mod learned;
 pub mod unet;
 
-pub use calibrated::{CalibratedConv2d, Conv2dConfig};
+pub use calibrated::{CalibratedConv2d, Conv2dConfig, ConvSite};
+pub use camconv::CamMapsConv2d;
+pub use learned::LearnedOffsetConv2d;
 pub use unet::{Head, UNet, UNetConfig, UpMode};
 
 use std::sync::Arc;
@@ -35,6 +44,26 @@ pub enum ConvKind {
         camera: Arc<Camera>,
         frame: InputFrame,
     },
+    /// Regular `conv2d`, plus CAM-Convs' camera maps (the pixel's ray, from the calibration)
+    /// at the convolutions that read a skip connection ([`ConvSite::AfterSkip`]).
+    CamConv {
+        camera: Arc<Camera>,
+        frame: InputFrame,
+    },
+    /// The calibrated offsets plus a learned, zero-initialised offset branch (DCN-style).
+    CalibratedLearned {
+        camera: Arc<Camera>,
+        frame: InputFrame,
+    },
+}
+
+/// The path segment under which a kind's own parameters live (`...0.added.cam_maps.weight`).
+pub const ADDED: &str = "added";
+
+/// Whether `name` (a var-store name, `a.b.c`) is a parameter that a [`ConvKind`] adds to the
+/// network (absent from networks of the paper's two kinds; zero-initialised).
+pub fn is_added_parameter(name: &str) -> bool {
+    name.split('.').any(|segment| segment == ADDED)
 }
 
 /// A convolution of either kind.
@@ -42,6 +71,8 @@ pub enum ConvKind {
 pub enum Conv {
     Standard(nn::Conv2D),
     Calibrated(CalibratedConv2d),
+    CamMaps(CamMapsConv2d),
+    Learned(LearnedOffsetConv2d),
 }
 
 impl Conv {
@@ -50,6 +81,8 @@ impl Conv {
         match self {
             Conv::Standard(c) => &c.ws,
             Conv::Calibrated(c) => &c.ws,
+            Conv::CamMaps(c) => &c.conv.ws,
+            Conv::Learned(c) => &c.ws,
         }
     }
 }
@@ -59,13 +92,16 @@ impl Module for Conv {
         match self {
             Conv::Standard(c) => c.forward(xs),
             Conv::Calibrated(c) => c.forward(xs),
+            Conv::CamMaps(c) => c.forward(xs),
+            Conv::Learned(c) => c.forward(xs),
         }
     }
 }
 
 /// The conv factory: a `k x k` convolution of `kind` for an input feature map of `input_size`
-/// `[H, W]` (needed by calibrated kernels only; 1x1 convolutions are always standard, they have
-/// no spatial extent to calibrate).
+/// `[H, W]` (needed by the camera-dependent kinds only; 1x1 convolutions are always standard,
+/// they have no spatial extent to calibrate). `cfg.site` says where the convolution sits
+/// ([`ConvKind::CamConv`] adds its maps after skip connections only).
 pub fn conv2d(
     vs: &nn::Path,
     c_in: i64,
@@ -79,6 +115,14 @@ pub fn conv2d(
         ConvKind::Calibrated { camera, frame } if k > 1 => Ok(Conv::Calibrated(
             CalibratedConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
         )),
+        ConvKind::CalibratedLearned { camera, frame } if k > 1 => Ok(Conv::Learned(
+            LearnedOffsetConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
+        )),
+        ConvKind::CamConv { camera, frame } if k > 1 && cfg.site == ConvSite::AfterSkip => {
+            Ok(Conv::CamMaps(CamMapsConv2d::new(
+                vs, c_in, c_out, k, camera, frame, input_size, cfg,
+            )?))
+        }
         _ => Ok(Conv::Standard(nn::conv(
             vs,
             c_in,

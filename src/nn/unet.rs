@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use tch::nn::{self, Module, ModuleT};
 use tch::Tensor;
 
-use super::{conv2d, Conv, Conv2dConfig, ConvKind};
+use super::{conv2d, Conv, Conv2dConfig, ConvKind, ConvSite};
 use crate::error::{Error, Result};
 use crate::kernel::pyramid_sizes;
 
@@ -194,7 +194,8 @@ pub struct DoubleConv {
 }
 
 impl DoubleConv {
-    /// A DoubleConv `c_in -> mid -> c_out` for an input feature map of `size` `[H, W]`.
+    /// A DoubleConv `c_in -> mid -> c_out` for an input feature map of `size` `[H, W]`; its
+    /// first convolution sits at `site`.
     pub fn new(
         p: &nn::Path,
         c_in: i64,
@@ -202,14 +203,16 @@ impl DoubleConv {
         c_out: i64,
         kind: &ConvKind,
         size: [i64; 2],
+        site: ConvSite,
     ) -> Result<Self> {
         let p = p / "double_conv";
         let cfg = Conv2dConfig {
             bias: false,
             ..Default::default()
         };
+        let first = Conv2dConfig { site, ..cfg };
         Ok(DoubleConv {
-            conv1: conv2d(&(&p / 0), c_in, mid, 3, kind, size, cfg)?,
+            conv1: conv2d(&(&p / 0), c_in, mid, 3, kind, size, first)?,
             bn1: batch_norm(&(&p / 1), mid),
             conv2: conv2d(&(&p / 3), mid, c_out, 3, kind, size, cfg)?,
             bn2: batch_norm(&(&p / 4), c_out),
@@ -266,7 +269,7 @@ impl Up {
             ),
             UpMode::Bilinear => (None, c_in / 2),
         };
-        let conv = DoubleConv::new(&(p / "conv"), c_in, mid, c_out, kind, size)?;
+        let conv = DoubleConv::new(&(p / "conv"), c_in, mid, c_out, kind, size, ConvSite::AfterSkip)?;
         Ok(Up { up, conv })
     }
 
@@ -350,6 +353,7 @@ impl UNet {
                 w(0),
                 kind,
                 sizes[0],
+                ConvSite::Body,
             ),
         )?;
         let mut downs = Vec::with_capacity(d);
@@ -358,7 +362,7 @@ impl UNet {
             downs.push(at_level(
                 &sizes,
                 l,
-                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size),
+                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size, ConvSite::Body),
             )?);
         }
         let mut ups = Vec::with_capacity(d);
@@ -473,6 +477,20 @@ mod tests {
         vec![
             ("standard", ConvKind::Standard),
             ("calibrated", calibrated(f195())),
+            (
+                "camconv",
+                ConvKind::CamConv {
+                    camera: std::sync::Arc::new(f195()),
+                    frame: Default::default(),
+                },
+            ),
+            (
+                "calibrated-learned",
+                ConvKind::CalibratedLearned {
+                    camera: std::sync::Arc::new(f195()),
+                    frame: Default::default(),
+                },
+            ),
         ]
     }
 
@@ -585,6 +603,63 @@ mod tests {
             net_cal.f_forward_t(&x, false).unwrap(),
         );
         assert!((a - b).abs().max().double_value(&[]) > 1e-4);
+    }
+
+    /// The kinds beyond the paper's two start, from a checkpoint without their added
+    /// parameters, as the network the checkpoint was trained as: camconv exactly as the standard
+    /// network (its map weights are zero), calibrated-learned as the calibrated one (its offset
+    /// branch outputs zero; the sampled op rounds differently from the planned one).
+    #[test]
+    fn added_kinds_start_as_the_network_their_checkpoint_comes_from() {
+        let cfg = UNetConfig::preset("tiny", Head::Depth).unwrap();
+        let size = [48i64, 40];
+        let build = |kind: &ConvKind| {
+            let vs = VarStore::new(Device::Cpu);
+            let net = UNet::new(&vs.root(), &cfg, kind, size).unwrap();
+            (vs, net)
+        };
+        let kinds = kinds();
+        tch::manual_seed(5);
+        let (vs_std, net_std) = build(&kinds[0].1);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bl.safetensors");
+        let vars = crate::train::checkpoint::named_variables(&vs_std);
+        crate::train::checkpoint::write_tensors(&path, &vars, Default::default()).unwrap();
+        let x = Tensor::rand([2, 3, size[0], size[1]], (Kind::Float, Device::Cpu));
+        let out = |net: &UNet| net.f_forward_t(&x, false).unwrap();
+        let (vs_cal, net_cal) = build(&kinds[1].1);
+        crate::train::checkpoint::load(&path, &vs_cal, &cfg).unwrap();
+        for (reference, (name, kind)) in [(&net_std, &kinds[2]), (&net_cal, &kinds[3])] {
+            let (vs, net) = build(kind);
+            let added: Vec<String> = names_and_shapes(&vs)
+                .into_iter()
+                .map(|(n, _)| n)
+                .filter(|n| crate::nn::is_added_parameter(n))
+                .collect();
+            assert!(!added.is_empty(), "{name} adds no parameters");
+            // Strict loading names them; loading starting weights leaves them at zero.
+            let err = crate::train::checkpoint::load(&path, &vs, &cfg)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("missing from the file") && err.contains(".added."), "{err}");
+            crate::train::checkpoint::load_init(&path, &vs, &cfg).unwrap();
+            for n in &added {
+                let t = &vs.variables()[n];
+                assert_eq!(t.abs().max().double_value(&[]), 0.0, "{name}: {n}");
+            }
+            let diff = (out(&net) - out(reference)).abs().max().double_value(&[]);
+            let tol = if *name == "camconv" { 0.0 } else { 1e-4 };
+            assert!(diff <= tol, "{name}: {diff}");
+        }
+        // The CAM maps sit after the skip connections only: one map weight per decoder block.
+        let (vs_cam, _) = build(&kinds[2].1);
+        let maps: Vec<String> = names_and_shapes(&vs_cam)
+            .into_iter()
+            .map(|(n, _)| n)
+            .filter(|n| n.ends_with("added.cam_maps.weight"))
+            .collect();
+        assert_eq!(maps.len(), cfg.depth, "{maps:?}");
+        assert!(maps.iter().all(|n| n.contains(".conv.double_conv.0.")), "{maps:?}");
     }
 
     #[test]

@@ -44,7 +44,9 @@
 //! (relative differences ~1e-7). Tests hold the native path to the ATen one at 1e-12 (float64)
 //! on random plans with out-of-range and far-reaching samples, to torchvision's fixtures at 1e-4
 //! (float32) / 1e-6 (float64), and to finite differences in float64. Gradients with respect to
-//! the offsets are not computed (they are fixed data).
+//! the offsets are not computed (they are fixed data); offsets that learn go through
+//! [`f_deform_conv2d_sampled`] (module `sampled`: ATen's `grid_sampler_2d`, differentiable in
+//! the offsets, no plan).
 //!
 //! Shared offsets `[2*kh*kw, H_out, W_out]` are used by every batch item without copying;
 //! per-item offsets `[B, 2*kh*kw, H_out, W_out]` are supported too.
@@ -72,9 +74,11 @@ mod native {
     }
 }
 mod plan;
+mod sampled;
 
 pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
 pub use plan::{Border, ConvGeometry, SamplingPlan};
+pub use sampled::f_deform_conv2d_sampled;
 
 use tch::{Kind, Tensor};
 

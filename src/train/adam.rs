@@ -190,7 +190,7 @@ impl Adam {
             targets.push((format!("m.{name}"), self.m[i].shallow_clone()));
             targets.push((format!("v.{name}"), self.v[i].shallow_clone()));
         }
-        file.copy_into(&targets, dropped_on_import)?;
+        file.copy_into(&targets, dropped_on_import, |_| false)?;
         self.t = t;
         Ok(meta)
     }

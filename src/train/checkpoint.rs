@@ -73,6 +73,23 @@ pub struct Loaded {
 /// tensor missing, unexpected or of another shape (all listed, the first mismatch first).
 /// Nothing is modified on error.
 pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded> {
+    load_with(path, vs, expected, |_| false)
+}
+
+/// [`load`] for the starting weights of a run: parameters that the network's kind adds to the
+/// U-Net ([`crate::nn::is_added_parameter`]: the CAM-Conv map weights, learned offset branches)
+/// may be absent from the file (a baseline trained without them) and then keep their
+/// initialisation; present, they are loaded like every other tensor.
+pub fn load_init(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded> {
+    load_with(path, vs, expected, crate::nn::is_added_parameter)
+}
+
+fn load_with(
+    path: &Path,
+    vs: &VarStore,
+    expected: &UNetConfig,
+    optional: fn(&str) -> bool,
+) -> Result<Loaded> {
     let file = TensorFile::open(path)?;
     let info = file.info()?;
     let torch_architecture = match info {
@@ -104,7 +121,7 @@ pub fn load(path: &Path, vs: &VarStore, expected: &UNetConfig) -> Result<Loaded>
             ));
         }
     }
-    let ignored = file.copy_into(&named_variables(vs), pytorch::dropped_on_import)?;
+    let ignored = file.copy_into(&named_variables(vs), pytorch::dropped_on_import, optional)?;
     Ok(Loaded {
         info,
         ignored,

@@ -267,13 +267,14 @@ impl TensorFile {
 
     /// Copies the file's tensors into `targets` (name, variable), after checking that the names
     /// and shapes match exactly (file names for which `skip` holds are left out, e.g.
-    /// [`crate::train::pytorch::dropped_on_import`]).
-    /// On any mismatch nothing is copied and the error lists all of them. Returns the names
+    /// [`crate::train::pytorch::dropped_on_import`]; targets for which `optional` holds may be
+    /// absent from the file and then keep their values). On any mismatch nothing is copied and the error lists all of them. Returns the names
     /// that were skipped.
     pub fn copy_into(
         &self,
         targets: &[(String, Tensor)],
         skip: impl Fn(&str) -> bool,
+        optional: impl Fn(&str) -> bool,
     ) -> Result<Vec<String>> {
         let st = self.parse()?;
         let mut file: BTreeMap<String, _> = st.tensors().into_iter().collect();
@@ -286,6 +287,7 @@ impl TensorFile {
         let (mut missing, mut shape, mut dtype) = (Vec::new(), Vec::new(), Vec::new());
         for (name, var) in &sorted {
             match file.get(name) {
+                None if optional(name) => {}
                 None => missing.push(format!("`{name}` {:?}", var.size())),
                 Some(view) => {
                     let s: Vec<i64> = view.shape().iter().map(|&x| x as i64).collect();
@@ -338,7 +340,10 @@ impl TensorFile {
         }
         tch::no_grad(|| -> Result<()> {
             for (name, var) in targets {
-                let view = &file[name];
+                // (An optional target the file lacks keeps its value.)
+                let Some(view) = file.get(name) else {
+                    continue;
+                };
                 let kind = kind_of(view.dtype()).expect("checked above");
                 let t = Tensor::f_from_data_size(view.data(), &var.size(), kind)?
                     .to_kind(var.kind())

@@ -33,6 +33,10 @@
 //!   sampling plan wraps columns, `calibconv::ops::Border::WrapX`). Such a camera cannot be padded
 //!   horizontally (`p_w = 0`): the image must span exactly 360 degrees.
 
+mod maps;
+
+pub use maps::{ray_maps, RayMaps, RAY_MAPS};
+
 use rayon::prelude::*;
 
 use crate::camera::{Camera, CameraModel, KernelFrame, PixelConvention};

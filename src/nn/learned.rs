@@ -1,0 +1,123 @@
+//! [`LearnedOffsetConv2d`]: calibrated offsets that keep learning (DCN-style, Dai et al. 2017).
+//!
+//! The layer samples at the calibrated offsets plus the output of an offset branch: a `k x k`
+//! convolution of the layer's input (same stride, padding and dilation) with `2*k*k` outputs,
+//! the pair `(dy, dx)` per tap and output pixel, as in deformable ConvNets. The branch is
+//! zero-initialised (weight and bias), so the layer starts as the calibrated layer and the
+//! fine-tuning moves the sampling where the loss asks. Its parameters live under
+//! `added.offsets.{weight,bias}`; the convolution's own `weight` / `bias` keep the names and
+//! shapes of [`super::CalibratedConv2d`], so a standard or calibrated checkpoint loads unchanged.
+//!
+//! Sampling goes through [`crate::ops::f_deform_conv2d_sampled`] (differentiable in the offsets,
+//! zeros outside the input). Cameras whose kernels wrap across the image's left/right edge
+//! (panoramas) are refused: that op has no circular border.
+
+use tch::nn::{self, Module};
+use tch::Tensor;
+
+use super::Conv2dConfig;
+use crate::camera::{Camera, CameraModel};
+use crate::error::{Error, Result};
+use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, OffsetsTensor};
+use crate::ops::{f_deform_conv2d_sampled, ConvGeometry};
+
+/// A `k x k` deformable convolution at calibrated offsets plus learned ones.
+#[derive(Debug)]
+pub struct LearnedOffsetConv2d {
+    pub ws: Tensor,
+    pub bs: Option<Tensor>,
+    /// The offset branch (`2*k*k` outputs), zero at construction.
+    pub offsets: nn::Conv2D,
+    /// The calibrated offsets `[1, 2*k*k, H_out, W_out]` (constant).
+    calibrated: Tensor,
+    geometry: ConvGeometry,
+    groups: i64,
+}
+
+impl LearnedOffsetConv2d {
+    /// Creates the layer under `vs` for an input feature map of `input_size` `[H, W]`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        vs: &nn::Path,
+        c_in: i64,
+        c_out: i64,
+        k: i64,
+        camera: &Camera,
+        frame: &InputFrame,
+        input_size: [i64; 2],
+        cfg: Conv2dConfig,
+    ) -> Result<Self> {
+        if camera.wraps_horizontally() {
+            return Err(Error::InvalidArgument(format!(
+                "learned offsets need a camera whose kernels do not wrap around the image \
+                 ({} does: a panorama)",
+                camera.model_name()
+            )));
+        }
+        if k < 1 || k % 2 == 0 {
+            return Err(Error::InvalidArgument(format!(
+                "calibrated kernels need an odd size, got {k}"
+            )));
+        }
+        let tch_cfg = cfg.to_tch(k);
+        let padding = tch_cfg.padding;
+        let to_usize = |v: [i64; 2]| v.map(|x| x as usize);
+        let layer = LayerGeometry {
+            kernel: [k as usize; 2],
+            stride: to_usize(cfg.stride),
+            padding: to_usize(padding),
+            dilation: to_usize(cfg.dilation),
+        };
+        let calibrated = cached_offsets(camera, to_usize(input_size), &layer, frame)?;
+        let geometry = ConvGeometry::for_offsets(&calibrated, cfg.stride, padding, cfg.dilation);
+        let calibrated = calibrated.to_tensor().unsqueeze(0).to_device(vs.device());
+        let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
+        let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
+        let offsets = nn::conv(
+            vs / super::ADDED / "offsets",
+            c_in,
+            2 * k * k,
+            [k, k],
+            nn::ConvConfigND::<[i64; 2]> {
+                ws_init: nn::Init::Const(0.0),
+                bs_init: nn::Init::Const(0.0),
+                groups: 1,
+                ..tch_cfg
+            },
+        );
+        Ok(LearnedOffsetConv2d {
+            ws,
+            bs,
+            offsets,
+            calibrated,
+            geometry,
+            groups: cfg.groups,
+        })
+    }
+
+    /// Fallible forward.
+    ///
+    /// # Shapes
+    /// - `xs`: `[B, C_in, H, W]` with `[H, W]` the size the layer was built for
+    /// - output: `[B, C_out, H_out, W_out]`
+    pub fn f_forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let learned = self.offsets.forward(xs);
+        let offsets = learned + self.calibrated.to_kind(xs.kind());
+        f_deform_conv2d_sampled(
+            xs,
+            &offsets,
+            &self.ws,
+            self.bs.as_ref(),
+            self.geometry,
+            self.groups,
+        )
+    }
+}
+
+impl Module for LearnedOffsetConv2d {
+    /// Panics with the message of [`LearnedOffsetConv2d::f_forward`] on a wrong input size.
+    fn forward(&self, xs: &Tensor) -> Tensor {
+        self.f_forward(xs)
+            .unwrap_or_else(|e| panic!("LearnedOffsetConv2d: {e}"))
+    }
+}
