@@ -238,3 +238,51 @@ fn the_fov_series_pairs_every_lens_with_both_kernels() {
     }
     assert_eq!(plan.len(), 10);
 }
+
+/// The open questions plan with the study profile from the study's Pers depth baseline: the
+/// data-efficiency series pairs both kernels at 1/16, 1/8, 1/4 and 1/2 of F195's training views
+/// with the same steps as the full fine-tuning, and the methods are the two kinds beyond the
+/// paper's.
+#[test]
+fn the_open_questions_plan_from_the_depth_baseline() {
+    use calibconv::experiment::{sweep, KernelName, SourceSpec};
+    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
+    let study = "experiments/paper/profiles/study.toml";
+    let plan_of = |dir: &str| {
+        let profile = sweep::find_profile(Path::new(dir), study).unwrap();
+        sweep::plan(Path::new(dir), &profile, &[], &[]).unwrap()
+    };
+    let from_baseline = |p: &sweep::Planned| matches!(&p.exp.init, Some(InitSpec::Experiment { name, .. }) if name == "paper-depth-bl-pers");
+    let full = plan_of("experiments/paper");
+    let full_ft = full
+        .iter()
+        .find(|p| p.exp.name == "paper-depth-ft-f195-calibrated")
+        .unwrap();
+    let efficiency = plan_of("experiments/data-efficiency");
+    assert_eq!(efficiency.len(), 8);
+    for (n, fraction) in [(16, 0.0625), (8, 0.125), (4, 0.25), (2, 0.5)] {
+        for kernel in ["standard", "calibrated"] {
+            let name = format!("eff-depth-ft-f195-1of{n}-{kernel}");
+            let p = efficiency.iter().find(|p| p.exp.name == name).unwrap();
+            assert!(from_baseline(p), "{name}");
+            assert_eq!(p.exp.kernel.as_str(), kernel, "{name}");
+            assert!(
+                matches!(&p.exp.train_data, SourceSpec::Dataset { fraction: Some(f), .. } if *f == fraction),
+                "{name}: {:?}",
+                p.exp.train_data
+            );
+            assert_eq!(
+                format!("{:?}", p.exp.train.length),
+                format!("{:?}", full_ft.exp.train.length),
+                "{name}: another training length than the full fine-tuning"
+            );
+        }
+    }
+    let methods = plan_of("experiments/methods");
+    let kernels: Vec<KernelName> = methods.iter().map(|p| p.exp.kernel).collect();
+    assert_eq!(kernels.len(), 2);
+    for k in [KernelName::CamConv, KernelName::CalibratedLearned] {
+        assert!(kernels.contains(&k), "{kernels:?}");
+    }
+    assert!(methods.iter().all(from_baseline));
+}

@@ -623,6 +623,36 @@ mod tests {
     }
 
     #[test]
+    fn fractions_are_nested_seeded_subsets_in_manifest_order() {
+        let tmp = tempfile::tempdir().unwrap();
+        tiny_sets(tmp.path());
+        let open = || Dataset::open(&tmp.path().join("f195"), Split::Train, config()).unwrap();
+        let all = open();
+        let n = all.len();
+        assert!(n >= 6, "{n}");
+        let ids = |d: &Dataset| d.ids().to_vec();
+        let quarter = open().keep_fraction(0.25, 3).unwrap();
+        let half = open().keep_fraction(0.5, 3).unwrap();
+        assert_eq!(quarter.len(), (n as f64 * 0.25).round() as usize);
+        assert_eq!(half.len(), (n as f64 * 0.5).round() as usize);
+        // Nested, in manifest order, the same for the same seed, another for another seed.
+        assert!(ids(&quarter).iter().all(|id| ids(&half).contains(id)));
+        let position = |id: &String| all.ids().iter().position(|a| a == id).unwrap();
+        let order: Vec<usize> = ids(&half).iter().map(position).collect();
+        assert!(order.windows(2).all(|w| w[0] < w[1]), "{order:?}");
+        assert_eq!(ids(&open().keep_fraction(0.5, 3).unwrap()), ids(&half));
+        assert_ne!(ids(&open().keep_fraction(0.5, 4).unwrap()), ids(&half));
+        assert_eq!(ids(&open().keep_fraction(1.0, 3).unwrap()), ids(&all));
+        assert_eq!(open().keep_fraction(1e-9, 3).unwrap().len(), 1);
+        for bad in [0.0, -0.5, 1.5, f64::NAN] {
+            assert!(open().keep_fraction(bad, 3).is_err(), "{bad}");
+        }
+        // Batches serve the subset only.
+        let served: usize = half.batches(0, 0).map(|b| b.unwrap().ids.len()).sum();
+        assert_eq!(served, half.len());
+    }
+
+    #[test]
     fn batches_follow_the_contract_with_padding() {
         let tmp = tempfile::tempdir().unwrap();
         tiny_sets(tmp.path());

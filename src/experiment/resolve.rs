@@ -65,7 +65,9 @@ impl RawSource {
                 return Err(bad(&format!("`fraction` must lie in (0, 1], got {f}")));
             }
             if self.dataset.is_none() {
-                return Err(bad("`fraction` needs a `dataset` (the toy task has a size instead)"));
+                return Err(bad(
+                    "`fraction` needs a `dataset` (the toy task has a size instead)",
+                ));
             }
         }
         match (self.dataset, self.toy) {

@@ -36,6 +36,9 @@ pub struct Conv2dConfig {
     pub bias: bool,
     /// Where the convolution sits in its network (read by [`super::ConvKind::CamConv`]).
     pub site: ConvSite,
+    /// The pyramid level of its input feature map (0: the network input's resolution, `l`:
+    /// `2^l` times smaller; read by [`super::ConvKind::CalibratedLearned`]).
+    pub level: usize,
 }
 
 /// Where a convolution sits in its network: what a network tells the conv factory so that a
@@ -59,6 +62,7 @@ impl Default for Conv2dConfig {
             groups: 1,
             bias: true,
             site: ConvSite::Body,
+            level: 0,
         }
     }
 }

@@ -50,12 +50,22 @@ pub enum ConvKind {
         camera: Arc<Camera>,
         frame: InputFrame,
     },
-    /// The calibrated offsets plus a learned, zero-initialised offset branch (DCN-style).
+    /// The calibrated offsets plus a learned, zero-initialised offset branch (DCN-style) in the
+    /// layers at pyramid level [`LEARNED_FROM_LEVEL`] and deeper; calibrated kernels above.
     CalibratedLearned {
         camera: Arc<Camera>,
         frame: InputFrame,
     },
 }
+
+/// The shallowest pyramid level whose layers learn offsets under
+/// [`ConvKind::CalibratedLearned`]. Deformable ConvNets put their learned offsets in the deep
+/// stages only; here it is also what a CPU can afford: the sampled op rebuilds its columns every
+/// call, and with every layer learning, a training step of the study's small U-Net (160x144,
+/// batch 8, one thread) took 5.6x the calibrated step (1.7 against 9.4 images/s, loaded 2-core
+/// machine). From level 2 (a quarter of the input's resolution) the layers that learn are those
+/// of the two deepest levels of the study's depth-3 network.
+pub const LEARNED_FROM_LEVEL: usize = 2;
 
 /// The path segment under which a kind's own parameters live (`...0.added.cam_maps.weight`).
 pub const ADDED: &str = "added";
@@ -115,9 +125,17 @@ pub fn conv2d(
         ConvKind::Calibrated { camera, frame } if k > 1 => Ok(Conv::Calibrated(
             CalibratedConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
         )),
-        ConvKind::CalibratedLearned { camera, frame } if k > 1 => Ok(Conv::Learned(
-            LearnedOffsetConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
-        )),
+        ConvKind::CalibratedLearned { camera, frame } if k > 1 => {
+            if cfg.level >= LEARNED_FROM_LEVEL {
+                Ok(Conv::Learned(LearnedOffsetConv2d::new(
+                    vs, c_in, c_out, k, camera, frame, input_size, cfg,
+                )?))
+            } else {
+                Ok(Conv::Calibrated(CalibratedConv2d::new(
+                    vs, c_in, c_out, k, camera, frame, input_size, cfg,
+                )?))
+            }
+        }
         ConvKind::CamConv { camera, frame } if k > 1 && cfg.site == ConvSite::AfterSkip => {
             Ok(Conv::CamMaps(CamMapsConv2d::new(
                 vs, c_in, c_out, k, camera, frame, input_size, cfg,

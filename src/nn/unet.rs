@@ -195,7 +195,8 @@ pub struct DoubleConv {
 
 impl DoubleConv {
     /// A DoubleConv `c_in -> mid -> c_out` for an input feature map of `size` `[H, W]`; its
-    /// first convolution sits at `site`.
+    /// first convolution sits at `site`, both at pyramid `level`.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         p: &nn::Path,
         c_in: i64,
@@ -204,10 +205,12 @@ impl DoubleConv {
         kind: &ConvKind,
         size: [i64; 2],
         site: ConvSite,
+        level: usize,
     ) -> Result<Self> {
         let p = p / "double_conv";
         let cfg = Conv2dConfig {
             bias: false,
+            level,
             ..Default::default()
         };
         let first = Conv2dConfig { site, ..cfg };
@@ -269,7 +272,16 @@ impl Up {
             ),
             UpMode::Bilinear => (None, c_in / 2),
         };
-        let conv = DoubleConv::new(&(p / "conv"), c_in, mid, c_out, kind, size, ConvSite::AfterSkip)?;
+        let conv = DoubleConv::new(
+            &(p / "conv"),
+            c_in,
+            mid,
+            c_out,
+            kind,
+            size,
+            ConvSite::AfterSkip,
+            l,
+        )?;
         Ok(Up { up, conv })
     }
 
@@ -354,6 +366,7 @@ impl UNet {
                 kind,
                 sizes[0],
                 ConvSite::Body,
+                0,
             ),
         )?;
         let mut downs = Vec::with_capacity(d);
@@ -362,7 +375,7 @@ impl UNet {
             downs.push(at_level(
                 &sizes,
                 l,
-                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size, ConvSite::Body),
+                DoubleConv::new(&p, w(l - 1), w(l), w(l), kind, size, ConvSite::Body, l),
             )?);
         }
         let mut ups = Vec::with_capacity(d);
@@ -641,7 +654,10 @@ mod tests {
             let err = crate::train::checkpoint::load(&path, &vs, &cfg)
                 .unwrap_err()
                 .to_string();
-            assert!(err.contains("missing from the file") && err.contains(".added."), "{err}");
+            assert!(
+                err.contains("missing from the file") && err.contains(".added."),
+                "{err}"
+            );
             crate::train::checkpoint::load_init(&path, &vs, &cfg).unwrap();
             for n in &added {
                 let t = &vs.variables()[n];
@@ -659,7 +675,10 @@ mod tests {
             .filter(|n| n.ends_with("added.cam_maps.weight"))
             .collect();
         assert_eq!(maps.len(), cfg.depth, "{maps:?}");
-        assert!(maps.iter().all(|n| n.contains(".conv.double_conv.0.")), "{maps:?}");
+        assert!(
+            maps.iter().all(|n| n.contains(".conv.double_conv.0.")),
+            "{maps:?}"
+        );
     }
 
     #[test]

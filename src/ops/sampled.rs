@@ -124,8 +124,8 @@ mod tests {
             let wt = Tensor::randn([6, 4 / groups, 3, 3], opts) * 0.3;
             let bias = Tensor::randn([6], opts);
             let off = Tensor::randn([2, 18, ho, wo], opts) * 2.0;
-            let plan = SamplingPlan::with_border(&off, [9, 11], g, Kind::Double, Border::Zeros)
-                .unwrap();
+            let plan =
+                SamplingPlan::with_border(&off, [9, 11], g, Kind::Double, Border::Zeros).unwrap();
             let leaf = |t: &Tensor| t.detach().set_requires_grad(true);
             let (x1, w1, x2, w2) = (leaf(&x), leaf(&wt), leaf(&x), leaf(&wt));
             let a = f_deform_conv2d_sampled(&x1, &off, &w1, Some(&bias), g, groups).unwrap();
@@ -151,8 +151,7 @@ mod tests {
         let off = (Tensor::randn([1, 18, 6, 7], opts) * 1.5).set_requires_grad(true);
         let probe = Tensor::randn([1, 3, 6, 7], opts);
         let loss = |o: &Tensor| {
-            (f_deform_conv2d_sampled(&x, o, &wt, None, g, 1).unwrap() * &probe)
-                .sum(Kind::Double)
+            (f_deform_conv2d_sampled(&x, o, &wt, None, g, 1).unwrap() * &probe).sum(Kind::Double)
         };
         loss(&off).backward();
         let grad = off.grad().view([-1]);
@@ -164,7 +163,10 @@ mod tests {
             let minus = loss(&(&flat - &e).view([1, 18, 6, 7])).double_value(&[]);
             let fd = (plus - minus) / 2e-6;
             let an = grad.double_value(&[i]);
-            assert!((fd - an).abs() < 1e-6 * (1.0 + an.abs()), "{i}: fd {fd} vs {an}");
+            assert!(
+                (fd - an).abs() < 1e-6 * (1.0 + an.abs()),
+                "{i}: fd {fd} vs {an}"
+            );
         }
     }
 

@@ -143,8 +143,8 @@ mod tests {
         let scaled = cam.rescaled(scale, frame.convention);
         let ray = scaled.unproject([3.0, 5.0]).unwrap();
         let n = (ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2]).sqrt();
-        for c in 0..3 {
-            assert!((at(&m, c, [5, 3]) as f64 - ray[c] / n).abs() < 1e-6);
+        for (c, r) in ray.iter().enumerate() {
+            assert!((at(&m, c, [5, 3]) as f64 - r / n).abs() < 1e-6);
         }
         // The last two columns are padding (4 camera pixels = 2 feature pixels).
         for y in 0..size[0] {
