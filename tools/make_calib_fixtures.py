@@ -234,6 +234,18 @@ def opencv_e3(v):
     return "%se%s%03d" % (mant, exp[0], abs(int(exp)))
 
 
+def opencv_xml_matrix(tag, values, rows, fmt):
+    """``values`` (row-major) as an OpenCV FileStorage XML matrix ``<tag>`` of ``rows`` rows,
+    each value spelt by ``fmt``, the first four on one line and the rest on the next."""
+    return f"""<{tag} type_id="opencv-matrix">
+  <rows>{rows}</rows>
+  <cols>{len(values) // rows}</cols>
+  <dt>d</dt>
+  <data>
+    {' '.join(fmt(v) for v in values[:4])}
+    {' '.join(fmt(v) for v in values[4:])}</data></{tag}>"""
+
+
 def write_files(calib: Path):
     files = {}
 
@@ -327,20 +339,8 @@ cam1:
 <square_size>25.</square_size>
 <flags>16384</flags>
 <fisheye_model>0</fisheye_model>
-<camera_matrix type_id="opencv-matrix">
-  <rows>3</rows>
-  <cols>3</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(g(v) for v in K[:4])}
-    {' '.join(g(v) for v in K[4:])}</data></camera_matrix>
-<distortion_coefficients type_id="opencv-matrix">
-  <rows>8</rows>
-  <cols>1</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(g(v) for v in D8[:4])}
-    {' '.join(g(v) for v in D8[4:])}</data></distortion_coefficients>
+{opencv_xml_matrix("camera_matrix", K, 3, g)}
+{opencv_xml_matrix("distortion_coefficients", D8, 8, g)}
 <avg_reprojection_error>0.2114</avg_reprojection_error>
 </opencv_storage>
 """
@@ -389,20 +389,8 @@ Avg_Reprojection_Error: {opencv_e3(0.38441346462381665)}
 <FixAspectRatio>1.</FixAspectRatio>
 <!-- flags:  +fix_aspectRatio +fix_principal_point +zero_tangent_dist -->
 <flagValue>14</flagValue>
-<Camera_Matrix type_id="opencv-matrix">
-  <rows>3</rows>
-  <cols>3</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(cv_old(v) for v in Ko[:4])}
-    {' '.join(cv_old(v) for v in Ko[4:])}</data></Camera_Matrix>
-<Distortion_Coefficients type_id="opencv-matrix">
-  <rows>5</rows>
-  <cols>1</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(cv_old(v) for v in Do[:4])}
-    {' '.join(cv_old(v) for v in Do[4:])}</data></Distortion_Coefficients>
+{opencv_xml_matrix("Camera_Matrix", Ko, 3, cv_old)}
+{opencv_xml_matrix("Distortion_Coefficients", Do, 5, cv_old)}
 <Avg_Reprojection_Error>{opencv_e3(0.38441346462381665)}</Avg_Reprojection_Error>
 </opencv_storage>
 """

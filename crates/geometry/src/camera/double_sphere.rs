@@ -33,7 +33,7 @@
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
 use super::extended_unified::eucm_m;
-use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
+use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
@@ -53,13 +53,12 @@ pub struct DoubleSphere {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(DoubleSphere);
-
 plain_fisheye_file!(DoubleSphere, "double-sphere", [xi, alpha]);
 
 impl DoubleSphere {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
+    /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`];
+    /// the error names the field.
     pub fn validate(&self) -> Checked {
         self.intrinsics
             .validate_fisheye(&self.fields(), self.fov_deg)?;

@@ -28,7 +28,7 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
+use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
     check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
@@ -70,13 +70,12 @@ pub struct ExtendedUnified {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(ExtendedUnified);
-
 plain_fisheye_file!(ExtendedUnified, "extended-unified", [alpha, beta]);
 
 impl ExtendedUnified {
     /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
+    /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`];
+    /// the error names the field.
     pub fn validate(&self) -> Checked {
         self.intrinsics
             .validate_fisheye(&self.fields(), self.fov_deg)?;

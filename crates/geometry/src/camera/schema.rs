@@ -121,9 +121,14 @@ pub(crate) use raw_camera_file;
 /// parameters `$param` (in file order) and `fov_deg`, with nothing derived (double sphere,
 /// unified, extended unified): its `Raw` ([`raw_camera_file!`], `fisheye struct`), its
 /// [`CameraFile`] (`model = $name`) and `new` / `unchecked` taking `(intrinsics, $param..,
-/// fov_deg)`. The model writes its own `validate`, which `new` calls.
+/// fov_deg)`, and its intrinsics read as its own fields ([`deref_intrinsics!`]). The model
+/// writes its own `validate`, which `new` calls.
+///
+/// [`deref_intrinsics!`]: super::intrinsics::deref_intrinsics
 macro_rules! plain_fisheye_file {
     ($model:ident, $name:literal, [$($param:ident),+]) => {
+        $crate::camera::intrinsics::deref_intrinsics!($model);
+
         $crate::camera::schema::raw_camera_file! {
             #[doc = concat!("A `", $name, "` camera file as written.")]
             fisheye struct Raw {
