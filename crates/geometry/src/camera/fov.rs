@@ -24,7 +24,7 @@
 use std::f64::consts::PI;
 
 use super::intrinsics::fisheye_extent;
-use super::schema::{check_fov_in_domain, plain_fisheye_file, CameraFile, Checked, Invalid};
+use super::schema::{plain_fisheye_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::project_off_axis;
 
@@ -46,18 +46,21 @@ pub struct Fov {
 plain_fisheye_file!(Fov, "fov", [w]);
 
 impl Fov {
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `0 < w < pi`, and `fov_deg / 2` below pi; the error names the field.
-    pub fn validate(&self) -> Checked {
-        self.intrinsics
-            .validate_fisheye(&self.fields(), self.fov_deg)?;
+    /// `0 < w < pi` (part of [`Fov::validate`]).
+    fn check_parameters(&self) -> Checked {
         if !(self.w > 0.0 && self.w < PI) {
             return Err(Invalid::new(
                 "w",
                 format!("must be in (0, pi) radians, found {}", self.w),
             ));
         }
-        check_fov_in_domain(self.fov_deg, PI, "w")
+        Ok(())
+    }
+
+    /// Largest angle to the optical axis that projects, in radians: `pi` (exclusive; every ray
+    /// but the backward one).
+    pub fn theta_max(&self) -> f64 {
+        PI
     }
 
     /// `2 tan(w / 2)`.
