@@ -59,7 +59,7 @@ fn op_results(
 ) -> Vec<Tensor> {
     let [x, off, w, b, probe] = t.each_ref().map(|v| v.to_device(device).to_kind(kind));
     let [x, w, b] = [x, w, b].map(|v| v.set_requires_grad(true));
-    let plan = ops::tensor_plan(&off, case.size, case.geometry(), kind, device).unwrap();
+    let plan = ops::tensor_plan(&off, case.size, case.geometry, kind, device).unwrap();
     assert_eq!(plan.device(), device);
     let y = ops::deform_conv2d_planned_with(&x, &plan, &w, Some(&b), case.groups, backend).unwrap();
     let loss = (&y * &probe).sum(kind);
@@ -76,87 +76,76 @@ struct OpCase {
     c_in: i64,
     c_out: i64,
     size: [i64; 2],
-    kernel: [i64; 2],
-    stride: [i64; 2],
-    padding: [i64; 2],
-    dilation: [i64; 2],
+    geometry: ConvGeometry,
     groups: i64,
     per_item: bool,
     /// Offsets are standard normal times this (large: many samples off the image).
     reach: f64,
 }
 
+/// A 3x3 kernel at stride 1 and padding 1.
+const SAME_3X3: ConvGeometry = ConvGeometry {
+    kernel: [3, 3],
+    stride: [1, 1],
+    padding: [1, 1],
+    dilation: [1, 1],
+};
+
 impl OpCase {
-    fn geometry(&self) -> ConvGeometry {
-        ConvGeometry::new(self.kernel, self.stride, self.padding, self.dilation)
+    /// `batch` items of `c_in` -> `c_out` channels on a `size` map through [`SAME_3X3`], one
+    /// group, the batch sharing offsets that reach about 2 px: what a case does not change.
+    const fn new(batch: i64, c_in: i64, c_out: i64, size: [i64; 2]) -> Self {
+        OpCase {
+            batch,
+            c_in,
+            c_out,
+            size,
+            geometry: SAME_3X3,
+            groups: 1,
+            per_item: false,
+            reach: 2.0,
+        }
     }
 }
 
 const CASES: [OpCase; 5] = [
+    OpCase::new(2, 8, 16, [17, 19]),
     OpCase {
-        batch: 2,
-        c_in: 8,
-        c_out: 16,
-        size: [17, 19],
-        kernel: [3, 3],
-        stride: [1, 1],
-        padding: [1, 1],
-        dilation: [1, 1],
-        groups: 1,
-        per_item: false,
-        reach: 2.0,
-    },
-    OpCase {
-        batch: 3,
-        c_in: 6,
-        c_out: 9,
-        size: [16, 13],
-        kernel: [3, 3],
-        stride: [2, 2],
-        padding: [1, 1],
-        dilation: [1, 1],
+        geometry: ConvGeometry {
+            stride: [2, 2],
+            ..SAME_3X3
+        },
         groups: 3,
-        per_item: false,
         reach: 1.5,
+        ..OpCase::new(3, 6, 9, [16, 13])
     },
     OpCase {
-        batch: 2,
-        c_in: 4,
-        c_out: 8,
-        size: [15, 18],
-        kernel: [3, 3],
-        stride: [1, 2],
-        padding: [2, 2],
-        dilation: [2, 2],
+        geometry: ConvGeometry {
+            kernel: [3, 3],
+            stride: [1, 2],
+            padding: [2, 2],
+            dilation: [2, 2],
+        },
         groups: 2,
         per_item: true,
         reach: 3.0,
+        ..OpCase::new(2, 4, 8, [15, 18])
     },
     OpCase {
-        batch: 1,
-        c_in: 16,
-        c_out: 32,
-        size: [9, 11],
-        kernel: [3, 3],
-        stride: [1, 1],
-        padding: [0, 1],
-        dilation: [1, 1],
-        groups: 1,
-        per_item: false,
+        geometry: ConvGeometry {
+            padding: [0, 1],
+            ..SAME_3X3
+        },
         reach: 12.0,
+        ..OpCase::new(1, 16, 32, [9, 11])
     },
     OpCase {
-        batch: 2,
-        c_in: 3,
-        c_out: 8,
-        size: [12, 10],
-        kernel: [1, 3],
-        stride: [1, 1],
-        padding: [0, 1],
-        dilation: [1, 1],
-        groups: 1,
-        per_item: false,
-        reach: 2.0,
+        geometry: ConvGeometry {
+            kernel: [1, 3],
+            padding: [0, 1],
+            ..SAME_3X3
+        },
+        ..OpCase::new(2, 3, 8, [12, 10])
     },
 ];
 
@@ -175,8 +164,8 @@ fn op_matches_the_cpu_float64_op_on_random_plans() {
             tch::manual_seed(i as i64);
             let opts = (Kind::Double, Device::Cpu);
             let [h, w] = case.size;
-            let k = case.kernel;
-            let [ho, wo] = case.geometry().output_size([h, w]).unwrap();
+            let k = case.geometry.kernel;
+            let [ho, wo] = case.geometry.output_size([h, w]).unwrap();
             let taps = k[0] * k[1];
             let off_shape: Vec<i64> = if case.per_item {
                 vec![case.batch, 2 * taps, ho, wo]

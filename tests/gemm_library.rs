@@ -3,10 +3,9 @@
 //! process-wide, and the library tests compare bits between runs.
 
 use calibconv::ops::{gemm_library, native_available, set_gemm_library, Backend, GemmLibrary};
-use tch::{Device, Kind, Tensor};
 
 mod common;
-use common::{conv_output_and_gradients as run, max_rel, random_plan3x3};
+use common::{max_rel, Layer3x3};
 
 #[test]
 fn both_gemm_libraries_match_the_aten_composition() {
@@ -16,23 +15,17 @@ fn both_gemm_libraries_match_the_aten_composition() {
     // The default is the BLAS on every CPU (oneDNN only when asked for).
     assert_eq!(gemm_library(), GemmLibrary::Blas);
     tch::manual_seed(3);
-    let opts = (Kind::Float, Device::Cpu);
     // 24 -> 40 channels (no few-output-channel kernels: every product through the library),
     // several tiles.
-    let (b, c, co, h, w) = (2, 24, 40, 23, 19);
-    let plan = random_plan3x3(h, w, 2.0);
-    let x = Tensor::randn([b, c, h, w], opts);
-    let wt = Tensor::randn([co, c, 3, 3], opts) * 0.1;
-    let bias = Tensor::randn([co], opts);
-    let probe = Tensor::randn([b, co, h, w], opts);
-    let aten = run(&x, &plan, &wt, &bias, &probe, Backend::Aten);
+    let layer = Layer3x3::random([2, 24, 40, 23, 19], 2.0, 0.1);
+    let aten = layer.run(Backend::Aten);
     let mut libs = vec![GemmLibrary::Blas];
     if tch::utils::has_mkldnn() {
         libs.push(GemmLibrary::OneDnn);
     }
     for lib in libs {
         assert_eq!(set_gemm_library(Some(lib)), lib);
-        let got = run(&x, &plan, &wt, &bias, &probe, Backend::Auto);
+        let got = layer.run(Backend::Auto);
         for (name, g, a) in ["output", "grad input", "grad weight", "grad bias"]
             .iter()
             .zip(&got)

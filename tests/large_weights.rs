@@ -4,10 +4,9 @@
 use calibconv::ops::{
     native_available, set_large_weights, small_kernel_isa, Backend, LargeWeights, SmallKernelIsa,
 };
-use tch::{Device, Kind, Tensor};
 
 mod common;
-use common::{conv_output_and_gradients as run, max_rel, random_plan3x3};
+use common::{max_rel, Layer3x3};
 
 const NAMES: [&str; 4] = ["output", "grad input", "grad weight", "grad bias"];
 
@@ -21,7 +20,6 @@ fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
     // whatever the choice (whole_rows in deform.cpp).
     tch::set_num_threads(1);
     tch::manual_seed(5);
-    let opts = (Kind::Float, Device::Cpu);
     let b = 2;
     // 64 -> 512: a weight of 576 x 512 values (1.1 MiB), every product through the kernels
     // whatever the choice (the BLAS takes weights over 4 MiB); 128 -> 1024: 4.5 MiB, every
@@ -32,16 +30,12 @@ fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
         (128, 1024, (17, 15), true, true),
         (128, 1024, (24, 24), false, true),
     ] {
-        let plan = random_plan3x3(h, w, 2.0);
-        let x = Tensor::randn([b, c, h, w], opts);
-        let wt = Tensor::randn([co, c, 3, 3], opts) * 0.05;
-        let bias = Tensor::randn([co], opts);
-        let probe = Tensor::randn([b, co, h, w], opts);
-        let aten = run(&x, &plan, &wt, &bias, &probe, Backend::Aten);
+        let layer = Layer3x3::random([b, c, co, h, w], 2.0, 0.05);
+        let aten = layer.run(Backend::Aten);
         let mut by_lib = Vec::new();
         for lib in [LargeWeights::Kernels, LargeWeights::Blas] {
             assert_eq!(set_large_weights(Some(lib)), lib);
-            let got = run(&x, &plan, &wt, &bias, &probe, Backend::Auto);
+            let got = layer.run(Backend::Auto);
             for ((name, g), a) in NAMES.iter().zip(&got).zip(&aten) {
                 let rel = max_rel(g, a);
                 assert!(

@@ -234,6 +234,23 @@ def opencv_e3(v):
     return "%se%s%03d" % (mant, exp[0], abs(int(exp)))
 
 
+def opencv_xml_scalars(pairs):
+    """``(tag, value)`` pairs as OpenCV FileStorage XML elements, one a line."""
+    return "\n".join(f"<{tag}>{value}</{tag}>" for tag, value in pairs)
+
+
+def opencv_xml_matrix(tag, values, rows, fmt):
+    """``values`` (row-major) as an OpenCV FileStorage XML matrix ``<tag>`` of ``rows`` rows,
+    each value spelt by ``fmt``, the first four on one line and the rest on the next."""
+    return f"""<{tag} type_id="opencv-matrix">
+  <rows>{rows}</rows>
+  <cols>{len(values) // rows}</cols>
+  <dt>d</dt>
+  <data>
+    {' '.join(fmt(v) for v in values[:4])}
+    {' '.join(fmt(v) for v in values[4:])}</data></{tag}>"""
+
+
 def write_files(calib: Path):
     files = {}
 
@@ -318,29 +335,19 @@ cam1:
     D8 = cr["k"][:2] + cr["p"] + cr["k"][2:]
     files["opencv_rational.xml"] = f"""<?xml version="1.0"?>
 <opencv_storage>
-<calibration_time>"Sat Dec  5 10:11:12 2026"</calibration_time>
-<nr_of_frames>24</nr_of_frames>
-<image_width>{cr['size'][0]}</image_width>
-<image_height>{cr['size'][1]}</image_height>
-<board_width>9</board_width>
-<board_height>6</board_height>
-<square_size>25.</square_size>
-<flags>16384</flags>
-<fisheye_model>0</fisheye_model>
-<camera_matrix type_id="opencv-matrix">
-  <rows>3</rows>
-  <cols>3</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(g(v) for v in K[:4])}
-    {' '.join(g(v) for v in K[4:])}</data></camera_matrix>
-<distortion_coefficients type_id="opencv-matrix">
-  <rows>8</rows>
-  <cols>1</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(g(v) for v in D8[:4])}
-    {' '.join(g(v) for v in D8[4:])}</data></distortion_coefficients>
+{opencv_xml_scalars([
+    ("calibration_time", '"Sat Dec  5 10:11:12 2026"'),
+    ("nr_of_frames", 24),
+    ("image_width", cr['size'][0]),
+    ("image_height", cr['size'][1]),
+    ("board_width", 9),
+    ("board_height", 6),
+    ("square_size", "25."),
+    ("flags", 16384),
+    ("fisheye_model", 0),
+])}
+{opencv_xml_matrix("camera_matrix", K, 3, g)}
+{opencv_xml_matrix("distortion_coefficients", D8, 8, g)}
 <avg_reprojection_error>0.2114</avg_reprojection_error>
 </opencv_storage>
 """
@@ -354,16 +361,22 @@ cam1:
 
     k_yaml = ", ".join(cv_old(v) for v in Ko[:4]) + ",\n       " + ", ".join(cv_old(v) for v in Ko[4:])
     d_yaml = ", ".join(cv_old(v) for v in Do[:4]) + ",\n       " + ", ".join(cv_old(v) for v in Do[4:])
+    # The calibration sample's settings, the same in its YAML and its XML.
+    old_settings = [
+        ("calibration_Time", '"08/19/11 20:44:38"'),
+        ("nrOfFrames", 8),
+        ("image_Width", co["size"][0]),
+        ("image_Height", co["size"][1]),
+        ("board_Width", 9),
+        ("board_Height", 6),
+        ("square_Size", "50."),
+        ("FixAspectRatio", "1."),
+    ]
+    old_flags = "flags:  +fix_aspectRatio +fix_principal_point +zero_tangent_dist"
+    old_settings_yaml = "\n".join(f"{key}: {value}" for key, value in old_settings)
     files["opencv_old_sample.yaml"] = f"""%YAML:1.0
-calibration_Time: "08/19/11 20:44:38"
-nrOfFrames: 8
-image_Width: {co['size'][0]}
-image_Height: {co['size'][1]}
-board_Width: 9
-board_Height: 6
-square_Size: 50.
-FixAspectRatio: 1.
-# flags:  +fix_aspectRatio +fix_principal_point +zero_tangent_dist
+{old_settings_yaml}
+# {old_flags}
 flagValue: 14
 Camera_Matrix: !!opencv-matrix
    rows: 3
@@ -379,30 +392,11 @@ Avg_Reprojection_Error: {opencv_e3(0.38441346462381665)}
 """
     files["opencv_old_sample.xml"] = f"""<?xml version="1.0"?>
 <opencv_storage>
-<calibration_Time>"08/19/11 20:44:38"</calibration_Time>
-<nrOfFrames>8</nrOfFrames>
-<image_Width>{co['size'][0]}</image_Width>
-<image_Height>{co['size'][1]}</image_Height>
-<board_Width>9</board_Width>
-<board_Height>6</board_Height>
-<square_Size>50.</square_Size>
-<FixAspectRatio>1.</FixAspectRatio>
-<!-- flags:  +fix_aspectRatio +fix_principal_point +zero_tangent_dist -->
+{opencv_xml_scalars(old_settings)}
+<!-- {old_flags} -->
 <flagValue>14</flagValue>
-<Camera_Matrix type_id="opencv-matrix">
-  <rows>3</rows>
-  <cols>3</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(cv_old(v) for v in Ko[:4])}
-    {' '.join(cv_old(v) for v in Ko[4:])}</data></Camera_Matrix>
-<Distortion_Coefficients type_id="opencv-matrix">
-  <rows>5</rows>
-  <cols>1</cols>
-  <dt>d</dt>
-  <data>
-    {' '.join(cv_old(v) for v in Do[:4])}
-    {' '.join(cv_old(v) for v in Do[4:])}</data></Distortion_Coefficients>
+{opencv_xml_matrix("Camera_Matrix", Ko, 3, cv_old)}
+{opencv_xml_matrix("Distortion_Coefficients", Do, 5, cv_old)}
 <Avg_Reprojection_Error>{opencv_e3(0.38441346462381665)}</Avg_Reprojection_Error>
 </opencv_storage>
 """

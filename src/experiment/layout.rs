@@ -39,22 +39,52 @@ use crate::train::{best_path, last_path};
 
 pub use super::lock::RunLock;
 
-const EXPERIMENT_TOML: &str = "experiment.toml";
-const CONFIG_JSON: &str = "config.json";
-const RUN_JSON: &str = "run.json";
-const SUMMARY_JSON: &str = "summary.json";
-const SWEEP_JSON: &str = "sweep.json";
 const STUDY_JSON: &str = "study.json";
-const LOCK: &str = "lock";
-const CHECKPOINTS: &str = "checkpoints";
-const EVAL: &str = "eval";
 const METRICS_JSON: &str = "metrics.json";
-const EVALUATIONS_CSV: &str = "evaluations.csv";
-const TRAIN_CSV: &str = "train.csv";
-const VAL_CSV: &str = "val.csv";
-const TB: &str = "tb";
 /// Prefix of a replicate folder: `seed-S`.
 const SEED_PREFIX: &str = "seed-";
+
+/// The files and folders directly in a run directory, one `RunDir` getter each: the table
+/// below is where their names are written.
+macro_rules! run_dir_entries {
+    ($($(#[$doc:meta])* $getter:ident => $name:literal,)*) => {
+        impl RunDir {
+            $(
+                $(#[$doc])*
+                pub fn $getter(&self) -> PathBuf {
+                    self.root.join($name)
+                }
+            )*
+        }
+    };
+}
+
+run_dir_entries! {
+    /// `experiment.toml`: the merged experiment text it ran with.
+    experiment_toml => "experiment.toml",
+    /// `config.json`: the resolved experiment.
+    config_json => "config.json",
+    /// `run.json`: [`RunRecord`].
+    run_json => "run.json",
+    /// `summary.json`: [`Summary`].
+    summary_json => "summary.json",
+    /// `sweep.json`: [`SweepRecord`].
+    sweep_json => "sweep.json",
+    /// `lock`: see [`RunLock`].
+    lock_file => "lock",
+    /// `checkpoints/`.
+    checkpoints => "checkpoints",
+    /// `eval/`.
+    eval_root => "eval",
+    /// `evaluations.csv`.
+    evaluations_csv => "evaluations.csv",
+    /// `train.csv` (written by [`crate::train::csv::CsvLog`]).
+    train_csv => "train.csv",
+    /// `val.csv` (written by [`crate::train::csv::CsvLog`]).
+    val_csv => "val.csv",
+    /// `tb/`: TensorBoard event files.
+    tb => "tb",
+}
 
 /// A run directory, `OUTPUT/NAME`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -86,34 +116,6 @@ impl RunDir {
         self.experiment_toml().is_file()
     }
 
-    /// `experiment.toml`: the merged experiment text it ran with.
-    pub fn experiment_toml(&self) -> PathBuf {
-        self.root.join(EXPERIMENT_TOML)
-    }
-    /// `config.json`: the resolved experiment.
-    pub fn config_json(&self) -> PathBuf {
-        self.root.join(CONFIG_JSON)
-    }
-    /// `run.json`: [`RunRecord`].
-    pub fn run_json(&self) -> PathBuf {
-        self.root.join(RUN_JSON)
-    }
-    /// `summary.json`: [`Summary`].
-    pub fn summary_json(&self) -> PathBuf {
-        self.root.join(SUMMARY_JSON)
-    }
-    /// `sweep.json`: [`SweepRecord`].
-    pub fn sweep_json(&self) -> PathBuf {
-        self.root.join(SWEEP_JSON)
-    }
-    /// `lock`: see [`RunLock`].
-    pub fn lock_file(&self) -> PathBuf {
-        self.root.join(LOCK)
-    }
-    /// `checkpoints/`.
-    pub fn checkpoints(&self) -> PathBuf {
-        self.root.join(CHECKPOINTS)
-    }
     /// `checkpoints/last.safetensors`.
     pub fn last_checkpoint(&self) -> PathBuf {
         last_path(&self.checkpoints())
@@ -122,10 +124,6 @@ impl RunDir {
     pub fn best_checkpoint(&self) -> PathBuf {
         best_path(&self.checkpoints())
     }
-    /// `eval/`.
-    pub fn eval_root(&self) -> PathBuf {
-        self.root.join(EVAL)
-    }
     /// `eval/NAME/`.
     pub fn eval_dir(&self, name: &str) -> PathBuf {
         self.eval_root().join(name)
@@ -133,22 +131,6 @@ impl RunDir {
     /// `eval/NAME/metrics.json` (its record is [`crate::eval`]'s).
     pub fn metrics_json(&self, name: &str) -> PathBuf {
         metrics_json(&self.eval_dir(name))
-    }
-    /// `evaluations.csv`.
-    pub fn evaluations_csv(&self) -> PathBuf {
-        self.root.join(EVALUATIONS_CSV)
-    }
-    /// `train.csv` (written by [`crate::train::csv::CsvLog`]).
-    pub fn train_csv(&self) -> PathBuf {
-        self.root.join(TRAIN_CSV)
-    }
-    /// `val.csv` (written by [`crate::train::csv::CsvLog`]).
-    pub fn val_csv(&self) -> PathBuf {
-        self.root.join(VAL_CSV)
-    }
-    /// `tb/`: TensorBoard event files.
-    pub fn tb(&self) -> PathBuf {
-        self.root.join(TB)
     }
 
     /// The names of the evaluations in `eval/` that have a `metrics.json`, sorted.

@@ -305,25 +305,15 @@ mod tests {
         write_record, RunRecord, Segment, Summary, SweepRecord, Timing,
     };
     use crate::nn::{Head, UNetConfig};
-    use crate::train::checkpoint::{write_tensors, CheckpointInfo, FORMAT, FORMAT_VERSION};
+    use crate::train::checkpoint::{write_tensors, CheckpointInfo};
 
     /// A `last.safetensors` at `step` (no tensors: the status reads the header only).
     fn checkpoint_at(dir: &RunDir, step: u64) {
+        let tiny = UNetConfig::preset("tiny", Head::Depth).unwrap();
         let info = CheckpointInfo {
-            format: FORMAT.into(),
-            version: FORMAT_VERSION,
-            model: UNetConfig::preset("tiny", Head::Depth).unwrap(),
-            input_size: [8, 8],
-            kernel: "standard".into(),
-            camera_file: None,
-            camera_toml: None,
-            padding: [0, 0],
             experiment: Some("r".into()),
             step,
-            epoch: 0,
-            batch_in_epoch: 0,
-            metrics: Default::default(),
-            git: None,
+            ..CheckpointInfo::new(tiny, [8, 8], "standard")
         };
         let meta = HashMap::from([(
             "calibconv".to_string(),
@@ -395,20 +385,24 @@ mod tests {
             d
         };
         let row = |d: &RunDir| run_status(d, d.name(), &["test"], Some(10));
+        // A run with a checkpoint at `step` whose one segment ended with `reason`.
+        let ended_run = |name: &str, step: u64, reason: SegmentEnd, message: &str| {
+            let d = dir(name);
+            checkpoint_at(&d, step);
+            segments(&d, vec![ended(reason, message)]);
+            d
+        };
 
         let new = dir("new");
         assert_eq!(row(&new).state, RunState::NotStarted);
         assert_eq!(row(&new).steps, None);
 
         // Stopped on a signal at step 4 (or killed: no segment end; the same state).
-        let stopped = dir("stopped");
-        checkpoint_at(&stopped, 4);
-        segments(
-            &stopped,
-            vec![ended(
-                SegmentEnd::Interrupted,
-                "stopped by SIGUSR1 at step 4",
-            )],
+        let stopped = ended_run(
+            "stopped",
+            4,
+            SegmentEnd::Interrupted,
+            "stopped by SIGUSR1 at step 4",
         );
         let r = row(&stopped);
         assert_eq!(
@@ -435,14 +429,11 @@ mod tests {
         drop(held);
 
         // Its latest segment failed: the error's first line.
-        let failed = dir("failed");
-        checkpoint_at(&failed, 2);
-        segments(
-            &failed,
-            vec![ended(
-                SegmentEnd::Failed,
-                "cannot write x: No space left on device",
-            )],
+        let failed = ended_run(
+            "failed",
+            2,
+            SegmentEnd::Failed,
+            "cannot write x: No space left on device",
         );
         assert_eq!(
             row(&failed).state,

@@ -74,28 +74,45 @@ fn defaults_are_filled_in() {
 
 #[test]
 fn unknown_keys_and_values_name_the_key_and_suggest_the_nearest() {
-    let e = err(&base().replace("lr = 1e-3", "lr = 1e-3\nweigth_decay = 0.1"));
-    assert!(e.contains("`optimizer.weigth_decay`"), "{e}");
-    assert!(e.contains("did you mean `weight_decay`"), "{e}");
-    let e = err(&base().replace("batch_size = 2", "batchsize = 2"));
-    assert!(
-        e.contains("`train.batchsize`") && e.contains("did you mean `batch_size`"),
-        "{e}"
-    );
-    let e = err(&base().replace("kernel = \"calibrated\"", "kernel = \"calibated\""));
-    assert!(e.contains("did you mean `calibrated`"), "{e}");
-    let e = err(&base().replace("preset = \"tiny\"", "preset = \"tinny\""));
-    assert!(
-        e.contains("model.preset") && e.contains("did you mean `tiny`"),
-        "{e}"
-    );
-    let e = err(&base().replace("task = \"depth\"", "task = \"depth\"\nsed = 3"));
-    assert!(e.contains("did you mean `seed`"), "{e}");
-    let e = err(&base().replace("batch_size = 2", "batch_size = 2\nval_metric = \"miou\""));
-    assert!(
-        e.contains("train.val_metric") && e.contains("`miou` is not one of"),
-        "{e}"
-    );
+    // (text replaced, its replacement, what the error must say)
+    let cases: [(&str, &str, &[&str]); 6] = [
+        (
+            "lr = 1e-3",
+            "lr = 1e-3\nweigth_decay = 0.1",
+            &["`optimizer.weigth_decay`", "did you mean `weight_decay`"],
+        ),
+        (
+            "batch_size = 2",
+            "batchsize = 2",
+            &["`train.batchsize`", "did you mean `batch_size`"],
+        ),
+        (
+            "kernel = \"calibrated\"",
+            "kernel = \"calibated\"",
+            &["did you mean `calibrated`"],
+        ),
+        (
+            "preset = \"tiny\"",
+            "preset = \"tinny\"",
+            &["model.preset", "did you mean `tiny`"],
+        ),
+        (
+            "task = \"depth\"",
+            "task = \"depth\"\nsed = 3",
+            &["did you mean `seed`"],
+        ),
+        (
+            "batch_size = 2",
+            "batch_size = 2\nval_metric = \"miou\"",
+            &["train.val_metric", "`miou` is not one of"],
+        ),
+    ];
+    for (from, to, wants) in cases {
+        let e = err(&base().replace(from, to));
+        for want in wants {
+            assert!(e.contains(want), "{want}: {e}");
+        }
+    }
 }
 
 #[test]

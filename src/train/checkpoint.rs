@@ -151,14 +151,6 @@ mod tests {
 
     fn info(cfg: UNetConfig) -> CheckpointInfo {
         CheckpointInfo {
-            format: FORMAT.into(),
-            version: FORMAT_VERSION,
-            model: cfg,
-            input_size: [32, 32],
-            kernel: "standard".into(),
-            camera_file: None,
-            camera_toml: None,
-            padding: [0, 0],
             experiment: Some("t".into()),
             step: 12,
             epoch: 1,
@@ -166,7 +158,7 @@ mod tests {
             metrics: [("rmse".to_string(), 0.5), ("nan".to_string(), f64::NAN)]
                 .into_iter()
                 .collect(),
-            git: None,
+            ..CheckpointInfo::new(cfg, [32, 32], "standard")
         }
     }
 

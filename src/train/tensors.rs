@@ -54,6 +54,30 @@ pub struct CheckpointInfo {
     pub git: Option<String>,
 }
 
+impl CheckpointInfo {
+    /// The record of a network of `model` with `kernel` kernels at `input_size`, and nothing
+    /// else known yet: no camera, no padding, no experiment, step 0, no metrics, no revision.
+    /// Writers set what they know with struct update syntax.
+    pub fn new(model: UNetConfig, input_size: [i64; 2], kernel: &str) -> Self {
+        CheckpointInfo {
+            format: FORMAT.into(),
+            version: FORMAT_VERSION,
+            model,
+            input_size,
+            kernel: kernel.into(),
+            camera_file: None,
+            camera_toml: None,
+            padding: [0, 0],
+            experiment: None,
+            step: 0,
+            epoch: 0,
+            batch_in_epoch: 0,
+            metrics: Default::default(),
+            git: None,
+        }
+    }
+}
+
 /// An owned tensor buffer for the `safetensors` writer.
 struct Buffer {
     dtype: Dtype,

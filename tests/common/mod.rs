@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use calibconv::nn::UNetConfig;
-use calibconv::train::checkpoint::{self, CheckpointInfo};
+use calibconv::train::checkpoint::CheckpointInfo;
 use tch::{Kind, Tensor};
 
 pub mod experiment;
@@ -144,22 +144,7 @@ pub fn synth_tiny_f195(out: &Path, width: u32) {
 /// The record of a checkpoint that a test writes itself, for `model` at `input_size`: standard
 /// kernels, no camera, no experiment, step 0, no metrics; set the fields a test needs.
 pub fn checkpoint_info(model: UNetConfig, input_size: [i64; 2]) -> CheckpointInfo {
-    CheckpointInfo {
-        format: checkpoint::FORMAT.into(),
-        version: checkpoint::FORMAT_VERSION,
-        model,
-        input_size,
-        kernel: "standard".into(),
-        camera_file: None,
-        camera_toml: None,
-        padding: [0, 0],
-        experiment: None,
-        step: 0,
-        epoch: 0,
-        batch_in_epoch: 0,
-        metrics: Default::default(),
-        git: None,
-    }
+    CheckpointInfo::new(model, input_size, "standard")
 }
 
 /// `tests/golden/`.
@@ -233,15 +218,39 @@ pub fn conv_output_and_gradients(
     all
 }
 
-/// A float32 plan of a 3x3, stride-1 "same" layer on an `h` x `w` map from random offsets
-/// (standard normal times `scale`, one set for the batch).
-pub fn random_plan3x3(h: i64, w: i64, scale: f64) -> calibconv::ops::SamplingPlan {
-    let off = Tensor::randn([18, h, w], (Kind::Float, tch::Device::Cpu)) * scale;
-    calibconv::ops::SamplingPlan::new(
-        &off,
-        [h, w],
-        calibconv::ops::ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
-        Kind::Float,
-    )
-    .unwrap()
+/// A random float32 3x3, stride-1 "same" layer `[B, C_in, C_out, H, W]` on the CPU, NCHW:
+/// its plan from random offsets (standard normal times `reach`, one set for the batch), input,
+/// weight (standard normal times `weight_scale`), bias and output probe, drawn in that order.
+pub struct Layer3x3 {
+    pub plan: calibconv::ops::SamplingPlan,
+    pub x: Tensor,
+    pub w: Tensor,
+    pub bias: Tensor,
+    pub probe: Tensor,
+}
+
+impl Layer3x3 {
+    pub fn random([b, c, co, h, w]: [i64; 5], reach: f64, weight_scale: f64) -> Self {
+        let opts = (Kind::Float, tch::Device::Cpu);
+        let off = Tensor::randn([18, h, w], opts) * reach;
+        let plan = calibconv::ops::SamplingPlan::new(
+            &off,
+            [h, w],
+            calibconv::ops::ConvGeometry::new([3, 3], [1, 1], [1, 1], [1, 1]),
+            Kind::Float,
+        )
+        .unwrap();
+        Layer3x3 {
+            plan,
+            x: Tensor::randn([b, c, h, w], opts),
+            w: Tensor::randn([co, c, 3, 3], opts) * weight_scale,
+            bias: Tensor::randn([co], opts),
+            probe: Tensor::randn([b, co, h, w], opts),
+        }
+    }
+
+    /// [`conv_output_and_gradients`] of this layer with implementation `be`.
+    pub fn run(&self, be: calibconv::ops::Backend) -> Vec<Tensor> {
+        conv_output_and_gradients(&self.x, &self.plan, &self.w, &self.bias, &self.probe, be)
+    }
 }

@@ -9,6 +9,26 @@ pub fn finite3(v: [f64; 3]) -> bool {
     v.iter().all(|c| c.is_finite())
 }
 
+/// A camera's `project` of `ray` for a model whose formula divides by the distance to the
+/// optical axis `q = hypot(x, y)`: `off_axis(ray, q)` where `q > 0`; on the axis the principal
+/// point `centre` for a forward ray (`None` for a backward or zero one); `None` for a
+/// non-finite ray.
+pub fn project_off_axis(
+    ray: [f64; 3],
+    centre: [f64; 2],
+    off_axis: impl FnOnce([f64; 3], f64) -> Option<[f64; 2]>,
+) -> Option<[f64; 2]> {
+    if !finite3(ray) {
+        return None;
+    }
+    let [x, y, z] = ray;
+    let q = x.hypot(y);
+    if q == 0.0 {
+        return (z > 0.0).then_some(centre);
+    }
+    off_axis(ray, q)
+}
+
 /// `v / |v|`, or `None` for a zero or non-finite vector.
 pub fn normalize(v: [f64; 3]) -> Option<[f64; 3]> {
     let n = v[0].hypot(v[1]).hypot(v[2]);

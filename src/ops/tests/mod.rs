@@ -38,8 +38,8 @@ fn plan3x3_with_border(off: &Tensor, hw: [i64; 2], kind: Kind, border: Border) -
     .unwrap()
 }
 
-/// A random float32 3x3 "same" layer `[B, C_in, C_out, H, W]`, NCHW: its plan (offsets of about
-/// `scale` pixels), input, weight, bias and output probe, drawn in that order.
+/// A random 3x3 "same" layer `[B, C_in, C_out, H, W]`, NCHW: its plan (offsets of about `scale`
+/// pixels), input, weight, bias and output probe, drawn in that order.
 struct Problem {
     plan: SamplingPlan,
     x: Tensor,
@@ -48,13 +48,19 @@ struct Problem {
     probe: Tensor,
 }
 
-fn random_problem([b, ci, co, h, w]: [i64; 5], scale: f64) -> Problem {
-    let opts = (Kind::Float, Device::Cpu);
+/// A float32 [`Problem`] of one group.
+fn random_problem(shape: [i64; 5], scale: f64) -> Problem {
+    random_problem_in(Kind::Float, shape, 1, scale)
+}
+
+/// A [`Problem`] in `kind` whose weight has `groups` groups.
+fn random_problem_in(kind: Kind, [b, ci, co, h, w]: [i64; 5], groups: i64, scale: f64) -> Problem {
+    let opts = (kind, Device::Cpu);
     let off = Tensor::randn([18, h, w], opts) * scale;
     Problem {
-        plan: plan3x3(&off, [h, w], Kind::Float),
+        plan: plan3x3(&off, [h, w], kind),
         x: Tensor::randn([b, ci, h, w], opts),
-        w: Tensor::randn([co, ci, 3, 3], opts),
+        w: Tensor::randn([co, ci / groups, 3, 3], opts),
         bias: Tensor::randn([co], opts),
         probe: Tensor::randn([b, co, h, w], opts),
     }

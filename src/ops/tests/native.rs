@@ -78,11 +78,13 @@ fn native_matches_aten_on_random_plans() {
 fn channels_last_and_strided_inputs_keep_their_layout_and_values() {
     tch::manual_seed(3);
     let opts = (Kind::Double, Device::Cpu);
-    let off = Tensor::randn([18, 7, 9], opts) * 1.5;
-    let plan = plan3x3(&off, [7, 9], Kind::Double);
-    let x = Tensor::randn([2, 6, 7, 9], opts);
-    let (w, bias) = (Tensor::randn([4, 3, 3, 3], opts), Tensor::randn([4], opts));
-    let probe = Tensor::randn([2, 4, 7, 9], opts);
+    let Problem {
+        plan,
+        x,
+        w,
+        bias,
+        probe,
+    } = random_problem_in(Kind::Double, [2, 6, 4, 7, 9], 2, 1.5);
     let reference = run_backend(&x, &plan, &w, &bias, 2, &probe, Backend::Aten);
     // Channels-last in: channels-last out and input gradient, like conv2d.
     let cl = run_backend(
@@ -334,15 +336,13 @@ fn native_gradients_match_finite_differences_per_item_channels_last() {
 #[test]
 fn native_results_are_deterministic() {
     tch::manual_seed(6);
-    let opts = (Kind::Float, Device::Cpu);
-    let off = Tensor::randn([18, 40, 40], opts) * 2.0;
-    let plan = plan3x3(&off, [40, 40], Kind::Float);
-    let x = Tensor::randn([3, 16, 40, 40], opts);
-    let (w, b) = (
-        Tensor::randn([16, 16, 3, 3], opts),
-        Tensor::randn([16], opts),
-    );
-    let probe = Tensor::randn([3, 16, 40, 40], opts);
+    let Problem {
+        plan,
+        x,
+        w,
+        bias: b,
+        probe,
+    } = random_problem([3, 16, 16, 40, 40], 2.0);
     let first = run_backend(&x, &plan, &w, &b, 1, &probe, Backend::Auto);
     for _ in 0..3 {
         let again = run_backend(&x, &plan, &w, &b, 1, &probe, Backend::Auto);
@@ -355,11 +355,8 @@ fn native_results_are_deterministic() {
 /// C++ exceptions come back as errors, never as aborts: double backward is refused.
 #[test]
 fn double_backward_is_an_error_not_a_crash() {
-    let opts = (Kind::Double, Device::Cpu);
-    let off = Tensor::randn([18, 4, 4], opts);
-    let plan = plan3x3(&off, [4, 4], Kind::Double);
-    let x = Tensor::randn([1, 2, 4, 4], opts).set_requires_grad(true);
-    let w = Tensor::randn([2, 2, 3, 3], opts).set_requires_grad(true);
+    let Problem { plan, x, w, .. } = random_problem_in(Kind::Double, [1, 2, 2, 4, 4], 1, 1.0);
+    let (x, w) = (x.set_requires_grad(true), w.set_requires_grad(true));
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
     let r = Tensor::f_run_backward(&[y.square().sum(Kind::Double)], &[&x], true, true);
     if native_available() {
@@ -497,11 +494,8 @@ fn native_handles_an_empty_batch() {
     if !native_available() {
         return;
     }
-    let opts = (Kind::Float, Device::Cpu);
-    let off = Tensor::randn([18, 5, 5], opts);
-    let plan = plan3x3(&off, [5, 5], Kind::Float);
-    let x = Tensor::randn([0, 2, 5, 5], opts).set_requires_grad(true);
-    let w = Tensor::randn([3, 2, 3, 3], opts).set_requires_grad(true);
+    let Problem { plan, x, w, .. } = random_problem([0, 2, 3, 5, 5], 1.0);
+    let (x, w) = (x.set_requires_grad(true), w.set_requires_grad(true));
     let y = deform_conv2d_planned(&x, &plan, &w, None, 1).unwrap();
     assert_eq!(y.size(), [0, 3, 5, 5]);
     let g = Tensor::run_backward(&[y.sum(Kind::Float)], &[&x, &w], false, false);

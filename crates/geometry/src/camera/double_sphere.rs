@@ -33,9 +33,9 @@
 //! `[u, v]` = (column, row) with the centre of the top-left pixel at `(0, 0)`; angles in radians.
 
 use super::extended_unified::eucm_m;
-use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
+use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
+    check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
 use super::unified::unified_w;
 use super::{CameraModel, Intrinsics};
@@ -53,25 +53,20 @@ pub struct DoubleSphere {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(DoubleSphere);
-
 plain_fisheye_file!(DoubleSphere, "double-sphere", [xi, alpha]);
 
 impl DoubleSphere {
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `xi in (-1, 1]`, `alpha in [0, 1]`, and `fov_deg / 2` below [`DoubleSphere::theta_max`]; the error names the field.
-    pub fn validate(&self) -> Checked {
-        self.intrinsics
-            .validate_fisheye(&self.fields(), self.fov_deg)?;
+    /// `xi in (-1, 1]` and `alpha in [0, 1]` (part of [`DoubleSphere::validate`]).
+    fn check_parameters(&self) -> Checked {
         if !(self.xi > -1.0 && self.xi <= 1.0) {
             return Err(Invalid::new(
                 "xi",
                 format!("must be in (-1, 1], found {}", self.xi),
             ));
         }
-        check_unit_interval("alpha", self.alpha)?;
-        check_fov_in_domain(self.fov_deg, self.theta_max(), "xi, alpha")
+        check_unit_interval("alpha", self.alpha)
     }
+
     /// `w2 = (w1 + xi) / sqrt(2 w1 xi + xi^2 + 1)` of Eq. 43: rays project iff `z > -w2 |ray|`.
     pub fn w2(&self) -> f64 {
         let w1 = unified_w(self.alpha);

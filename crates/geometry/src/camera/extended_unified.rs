@@ -28,9 +28,9 @@
 //! [0, 1]`, `beta > 0` (checked by the camera file reader). Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
+use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
-    check_fov_in_domain, check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
+    check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
 };
 use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
@@ -70,16 +70,11 @@ pub struct ExtendedUnified {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(ExtendedUnified);
-
 plain_fisheye_file!(ExtendedUnified, "extended-unified", [alpha, beta]);
 
 impl ExtendedUnified {
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `alpha in [0, 1]`, `beta > 0`, and `fov_deg / 2` below [`ExtendedUnified::theta_max`]; the error names the field.
-    pub fn validate(&self) -> Checked {
-        self.intrinsics
-            .validate_fisheye(&self.fields(), self.fov_deg)?;
+    /// `alpha in [0, 1]` and `beta > 0` (part of [`ExtendedUnified::validate`]).
+    fn check_parameters(&self) -> Checked {
         check_unit_interval("alpha", self.alpha)?;
         if self.beta <= 0.0 {
             return Err(Invalid::new(
@@ -87,7 +82,7 @@ impl ExtendedUnified {
                 format!("must be > 0, found {}", self.beta),
             ));
         }
-        check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha, beta")
+        Ok(())
     }
 
     /// Largest angle to the optical axis that projects, in radians (exclusive):

@@ -23,10 +23,10 @@
 
 use std::f64::consts::PI;
 
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
-use super::schema::{check_fov_in_domain, plain_fisheye_file, CameraFile, Checked, Invalid};
+use super::intrinsics::fisheye_extent;
+use super::schema::{plain_fisheye_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
-use crate::vec3::finite3;
+use crate::vec3::project_off_axis;
 
 /// The largest disagreement (normalised units) between a pixel's `r_d` and the forward map of
 /// the ray its closed-form inverse gives: times a focal length up to 1e4 px it is 1e-6 px, the
@@ -43,23 +43,24 @@ pub struct Fov {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(Fov);
-
 plain_fisheye_file!(Fov, "fov", [w]);
 
 impl Fov {
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `0 < w < pi`, and `fov_deg / 2` below pi; the error names the field.
-    pub fn validate(&self) -> Checked {
-        self.intrinsics
-            .validate_fisheye(&self.fields(), self.fov_deg)?;
+    /// `0 < w < pi` (part of [`Fov::validate`]).
+    fn check_parameters(&self) -> Checked {
         if !(self.w > 0.0 && self.w < PI) {
             return Err(Invalid::new(
                 "w",
                 format!("must be in (0, pi) radians, found {}", self.w),
             ));
         }
-        check_fov_in_domain(self.fov_deg, PI, "w")
+        Ok(())
+    }
+
+    /// Largest angle to the optical axis that projects, in radians: `pi` (exclusive; every ray
+    /// but the backward one).
+    pub fn theta_max(&self) -> f64 {
+        PI
     }
 
     /// `2 tan(w / 2)`.
@@ -109,16 +110,10 @@ impl Fov {
 impl CameraModel for Fov {
     /// Eq. 13 in its angle form (module docs); `None` for a zero, non-finite or backward ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
-        let q = x.hypot(y);
-        if q == 0.0 {
-            return (z > 0.0).then_some([self.cx, self.cy]);
-        }
-        let g = self.alpha(q, z) / (self.w * q);
-        Some([self.fx * x * g + self.cx, self.fy * y * g + self.cy])
+        project_off_axis(ray, [self.cx, self.cy], |[x, y, z], q| {
+            let g = self.alpha(q, z) / (self.w * q);
+            Some([self.fx * x * g + self.cx, self.fy * y * g + self.cy])
+        })
     }
 
     /// Eq. 14 in its angle form (module docs); `None` for `r_d w >= pi`, non-finite pixels, or
@@ -185,7 +180,12 @@ mod tests {
     #[test]
     fn jacobian_matches_central_differences() {
         let c = cam(0.9);
-        let rays = [[0.1, -0.2, 1.0], [0.5, 0.3, 0.4], [-0.7, 0.2, -0.3], [0.0, 0.0, 2.0]];
+        let rays = [
+            [0.1, -0.2, 1.0],
+            [0.5, 0.3, 0.4],
+            [-0.7, 0.2, -0.3],
+            [0.0, 0.0, 2.0],
+        ];
         assert_jacobian_matches_central_differences(&c, |ray| c.project_jacobian(ray), &rays);
     }
 }

@@ -206,3 +206,17 @@ macro_rules! deref_intrinsics {
     };
 }
 pub(crate) use deref_intrinsics;
+
+/// `PartialEq` of a model that compares the named fields only: the fields it leaves out are
+/// derived from them by the model's constructor (a monotonic range, a distortion's domain), so
+/// equal parameters make equal cameras.
+macro_rules! eq_by_fields {
+    ($model:ty: $first:ident $(, $field:ident)* $(,)?) => {
+        impl PartialEq for $model {
+            fn eq(&self, other: &Self) -> bool {
+                self.$first == other.$first $(&& self.$field == other.$field)*
+            }
+        }
+    };
+}
+pub(crate) use eq_by_fields;

@@ -21,7 +21,7 @@
 
 use std::f64::consts::PI;
 
-use super::intrinsics::deref_intrinsics;
+use super::intrinsics::{deref_intrinsics, eq_by_fields};
 use super::schema::{checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::{increasing_roots, last_ok};
 #[cfg(doc)]
@@ -62,11 +62,7 @@ pub struct KannalaBrandt {
 
 deref_intrinsics!(KannalaBrandt);
 
-impl PartialEq for KannalaBrandt {
-    fn eq(&self, other: &Self) -> bool {
-        self.intrinsics == other.intrinsics && self.k == other.k && self.fov_deg == other.fov_deg
-    }
-}
+eq_by_fields!(KannalaBrandt: intrinsics, k, fov_deg);
 
 raw_camera_file! {
     /// A Kannala-Brandt camera file as written.
@@ -436,7 +432,9 @@ impl CameraModel for KannalaBrandt {
 mod tests {
     use super::*;
     use crate::camera::solve::MAX_ITER;
-    use crate::camera::tests::{angle, f195, kb};
+    use crate::camera::tests::{
+        angle, assert_matches_central_differences, f195, kb, worst_over_pixels,
+    };
 
     /// Round trips are exact up to a few ulps of theta times fx (~1e-13 px); 1e-9 px leaves
     /// margin for sin/cos/atan2 rounding without hiding a real error (the Newton EPS is 1e-12 rad).
@@ -632,18 +630,11 @@ mod tests {
     #[test]
     fn newton_converges_on_every_f195_pixel() {
         let cam = f195();
-        let mut worst = 0;
-        let mut worst_residual = 0.0f64;
-        for v in 0..cam.height {
-            for u in 0..cam.width {
-                let mx = (u as f64 - cam.cx) / cam.fx;
-                let my = (v as f64 - cam.cy) / cam.fy;
-                let r_d = mx.hypot(my);
-                let (theta, iters) = cam.solve_theta(r_d).expect("converges");
-                worst = worst.max(iters);
-                worst_residual = worst_residual.max((cam.distort(theta) - r_d).abs());
-            }
-        }
+        let (worst, worst_residual) = worst_over_pixels(&cam, |[mx, my]| {
+            let r_d = mx.hypot(my);
+            let (theta, iters) = cam.solve_theta(r_d).expect("converges");
+            (iters, (cam.distort(theta) - r_d).abs())
+        });
         assert!(worst < MAX_ITER, "{worst}");
         assert!(
             worst <= 4,
@@ -679,20 +670,14 @@ mod tests {
                     ];
                     let jac = cam.project_jacobian(ray).unwrap();
                     let scale = cam.fx / len;
-                    for j in 0..3 {
-                        let (mut p, mut m) = (ray, ray);
-                        p[j] += h;
-                        m[j] -= h;
-                        let (pp, pm) = (cam.project(p).unwrap(), cam.project(m).unwrap());
-                        for i in 0..2 {
-                            let fd = (pp[i] - pm[i]) / (2.0 * h);
-                            assert!(
-                                (fd - jac[i][j]).abs() < JAC_REL_TOL * scale,
-                                "theta {deg} phi {phi} len {len} [{i}][{j}]: fd {fd} analytic {}",
-                                jac[i][j]
-                            );
-                        }
-                    }
+                    assert_matches_central_differences(
+                        |r| cam.project(r).unwrap(),
+                        ray,
+                        h,
+                        &jac,
+                        JAC_REL_TOL * scale,
+                        &format!("theta {deg} phi {phi} len {len}"),
+                    );
                 }
             }
         }

@@ -30,7 +30,7 @@
 //! Parameters: `xi >= 0`. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`;
 //! radians.
 
-use super::intrinsics::{deref_intrinsics, fisheye_extent};
+use super::intrinsics::{deref_intrinsics, eq_by_fields, fisheye_extent};
 use super::radtan::RadTan;
 use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
@@ -57,15 +57,7 @@ pub struct Mei {
 
 deref_intrinsics!(Mei);
 
-impl PartialEq for Mei {
-    fn eq(&self, other: &Self) -> bool {
-        self.intrinsics == other.intrinsics
-            && self.xi == other.xi
-            && self.k == other.k
-            && self.p == other.p
-            && self.fov_deg == other.fov_deg
-    }
-}
+eq_by_fields!(Mei: intrinsics, xi, k, p, fov_deg);
 
 raw_camera_file! {
     /// A `mei` camera file as written.

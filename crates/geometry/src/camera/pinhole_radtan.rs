@@ -26,7 +26,7 @@
 //! fold, of the last pixel towards it that unprojects. Pixels are `[u, v]` = (column, row),
 //! top-left pixel centre at `(0, 0)`; radians.
 
-use super::intrinsics::deref_intrinsics;
+use super::intrinsics::{deref_intrinsics, eq_by_fields};
 use super::radtan::RadTan;
 use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::solve::last_ok;
@@ -63,15 +63,7 @@ pub struct PinholeRadTan {
 
 deref_intrinsics!(PinholeRadTan);
 
-impl PartialEq for PinholeRadTan {
-    fn eq(&self, other: &Self) -> bool {
-        self.intrinsics == other.intrinsics
-            && self.k == other.k
-            && self.p == other.p
-            && self.k_den == other.k_den
-            && self.rpmax == other.rpmax
-    }
-}
+eq_by_fields!(PinholeRadTan: intrinsics, k, p, k_den, rpmax);
 
 raw_camera_file! {
     /// A pinhole camera with OpenCV radial-tangential distortion, as written; `k4 k5 k6` and
@@ -278,7 +270,7 @@ impl CameraModel for PinholeRadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::tests::{euroc, radtan};
+    use crate::camera::tests::{euroc, radtan, worst_over_pixels};
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
@@ -320,17 +312,12 @@ mod tests {
     #[test]
     fn newton_converges_on_every_euroc_pixel() {
         let c = euroc();
-        let (mut worst, mut worst_err) = (0, 0.0f64);
-        for v in 0..c.height {
-            for u in 0..c.width {
-                let target = [(u as f64 - c.cx) / c.fx, (v as f64 - c.cy) / c.fy];
-                let (m, iters) = c.undistort(target).expect("converges");
-                worst = worst.max(iters);
-                let back = c.distort(m);
-                let err = (c.fx * (back[0] - target[0])).hypot(c.fy * (back[1] - target[1]));
-                worst_err = worst_err.max(err);
-            }
-        }
+        let (worst, worst_err) = worst_over_pixels(&c, |target| {
+            let (m, iters) = c.undistort(target).expect("converges");
+            let back = c.distort(m);
+            let err = (c.fx * (back[0] - target[0])).hypot(c.fy * (back[1] - target[1]));
+            (iters, err)
+        });
         assert!(
             worst <= 8,
             "Newton took {worst} steps (measured: 6 at most)"

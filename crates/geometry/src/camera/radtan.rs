@@ -227,6 +227,7 @@ impl RadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::tests::assert_matches_central_differences;
 
     /// A bisected root: a few ulps; 1e-12 is margin.
     const ROUND_OFF_TOL: f64 = 1e-12;
@@ -251,22 +252,8 @@ mod tests {
         let h = 1e-6;
         for m in [[0.1, -0.2], [0.5, 0.3], [-0.7, 0.05]] {
             let j = d.jacobian(m);
-            for c in 0..2 {
-                let mut a = m;
-                let mut b = m;
-                a[c] += h;
-                b[c] -= h;
-                let (fa, fb) = (d.distort(a), d.distort(b));
-                for r in 0..2 {
-                    let fd = (fa[r] - fb[r]) / (2.0 * h);
-                    // Truncation ~h^2 |f'''| ~ 1e-12, cancellation ~1e-16 / 1e-6 = 1e-10.
-                    assert!(
-                        (fd - j[r][c]).abs() < 1e-8,
-                        "{m:?} {r}{c}: {fd} vs {}",
-                        j[r][c]
-                    );
-                }
-            }
+            // Truncation ~h^2 |f'''| ~ 1e-12, cancellation ~1e-16 / 1e-6 = 1e-10.
+            assert_matches_central_differences(|x| d.distort(x), m, h, &j, 1e-8, &format!("{m:?}"));
         }
     }
 

@@ -38,9 +38,10 @@ use super::schema::{
     check_finite, check_fov, check_fov_in_domain, check_size, checked, float_list, raw_camera_file,
     write_fields, CameraFile, Checked, Invalid,
 };
+use super::intrinsics::eq_by_fields;
 use super::solve::{increasing_root, last_ok};
 use super::{Camera, CameraModel, PixelConvention};
-use crate::vec3::{finite3, normalize};
+use crate::vec3::{normalize, project_off_axis};
 
 /// Convergence threshold on the Newton step, in pixels of `rho`: far below anything visible,
 /// far above the ~1e-13 px round-off of `rho ~ 1e3`, so the test can fire.
@@ -88,20 +89,7 @@ pub struct Scaramuzza {
     rho_max: f64,
 }
 
-impl PartialEq for Scaramuzza {
-    fn eq(&self, other: &Self) -> bool {
-        self.poly == other.poly
-            && self.inv_poly == other.inv_poly
-            && self.cx == other.cx
-            && self.cy == other.cy
-            && self.c == other.c
-            && self.d == other.d
-            && self.e == other.e
-            && self.width == other.width
-            && self.height == other.height
-            && self.fov_deg == other.fov_deg
-    }
-}
+eq_by_fields!(Scaramuzza: poly, inv_poly, cx, cy, c, d, e, width, height, fov_deg);
 
 raw_camera_file! {
     /// A Scaramuzza (OCamCalib) camera file as written. `cx` is the centre column (OCamCalib's
@@ -346,20 +334,14 @@ impl CameraModel for Scaramuzza {
     /// Module docs; `None` for a zero or non-finite ray, for `theta > theta_max`, and for the
     /// backward ray.
     fn project(&self, ray: [f64; 3]) -> Option<[f64; 2]> {
-        if !finite3(ray) {
-            return None;
-        }
-        let [x, y, z] = ray;
-        let q = x.hypot(y);
-        if q == 0.0 {
-            return (z > 0.0).then_some([self.cx, self.cy]);
-        }
-        let (rho, _) = self.solve_rho(q.atan2(z))?;
-        let w = rho / q;
-        Some([
-            w * (x + self.e * y) + self.cx,
-            w * (self.d * x + self.c * y) + self.cy,
-        ])
+        project_off_axis(ray, [self.cx, self.cy], |[x, y, z], q| {
+            let (rho, _) = self.solve_rho(q.atan2(z))?;
+            let w = rho / q;
+            Some([
+                w * (x + self.e * y) + self.cx,
+                w * (self.d * x + self.c * y) + self.cy,
+            ])
+        })
     }
 
     /// OCamCalib's `cam2world` in this crate's frame (module docs); `None` beyond `rho_max` and

@@ -121,9 +121,18 @@ pub(crate) use raw_camera_file;
 /// parameters `$param` (in file order) and `fov_deg`, with nothing derived (double sphere,
 /// unified, extended unified): its `Raw` ([`raw_camera_file!`], `fisheye struct`), its
 /// [`CameraFile`] (`model = $name`) and `new` / `unchecked` taking `(intrinsics, $param..,
-/// fov_deg)`. The model writes its own `validate`, which `new` calls.
+/// fov_deg)`, its intrinsics read as its own fields ([`deref_intrinsics!`]), and `validate`,
+/// which `new` calls: the intrinsics and `fov_deg` ([`Intrinsics::validate_fisheye`]), then the
+/// model's own `check_parameters(&self) -> Checked` (the parameters' ranges), then `fov_deg / 2`
+/// inside the model's `theta_max(&self)`.
+///
+/// [`Intrinsics::validate_fisheye`]: super::Intrinsics::validate_fisheye
+///
+/// [`deref_intrinsics!`]: super::intrinsics::deref_intrinsics
 macro_rules! plain_fisheye_file {
     ($model:ident, $name:literal, [$($param:ident),+]) => {
+        $crate::camera::intrinsics::deref_intrinsics!($model);
+
         $crate::camera::schema::raw_camera_file! {
             #[doc = concat!("A `", $name, "` camera file as written.")]
             fisheye struct Raw {
@@ -144,6 +153,22 @@ macro_rules! plain_fisheye_file {
         }
 
         impl $model {
+            #[doc = concat!(
+                "Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < ",
+                "360`, the parameters ",
+                $("`", stringify!($param), "` ",)+
+                "in their ranges (see the model's docs), and `fov_deg / 2` below [`",
+                stringify!($model),
+                "::theta_max`]; the error names the field.\n\n",
+                "[`Intrinsics::validate`]: crate::camera::Intrinsics::validate"
+            )]
+            pub fn validate(&self) -> $crate::camera::schema::Checked {
+                self.intrinsics.validate_fisheye(&self.fields(), self.fov_deg)?;
+                self.check_parameters()?;
+                let params = [$(stringify!($param)),+].join(", ");
+                $crate::camera::schema::check_fov_in_domain(self.fov_deg, self.theta_max(), &params)
+            }
+
             #[doc = concat!("A checked camera (see [`", stringify!($model), "::validate`]).")]
             pub fn new(
                 intrinsics: $crate::camera::Intrinsics,

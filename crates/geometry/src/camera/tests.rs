@@ -61,6 +61,55 @@ pub(super) fn assert_round_trips<C: CameraModel>(
     }
 }
 
+/// The largest iteration count and the largest error that `solve` reports over the normalised
+/// coordinates `[(u - cx) / fx, (v - cy) / fy]` of every pixel `(u, v)` of the image of
+/// `intrinsics`: a Newton inverse checked everywhere it is used.
+pub(super) fn worst_over_pixels(
+    intrinsics: &Intrinsics,
+    solve: impl Fn([f64; 2]) -> (usize, f64),
+) -> (usize, f64) {
+    let (mut worst, mut worst_err) = (0, 0.0f64);
+    for v in 0..intrinsics.height {
+        for u in 0..intrinsics.width {
+            let m = [
+                (u as f64 - intrinsics.cx) / intrinsics.fx,
+                (v as f64 - intrinsics.cy) / intrinsics.fy,
+            ];
+            let (iters, err) = solve(m);
+            worst = worst.max(iters);
+            worst_err = worst_err.max(err);
+        }
+    }
+    (worst, worst_err)
+}
+
+/// Asserts that every entry `[r][k]` of `jacobian`, the analytic Jacobian of a map `f` to 2-D
+/// (a projection, a distortion) at `x`, is within `tol` of the central difference
+/// `(f(x + h e_k)[r] - f(x - h e_k)[r]) / 2h`; `what` names `x` in the message.
+pub(super) fn assert_matches_central_differences<const N: usize>(
+    f: impl Fn([f64; N]) -> [f64; 2],
+    x: [f64; N],
+    h: f64,
+    jacobian: &[[f64; N]; 2],
+    tol: f64,
+    what: &str,
+) {
+    for k in 0..N {
+        let (mut a, mut b) = (x, x);
+        a[k] += h;
+        b[k] -= h;
+        let (fa, fb) = (f(a), f(b));
+        for r in 0..2 {
+            let fd = (fa[r] - fb[r]) / (2.0 * h);
+            assert!(
+                (fd - jacobian[r][k]).abs() < tol,
+                "{what} [{r}][{k}]: fd {fd} analytic {}",
+                jacobian[r][k]
+            );
+        }
+    }
+}
+
 /// `jacobian` (the model's `project_jacobian`) at each of `rays` against central differences of
 /// `cam.project` (step 1e-6: ~1e-10 px/unit truncation, ~1e-7 cancellation, so 1e-5 absolute).
 pub(super) fn assert_jacobian_matches_central_differences<C: CameraModel>(
@@ -68,23 +117,10 @@ pub(super) fn assert_jacobian_matches_central_differences<C: CameraModel>(
     jacobian: impl Fn([f64; 3]) -> Option<[[f64; 3]; 2]>,
     rays: &[[f64; 3]],
 ) {
-    let h = 1e-6;
     for &ray in rays {
         let j = jacobian(ray).unwrap();
-        for k in 0..3 {
-            let (mut a, mut b) = (ray, ray);
-            a[k] += h;
-            b[k] -= h;
-            let (pa, pb) = (cam.project(a).unwrap(), cam.project(b).unwrap());
-            for r in 0..2 {
-                let fd = (pa[r] - pb[r]) / (2.0 * h);
-                assert!(
-                    (fd - j[r][k]).abs() < 1e-5,
-                    "{ray:?} {r}{k}: {fd} vs {}",
-                    j[r][k]
-                );
-            }
-        }
+        let project = |r| cam.project(r).unwrap();
+        assert_matches_central_differences(project, ray, 1e-6, &j, 1e-5, &format!("{ray:?}"));
     }
 }
 
@@ -310,15 +346,5 @@ fn command_line_names_parse_and_list_the_choices() {
         "x".parse::<OpenCvModel>(),
         Err("unknown OpenCV model `x` (expected fisheye or standard)".to_string())
     );
-    for name in [
-        "kalibr",
-        "opencv",
-        "basalt",
-        "colmap",
-        "ocamcalib",
-        "ros",
-        "orbslam3",
-    ] {
-        assert_eq!(name.parse::<Format>().unwrap().to_string(), name);
-    }
+    // Each format's name round-trips: import::tests::formats_and_models_parse_from_their_names.
 }

@@ -30,8 +30,8 @@
 //! cross-check each other. It needs `alpha < 1` (`xi` finite): `alpha in [0, 1)` is checked by the camera
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
-use super::intrinsics::{deref_intrinsics, fisheye_extent, Divided};
-use super::schema::{check_fov_in_domain, plain_fisheye_file, CameraFile, Checked, Invalid};
+use super::intrinsics::{fisheye_extent, Divided};
+use super::schema::{plain_fisheye_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::normalize;
 
@@ -68,16 +68,11 @@ pub struct Unified {
     pub fov_deg: f64,
 }
 
-deref_intrinsics!(Unified);
-
 plain_fisheye_file!(Unified, "unified", [alpha]);
 
 impl Unified {
-    /// Every float finite, the intrinsics ([`Intrinsics::validate`]), `0 < fov_deg < 360`,
-    /// `alpha in [0, 1)`, and `fov_deg / 2` below [`Unified::theta_max`]; the error names the field.
-    pub fn validate(&self) -> Checked {
-        self.intrinsics
-            .validate_fisheye(&self.fields(), self.fov_deg)?;
+    /// `alpha in [0, 1)` (part of [`Unified::validate`]).
+    fn check_parameters(&self) -> Checked {
         if !(self.alpha >= 0.0 && self.alpha < 1.0) {
             return Err(Invalid::new(
                 "alpha",
@@ -87,7 +82,7 @@ impl Unified {
                 ),
             ));
         }
-        check_fov_in_domain(self.fov_deg, self.theta_max(), "alpha")
+        Ok(())
     }
 
     /// Largest angle to the optical axis that projects, in radians: `acos(-w)` (exclusive).

@@ -96,7 +96,13 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
         None => OpenCvModel::Standard,
     };
     let mut notes = Vec::new();
-    let (model, name) = coefficients(model, f, &d, d_key, path, &mut notes)?;
+    let read = Coefficients {
+        f,
+        d: &d,
+        key: d_key,
+        path,
+    };
+    let (model, name) = coefficients(model, &read, &mut notes)?;
     Ok(Parsed {
         model,
         size,
@@ -151,40 +157,49 @@ pub(super) fn camera_matrix_entries(k: &[f64], path: &Path, field: &str) -> Resu
     Ok(())
 }
 
-/// The model of the distortion coefficients `d` (read from `d_key`) for OpenCV's `model`, and
-/// its name; `notes` gets a line per convention converted.
+/// Distortion coefficients as read: the values `d` of the key `key` of the file `path`, with the
+/// `[fx, fy, cx, cy]` of the camera they belong to. What the readers of OpenCV's and ROS's
+/// models pass around; errors name `key` (or one of its entries) in `path`.
+pub(super) struct Coefficients<'a> {
+    pub f: [f64; 4],
+    pub d: &'a [f64],
+    pub key: &'a str,
+    pub path: &'a Path,
+}
+
+/// The model of the distortion coefficients for OpenCV's `model`, and its name; `notes` gets a
+/// line per convention converted.
 pub(super) fn coefficients(
     model: OpenCvModel,
-    f: [f64; 4],
-    d: &[f64],
-    d_key: &str,
-    path: &Path,
+    read: &Coefficients<'_>,
     notes: &mut Vec<String>,
 ) -> Result<(Model, &'static str)> {
     Ok(match model {
-        OpenCvModel::Fisheye => {
-            expect_len(d, 4, path, d_key, "fisheye [k1, k2, k3, k4]")?;
-            (
-                Model::KannalaBrandt {
-                    f,
-                    k: [d[0], d[1], d[2], d[3]],
-                },
-                "fisheye",
-            )
-        }
-        OpenCvModel::Standard => (standard(f, d, d_key, path, notes)?, "standard"),
+        OpenCvModel::Fisheye => (fisheye(read, "fisheye [k1, k2, k3, k4]")?, "fisheye"),
+        OpenCvModel::Standard => (standard(read, notes)?, "standard"),
+    })
+}
+
+/// OpenCV's fisheye model (Kannala-Brandt) of `d` = `k1 k2 k3 k4`; `what` names the model in
+/// the error for another count.
+pub(super) fn fisheye(read: &Coefficients<'_>, what: &str) -> Result<Model> {
+    let Coefficients { f, d, key, path } = *read;
+    expect_len(d, 4, path, key, what)?;
+    Ok(Model::KannalaBrandt {
+        f,
+        k: [d[0], d[1], d[2], d[3]],
     })
 }
 
 /// OpenCV's standard model of `d` = `k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]`: the
 /// 5-coefficient or rational model; thin-prism and tilt terms must be zero.
-pub(super) fn standard(
-    f: [f64; 4],
-    d: &[f64],
-    d_key: &str,
-    path: &Path,
-    notes: &mut Vec<String>,
-) -> Result<Model> {
+pub(super) fn standard(read: &Coefficients<'_>, notes: &mut Vec<String>) -> Result<Model> {
+    let Coefficients {
+        f,
+        d,
+        key: d_key,
+        path,
+    } = *read;
     if ![4, 5, 8, 12, 14].contains(&d.len()) {
         return Err(camera_error(
             path,

@@ -17,7 +17,9 @@ use std::path::Path;
 
 use serde_json::Value;
 
-use super::opencv::{camera_matrix_entries, first_key, focal_and_centre, matrix, standard};
+use super::opencv::{
+    camera_matrix_entries, first_key, fisheye, focal_and_centre, matrix, standard, Coefficients,
+};
 use super::tree::{dimension, expect_len, parse_float, parse_tree};
 use super::{camera_error, format_error, ImportOptions, Model, Parsed};
 use crate::error::Result;
@@ -79,7 +81,13 @@ fn read_yaml(text: &str, path: &Path) -> Result<Parsed> {
         }
     };
     let mut notes = Vec::new();
-    let model = distortion(&model_name, f, &d, d_key, path, &mut notes)?;
+    let read = Coefficients {
+        f,
+        d: &d,
+        key: d_key,
+        path,
+    };
+    let model = distortion(&model_name, &read, &mut notes)?;
     let name = match first_key(&tree, &["camera_name"]) {
         Some((_, Value::String(s))) => format!(" {s}"),
         _ => String::new(),
@@ -92,30 +100,18 @@ fn read_yaml(text: &str, path: &Path) -> Result<Parsed> {
     })
 }
 
-/// The model of ROS's `distortion_model` `name` with coefficients `d` (read from `d_key`).
-fn distortion(
-    name: &str,
-    f: [f64; 4],
-    d: &[f64],
-    d_key: &str,
-    path: &Path,
-    notes: &mut Vec<String>,
-) -> Result<Model> {
+/// The model of ROS's `distortion_model` `name` with the coefficients `read`.
+fn distortion(name: &str, read: &Coefficients<'_>, notes: &mut Vec<String>) -> Result<Model> {
+    let Coefficients { d, key, path, .. } = *read;
     match name {
         "plumb_bob" | "rational_polynomial" => {
             let n = if name == "plumb_bob" { 5 } else { 8 };
             if !(d.len() == n || (name == "plumb_bob" && d.len() == 4)) {
-                expect_len(d, n, path, d_key, name)?;
+                expect_len(d, n, path, key, name)?;
             }
-            standard(f, d, d_key, path, notes)
+            standard(read, notes)
         }
-        "equidistant" => {
-            expect_len(d, 4, path, d_key, "equidistant [k1, k2, k3, k4]")?;
-            Ok(Model::KannalaBrandt {
-                f,
-                k: [d[0], d[1], d[2], d[3]],
-            })
-        }
+        "equidistant" => fisheye(read, "equidistant [k1, k2, k3, k4]"),
         other => Err(camera_error(
             path,
             "distortion_model",
@@ -183,7 +179,13 @@ fn read_txt(text: &str, path: &Path, options: &ImportOptions) -> Result<Parsed> 
                 .to_string(),
         );
     }
-    let model = distortion(model_name, f, d, &d_field, path, &mut notes)?;
+    let read = Coefficients {
+        f,
+        d,
+        key: &d_field,
+        path,
+    };
+    let model = distortion(model_name, &read, &mut notes)?;
     Ok(Parsed {
         model,
         size,
