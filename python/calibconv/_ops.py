@@ -99,6 +99,8 @@ def deform_conv2d(x: Tensor, plan: Plan, weight: Tensor, bias: Optional[Tensor],
     - ``weight``: ``[C_out, C_in / groups, kh, kw]``; ``bias``: ``[C_out]``
     - output: ``[B, C_out, H_out, W_out]``, in the input's memory format
     """
+    if not _registered and not available():
+        raise RuntimeError(f"calibconv's native operators are not available: {fallback_reason()}")
     ho, wo = plan.output_size
     dtype = x.dtype
     if dtype in (torch.float32, torch.float64) or torch.is_autocast_enabled("cpu"):

@@ -319,7 +319,12 @@ fn sampling_plan<'py>(
         arr(padding),
         arr(dilation),
     );
-    if input.iter().chain(&kernel).chain(&stride).chain(&dilation).any(|&v| v < 1)
+    if input
+        .iter()
+        .chain(&kernel)
+        .chain(&stride)
+        .chain(&dilation)
+        .any(|&v| v < 1)
         || padding.iter().any(|&p| p < 0)
     {
         return Err(PyValueError::new_err(format!(
@@ -380,24 +385,30 @@ fn sampling_plan<'py>(
     ))
 }
 
+/// `[(file, include_str!(src/ops/native/file))]` for the files named.
+macro_rules! native_sources {
+    ($($file:literal),* $(,)?) => {
+        [$(($file, include_str!(concat!("../../src/ops/native/", $file)))),*]
+    };
+}
 /// The native kernels' C++ sources, `(file name, text)`, embedded from `src/ops/native` when
 /// this module is built: the files `build.rs` compiles into the crate, plus `torch_op.cpp`, their
 /// registration as torch operators.
-const NATIVE_SOURCES: [(&str, &str); 13] = [
-    ("deform.cpp", include_str!("../../src/ops/native/deform.cpp")),
-    ("forward.cpp", include_str!("../../src/ops/native/forward.cpp")),
-    ("gather.cpp", include_str!("../../src/ops/native/gather.cpp")),
-    ("grad_input.cpp", include_str!("../../src/ops/native/grad_input.cpp")),
-    ("grad_weight.cpp", include_str!("../../src/ops/native/grad_weight.cpp")),
-    ("layout.cpp", include_str!("../../src/ops/native/layout.cpp")),
-    ("padding.cpp", include_str!("../../src/ops/native/padding.cpp")),
-    ("small.cpp", include_str!("../../src/ops/native/small.cpp")),
-    ("torch_op.cpp", include_str!("../../src/ops/native/torch_op.cpp")),
-    ("deform.h", include_str!("../../src/ops/native/deform.h")),
-    ("gather.h", include_str!("../../src/ops/native/gather.h")),
-    ("simd.h", include_str!("../../src/ops/native/simd.h")),
-    ("small_kernels.h", include_str!("../../src/ops/native/small_kernels.h")),
-];
+const NATIVE_SOURCES: [(&str, &str); 13] = native_sources!(
+    "deform.cpp",
+    "forward.cpp",
+    "gather.cpp",
+    "grad_input.cpp",
+    "grad_weight.cpp",
+    "layout.cpp",
+    "padding.cpp",
+    "small.cpp",
+    "torch_op.cpp",
+    "deform.h",
+    "gather.h",
+    "simd.h",
+    "small_kernels.h",
+);
 
 /// The native kernels' C++ sources as `[(file name, text)]` (see [`NATIVE_SOURCES`]).
 #[pyfunction]

@@ -10,11 +10,6 @@ use tch::{Device, Kind, Tensor};
 use super::{Border, ConvGeometry, SamplingPlan};
 use crate::error::{Error, Result};
 
-/// Plan weights: float32 or float64 (the geometry crate's, with tch's element kinds).
-pub(super) trait PlanFloat: Element + plan::PlanFloat {}
-impl PlanFloat for f32 {}
-impl PlanFloat for f64 {}
-
 /// A new contiguous CPU tensor of `n` elements of `T`, its memory filled by `fill`.
 pub(super) fn filled<T: Element>(n: usize, fill: impl FnOnce(&mut [T])) -> Tensor {
     let t = Tensor::empty([n as i64], (T::KIND, Device::Cpu));
@@ -98,7 +93,7 @@ impl Layout {
     /// per-sample reference `tests::bilinear_border`; with `portable`, the fill without wrap
     /// takes its portable clone even where AVX2 is there).
     #[cfg(test)]
-    pub(super) fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
+    pub(super) fn fill_row<O: Copy + Into<f64>, W: plan::PlanFloat>(
         &self,
         off: &[O],
         row: usize,
