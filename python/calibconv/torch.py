@@ -1,10 +1,14 @@
 """Calibrated convolutions for any PyTorch CNN (needs torch and torchvision).
 
 - :class:`CalibratedConv2d`: an ``nn.Conv2d`` (same parameters, same ``state_dict`` keys) whose
-  forward is ``torchvision.ops.deform_conv2d`` with fixed offsets, the paper's "fisheye
-  calibrated kernel" (Section 3.2). The offsets are a non-persistent buffer (not in the
-  ``state_dict``; they follow ``.to(device)``) of shape ``[1, 2*kh*kw, H_out, W_out]``, expanded
-  over the batch in ``forward`` (a view, never a copy).
+  forward is a deformable convolution with fixed offsets, the paper's "fisheye calibrated kernel"
+  (Section 3.2). On the CPU it runs the Rust crate's native kernels as the custom operator
+  ``torch.ops.calibconv.deform_conv2d`` (:mod:`calibconv._ops`; compiled against the installed
+  torch at first use, :mod:`calibconv._extension`) through a sampling plan built once per layer;
+  on other devices, during ONNX export, and where the kernels cannot be built (one
+  ``RuntimeWarning`` says why), ``torchvision.ops.deform_conv2d``. The offsets are a
+  non-persistent buffer (not in the ``state_dict``; they follow ``.to(device)``) of shape
+  ``[1, 2*kh*kw, H_out, W_out]``, expanded over the batch for torchvision (a view, never a copy).
 - :func:`calibrate`: swaps every ``nn.Conv2d`` with a kernel larger than 1x1 in a model for a
   ``CalibratedConv2d`` sharing its weights, with offsets for the feature-map size that layer sees
   (found by one dummy forward with hooks).
@@ -28,7 +32,11 @@ import torch
 from torch import Tensor, nn
 from torchvision.ops import deform_conv2d
 
-__all__ = ["CalibratedConv2d", "calibrate", "export_onnx", "MIN_DEFORM_CONV_OPSET"]
+from . import _ops
+
+__all__ = [
+    "CalibratedConv2d", "calibrate", "export_onnx", "native_available", "MIN_DEFORM_CONV_OPSET",
+]
 
 #: ``DeformConv`` entered the ONNX standard domain in opset 19.
 MIN_DEFORM_CONV_OPSET = 19
@@ -42,6 +50,18 @@ MIN_DEFORM_CONV_OPSET = 19
 #: goes alone) and concatenates the outputs, which is the same computation (items are
 #: independent; the weight gradient sums over the chunks). ``tools/cuda_check.py`` measures it.
 MAX_COLUMN_ELEMENTS = 2**31 - 1
+
+
+#: Set by :func:`export_onnx` while it exports: calibrated layers then trace torchvision's op,
+#: which the exporters translate to ONNX ``DeformConv`` with the offsets as constants (the native
+#: operator takes a sampling plan, not offsets).
+_EXPORTING = False
+
+
+def native_available() -> bool:
+    """Whether calibrated layers on the CPU run the native kernels (building them on the first
+    call, see :mod:`calibconv._extension`); ``False`` means torchvision's ``deform_conv2d``."""
+    return _ops.available()
 
 
 def _pair(v) -> Tuple[int, int]:
@@ -86,6 +106,9 @@ class CalibratedConv2d(nn.Conv2d):
         self.register_buffer("offsets", None, persistent=False)
         #: ``(H, W)`` of the input feature map the offsets were made for.
         self.input_size: Optional[Tuple[int, int]] = None
+        #: The sampling plan of the native kernels (CPU tensors, not a buffer: it stays on the
+        #: CPU whatever ``.to()`` does), built by :meth:`set_offsets`.
+        self._plan: Optional[_ops.Plan] = None
 
     @classmethod
     def from_conv(cls, conv: nn.Conv2d, offsets, input_size: Sequence[int]) -> "CalibratedConv2d":
@@ -137,6 +160,8 @@ class CalibratedConv2d(nn.Conv2d):
         device = self.weight.device if self.weight.device.type != "meta" else "cpu"
         self.offsets = off.to(device=device, dtype=torch.float32).contiguous()
         self.input_size = (h, w)
+        self._plan = _ops.Plan(self.offsets[0].cpu().numpy(), (h, w), self.kernel_size,
+                               self.stride, (ph, pw), self.dilation)
 
     def forward(self, x: Tensor) -> Tensor:
         if self.offsets is None:
@@ -146,6 +171,15 @@ class CalibratedConv2d(nn.Conv2d):
                 f"CalibratedConv2d: input feature map is {tuple(x.shape[-2:])} (H, W), but the "
                 f"offsets were made for {self.input_size}: calibrate the model for this input size"
             )
+        if x.device.type == "cpu" and not _EXPORTING and not torch.onnx.is_in_onnx_export():
+            if _ops.available():
+                return _ops.deform_conv2d(x, self._plan, self.weight, self.bias, self.groups)
+            _ops.warn_fallback()
+        return self._torchvision_forward(x)
+
+    def _torchvision_forward(self, x: Tensor) -> Tensor:
+        """``torchvision.ops.deform_conv2d`` with the offsets expanded over the batch, in chunks
+        of at most ``MAX_COLUMN_ELEMENTS`` column elements."""
         off = self.offsets if self.offsets.dtype == x.dtype else self.offsets.to(x.dtype)
         kh, kw = self.kernel_size
         per_item = self.in_channels * kh * kw * off.shape[2] * off.shape[3]
@@ -315,16 +349,19 @@ def export_onnx(
     Calibrated layers become ``DeformConv`` nodes with their offsets as constants (initializers);
     the input shape is that of ``example_input`` (calibrated layers serve one size). ``dynamo``
     picks the exporter: ``torch.export`` (default; ``torchvision::deform_conv2d`` is translated by
-    onnxscript's torch_lib) or the TorchScript one (a symbolic registered here). Weights are
-    stored inside the one file.
+    onnxscript's torch_lib) or the TorchScript one (a symbolic registered here). While it exports,
+    calibrated layers trace torchvision's op, not the native one (whose inputs are a sampling
+    plan, which ONNX ``DeformConv`` cannot take). Weights are stored inside the one file.
     """
     if opset < MIN_DEFORM_CONV_OPSET:
         raise ValueError(
             f"opset {opset}: ONNX DeformConv needs opset >= {MIN_DEFORM_CONV_OPSET}"
         )
+    global _EXPORTING
     path = os.fspath(path)
     was_training = model.training
     model.eval()
+    _EXPORTING = True
     try:
         if dynamo:
             torch.onnx.export(
@@ -337,5 +374,6 @@ def export_onnx(
             )
             torch.onnx.export(model, (example_input,), path, opset_version=opset, dynamo=False)
     finally:
+        _EXPORTING = False
         model.train(was_training)
     return path

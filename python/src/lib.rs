@@ -7,6 +7,13 @@
 //! - [`offsets`]: one layer's calibrated offsets as a float32 numpy `[2*kh*kw, H_out, W_out]`
 //!   array, from the same `compute_offsets` as `calibconv offsets` (so bit-identical to it).
 //!
+//! - [`sampling_plan`]: a layer's sampling plan from its offsets (top-left corners, fractions,
+//!   rows read) as numpy arrays, from the same `calibconv_geometry::plan` as the crate's
+//!   `SamplingPlan` (so bit-identical to it), for the native kernels.
+//! - [`native_sources`]: the native kernels' C++ sources (`src/ops/native`, embedded at build
+//!   time: one source for the crate and the package), which `calibconv.torch` compiles against
+//!   the installed torch.
+//!
 //! Conventions are the geometry crate's: pixels `[u, v]` = (column, row), top-left pixel centre
 //! at `(0, 0)`; rays `[x, y, z]` (x right, y down, z forward); layer pairs `(y, x)`; the input
 //! padding `(p_w, p_h)`, right and bottom.
@@ -17,14 +24,15 @@
 
 use std::path::PathBuf;
 
-use numpy::ndarray::{Array2, Array3};
-use numpy::{AllowTypeChange, IntoPyArray, PyArray2, PyArray3, PyArrayLikeDyn};
+use numpy::ndarray::{Array1, Array2, Array3};
+use numpy::{AllowTypeChange, IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayLikeDyn};
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyValueError};
 use pyo3::prelude::*;
 
 use calibconv_geometry::camera::import::{import_file, Format, ImportOptions, OpenCvModel};
 use calibconv_geometry::camera::{self, CameraModel, PixelConvention};
 use calibconv_geometry::kernel::{compute_offsets, InputFrame, LayerGeometry};
+use calibconv_geometry::plan::PlanLayout;
 use calibconv_geometry::Error;
 
 /// The geometry crate's error as the Python exception that fits it.
@@ -279,11 +287,143 @@ fn offsets<'py>(
     Ok(arr.into_pyarray(py))
 }
 
-/// The module: `Camera`, `offsets`, `MODELS` (the camera-file model names), `__version__`.
+/// A layer's sampling plan for offsets `[2*kh*kw, H_out, W_out]` (shared by the batch, zeros
+/// outside) on an input of `size = (H, W)`: `(top_left, frac, rows)`, int32 `[N]`, float64
+/// `[2 N]` and int32 `[H_out, 2]` for `N = H_out * W_out * kh * kw` samples (pixel-major, then
+/// tap): each sample's top-left bilinear corner in the input padded by one row above, two below
+/// and a column on each side, its fractions `(ly, lx)`, and per output row the lowest and highest
+/// input row read. The crate's `SamplingPlan` for the same offsets holds the same values (its
+/// float32 fractions are these rounded). `kernel`, `stride`, `padding`, `dilation`: `(y, x)`
+/// pairs as `nn.Conv2d`'s.
+#[pyfunction]
+#[pyo3(signature = (offsets, size, kernel, stride, padding, dilation))]
+#[allow(clippy::type_complexity)]
+fn sampling_plan<'py>(
+    py: Python<'py>,
+    offsets: PyArrayLikeDyn<'py, f64, AllowTypeChange>,
+    size: (i64, i64),
+    kernel: (i64, i64),
+    stride: (i64, i64),
+    padding: (i64, i64),
+    dilation: (i64, i64),
+) -> PyResult<(
+    Bound<'py, PyArray1<i32>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray2<i32>>,
+)> {
+    let arr = |(a, b): (i64, i64)| [a, b];
+    let (input, kernel, stride, padding, dilation) = (
+        arr(size),
+        arr(kernel),
+        arr(stride),
+        arr(padding),
+        arr(dilation),
+    );
+    if input
+        .iter()
+        .chain(&kernel)
+        .chain(&stride)
+        .chain(&dilation)
+        .any(|&v| v < 1)
+        || padding.iter().any(|&p| p < 0)
+    {
+        return Err(PyValueError::new_err(format!(
+            "sampling_plan: size {input:?}, kernel {kernel:?}, stride {stride:?}, dilation \
+             {dilation:?} must be >= 1 and padding {padding:?} >= 0"
+        )));
+    }
+    let out = |a: usize| {
+        (input[a] + 2 * padding[a] - dilation[a] * (kernel[a] - 1) - 1).div_euclid(stride[a]) + 1
+    };
+    let (ho, wo) = (out(0), out(1));
+    let taps = kernel[0] * kernel[1];
+    let view = offsets.as_array();
+    let want = [2 * taps, ho, wo];
+    if ho < 1 || wo < 1 || view.shape() != want.map(|v| v.max(0) as usize) {
+        return Err(PyValueError::new_err(format!(
+            "sampling_plan: offsets of shape {:?} do not fit a {}x{} kernel (stride {stride:?}, \
+             padding {padding:?}, dilation {dilation:?}) on a {}x{} input: expected {want:?}",
+            view.shape(),
+            kernel[0],
+            kernel[1],
+            input[0],
+            input[1]
+        )));
+    }
+    let layout = PlanLayout {
+        h: input[0],
+        w: input[1],
+        ho,
+        wo,
+        kernel,
+        stride,
+        padding,
+        dilation,
+        per_item: false,
+        wrap: false,
+    };
+    let samples = layout.samples(1).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "sampling_plan: {ho}x{wo} x {taps} samples on a {}x{} input are too many for int32 \
+             indices",
+            input[0], input[1]
+        ))
+    })?;
+    let off: Vec<f64> = view.iter().copied().collect();
+    let (top_left, frac, rows) = py.detach(|| {
+        let mut top_left = vec![0i32; samples];
+        let mut frac = vec![0f64; 2 * samples];
+        let rows = layout.fill(&off, &mut top_left, &mut frac);
+        (top_left, frac, rows)
+    });
+    let rows = Array2::from_shape_vec((ho as usize, 2), rows.into_iter().flatten().collect())
+        .map_err(|e| PyValueError::new_err(format!("sampling_plan: {e}")))?;
+    Ok((
+        Array1::from_vec(top_left).into_pyarray(py),
+        Array1::from_vec(frac).into_pyarray(py),
+        rows.into_pyarray(py),
+    ))
+}
+
+/// `[(file, include_str!(src/ops/native/file))]` for the files named.
+macro_rules! native_sources {
+    ($($file:literal),* $(,)?) => {
+        [$(($file, include_str!(concat!("../../src/ops/native/", $file)))),*]
+    };
+}
+/// The native kernels' C++ sources, `(file name, text)`, embedded from `src/ops/native` when
+/// this module is built: the files `build.rs` compiles into the crate, plus `torch_op.cpp`, their
+/// registration as torch operators.
+const NATIVE_SOURCES: [(&str, &str); 13] = native_sources!(
+    "deform.cpp",
+    "forward.cpp",
+    "gather.cpp",
+    "grad_input.cpp",
+    "grad_weight.cpp",
+    "layout.cpp",
+    "padding.cpp",
+    "small.cpp",
+    "torch_op.cpp",
+    "deform.h",
+    "gather.h",
+    "simd.h",
+    "small_kernels.h",
+);
+
+/// The native kernels' C++ sources as `[(file name, text)]` (see [`NATIVE_SOURCES`]).
+#[pyfunction]
+fn native_sources() -> Vec<(&'static str, &'static str)> {
+    NATIVE_SOURCES.to_vec()
+}
+
+/// The module: `Camera`, `offsets`, `sampling_plan`, `native_sources`, `MODELS` (the camera-file
+/// model names), `__version__`.
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Camera>()?;
     m.add_function(wrap_pyfunction!(offsets, m)?)?;
+    m.add_function(wrap_pyfunction!(sampling_plan, m)?)?;
+    m.add_function(wrap_pyfunction!(native_sources, m)?)?;
     m.add("MODELS", camera::MODELS.to_vec())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -13,6 +13,9 @@
 //!   feature-map size, the offsets of every kernel tap relative to the regular deformable grid,
 //!   as plain data ([`kernel::Offsets`]: `Vec<f32>` in torchvision's layout), computed in
 //!   parallel. The `calibconv` crate turns them into tensors and caches them.
+//! - [`plan`]: the sampling plan's arithmetic over slices (bilinear corners and fractions of
+//!   every sample of a deformable convolution with fixed offsets): one implementation for the
+//!   `calibconv` crate's tensors and the Python package's numpy arrays.
 //! - [`error`]: the crate's one error enum; `calibconv::Error` wraps it with the same messages.
 //!
 //! ## Adding a camera model
@@ -38,6 +41,7 @@ pub mod camera;
 pub mod error;
 pub mod kernel;
 pub mod memory;
+pub mod plan;
 pub mod vec3;
 
 pub use error::{Error, Result};

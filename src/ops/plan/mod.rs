@@ -10,6 +10,10 @@ mod tests;
 use rayon::prelude::*;
 use tch::{Device, Kind, Tensor};
 
+// `padded_size([H, W]) = [H + 3, W + 2]`: the size of an `[H, W]` input padded as the plan's
+// `top_left` indices read it (one row above and two below, one column on each side).
+use calibconv_geometry::plan::padded_size;
+
 use super::check_float;
 use crate::error::{Error, Result};
 use crate::kernel::Offsets;
@@ -134,12 +138,6 @@ pub struct SamplingPlan {
     /// `Some(B)` for per-item offsets.
     batch: Option<i64>,
     border: Border,
-}
-
-/// `[H + 3, W + 2]`: the size of an `[H, W]` input padded as the plan's `top_left` indices read
-/// it (one row above and two below, one column on each side).
-pub fn padded_size([h, w]: [i64; 2]) -> [i64; 2] {
-    [h + 3, w + 2]
 }
 
 impl SamplingPlan {

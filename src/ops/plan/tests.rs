@@ -3,11 +3,6 @@
 use super::fill::{floor, Layout};
 use super::{corners_of_top_left, padded_size, Border, ConvGeometry};
 
-thread_local! {
-    /// Set by a test: `Layout::fill_row` takes the portable fill even where AVX2 is there.
-    pub(super) static PORTABLE_FILL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-}
-
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
 /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
 /// [`Border::WrapX`] corner columns are taken modulo `w` (never out of range).
@@ -123,9 +118,7 @@ fn fill_row_matches_bilinear_sample_by_sample() {
             let mut idx = vec![-7i32; 4 * row];
             let mut frac = vec![-7.0f64; 2 * row];
             let mut top_left = vec![-7i32; row];
-            PORTABLE_FILL.with(|p| p.set(portable));
-            let reach = layout.fill_row(&off, r, &mut top_left, &mut frac);
-            PORTABLE_FILL.with(|p| p.set(false));
+            let reach = layout.fill_row(&off, r, &mut top_left, &mut frac, portable);
             // The ATen path's corner indices, derived from the top-left corners.
             corners_of_top_left(&top_left, [h, w], border, &mut idx);
             let (item, oy) = (r as i64 / ho, r as i64 % ho);
