@@ -71,6 +71,40 @@ pub struct Row {
     pub record: MetricsRecord,
     /// `RUN/eval/NAME`.
     pub dir: PathBuf,
+    /// The run's training set (folder and split) and the fraction of it the run trained on
+    /// (`config.json`'s `train_data`; `None` where it does not say, e.g. the toy task).
+    pub train_set: Option<TrainSet>,
+}
+
+/// A run's training set as `config.json` records it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainSet {
+    pub path: PathBuf,
+    pub split: String,
+    /// `None`: all of the split.
+    pub fraction: Option<f64>,
+}
+
+impl TrainSet {
+    /// The training set of the run in `run` (`None` if `config.json` is absent or names no
+    /// data set folder).
+    fn of(run: &RunDir) -> Result<Option<TrainSet>> {
+        let file = run.config_json();
+        let Ok(text) = std::fs::read_to_string(&file) else {
+            return Ok(None);
+        };
+        let v: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Error::InvalidArgument(format!("{}: {e}", file.display())))?;
+        let d = &v["train_data"]["dataset"];
+        Ok(match (d["path"].as_str(), d["split"].as_str()) {
+            (Some(path), Some(split)) => Some(TrainSet {
+                path: PathBuf::from(path),
+                split: split.to_string(),
+                fraction: d["fraction"].as_f64(),
+            }),
+            _ => None,
+        })
+    }
 }
 
 /// Everything read from a results folder.
@@ -86,10 +120,14 @@ pub struct Study {
 
 /// The data set and kernel labels of an evaluation.
 fn labels(name: &str, kernel: &str) -> (String, String) {
-    match name.rsplit_once('-') {
-        Some((set, k)) if KERNELS.contains(&k) => (set.to_uppercase(), k.to_string()),
-        _ => (name.to_string(), kernel.to_string()),
+    for k in KERNELS {
+        if let Some(set) = name.strip_suffix(k).and_then(|s| s.strip_suffix('-')) {
+            if !set.is_empty() {
+                return (set.to_uppercase(), k.to_string());
+            }
+        }
     }
+    (name.to_string(), kernel.to_string())
 }
 
 fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
@@ -129,6 +167,7 @@ fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
             .unwrap_or_default(),
         profile: sweep.map(|s| s.profile).filter(|p| !p.is_empty()),
     };
+    let train_set = TrainSet::of(run)?;
     let mut rows = Vec::new();
     for name in run.evaluation_names()? {
         let e = run.eval_dir(&name);
@@ -142,6 +181,7 @@ fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
             evaluation,
             record,
             dir: e,
+            train_set: train_set.clone(),
         });
     }
     Ok((info, rows))

@@ -39,7 +39,15 @@ pub struct FovRow {
 /// The field of view (degrees) of each FT data set, from the camera file of its evaluations.
 fn fov_by_dataset(study: &Study) -> Result<BTreeMap<(Task, String), f64>> {
     let mut out = BTreeMap::new();
-    for row in study.rows.iter().filter(|r| r.cell.block == Block::Ft) {
+    // (Runs on a fraction of their training set belong to the data-efficiency series.)
+    let whole =
+        |r: &&super::collect::Row| r.train_set.as_ref().is_none_or(|t| t.fraction.is_none());
+    for row in study
+        .rows
+        .iter()
+        .filter(|r| r.cell.block == Block::Ft)
+        .filter(whole)
+    {
         let key = (row.cell.task, row.cell.dataset.clone());
         if out.contains_key(&key) {
             continue;

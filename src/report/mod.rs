@@ -14,6 +14,7 @@ pub mod fov;
 pub mod grids;
 pub mod kernels;
 pub mod pointcloud;
+pub mod questions;
 pub mod radial;
 pub mod results;
 pub mod stats;

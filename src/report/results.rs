@@ -398,6 +398,7 @@ pub fn write_report_with(results: &Path, out: &Path, opts: &ReportOptions) -> Re
         report += &format!("## Figures\n\n{figures}");
     }
     report += &fov_section(&cx, &mut files)?;
+    report += &questions_section(&cx, &mut files)?;
     report += &extra_figures(out);
     report += &training_figures(&files, out);
     let report_file = out.join("REPORT.md");
@@ -487,6 +488,81 @@ fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
         );
     }
     md += "\n![gain vs field of view](fov_gain.png)\n\n";
+    Ok(md)
+}
+
+/// The data-efficiency series and the methods beyond the paper's ([`super::questions`]), when
+/// their runs exist.
+fn questions_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
+    let ci = |c: Option<[f64; 2]>| {
+        c.map(|[lo, hi]| format!("[{lo:+.4}, {hi:+.4}]"))
+            .unwrap_or_else(|| "needs >= 2 seeds".into())
+    };
+    let mut md = String::new();
+    let eff = super::questions::data_efficiency(cx.study, cx.obs)?;
+    let written = super::questions::write_data_efficiency(&eff, cx.out)?;
+    if !written.is_empty() {
+        md += "## Data efficiency
+
+FT from the same baseline on a fraction of the training \
+               views (drawn with the seed, nested across fractions; the same steps for every \
+               fraction), calibrated − standard per seed, mean and 95% Student-t interval \
+               ([data_efficiency.json](data_efficiency.json); claim C7 in the verdict).\n\n\
+               | task | metric | fraction | views | n | standard | calibrated | difference | 95% \
+               CI |\n|---|---|---:|---:|---:|---:|---:|---:|---|\n";
+        for r in &eff {
+            md += &format!(
+                "| {} | {} | {} | {} | {} | {:.4} | {:.4} | {:+.4} | {} |\n",
+                r.task,
+                r.metric,
+                r.fraction,
+                r.train_images,
+                r.n_seeds,
+                r.standard,
+                r.calibrated,
+                r.diff_mean,
+                ci(r.ci95)
+            );
+        }
+        for f in &written {
+            if f.extension().is_some_and(|e| e == "png") {
+                md += &format!("\n![data efficiency]({})\n", rel(f, cx.out));
+            }
+        }
+        md += "\n";
+        files.extend(written);
+    }
+    let methods = super::questions::methods(cx.obs);
+    let written = super::questions::write_methods(&methods, cx.out)?;
+    if !written.is_empty() {
+        md += "## Methods\n\nFT from the same baseline with each kind of convolution \
+               (`camconv`: CAM-Convs' ray maps at the skip connections; `calibrated-learned`: \
+               calibrated offsets plus a learned offset branch), mean and 95% interval over \
+               seeds, and the paired difference to standard kernels \
+               ([methods.json](methods.json)).\n\n| lens | task | metric | method | n | mean | \
+               95% CI | − standard | 95% CI |\n|---|---|---|---|---:|---:|---|---:|---|\n";
+        for r in &methods {
+            md += &format!(
+                "| {} | {} | {} | {} | {} | {:.4} | {} | {:+.4} | {} |\n",
+                r.lens,
+                r.task,
+                r.metric,
+                r.method,
+                r.n_seeds,
+                r.mean,
+                ci(r.ci95),
+                r.diff_vs_standard.mean,
+                ci(r.diff_vs_standard.ci95)
+            );
+        }
+        for f in &written {
+            if f.extension().is_some_and(|e| e == "png") {
+                md += &format!("\n![methods]({})\n", rel(f, cx.out));
+            }
+        }
+        md += "\n";
+        files.extend(written);
+    }
     Ok(md)
 }
 

@@ -69,8 +69,12 @@ impl fmt::Display for Block {
 pub const STANDARD: &str = "standard";
 pub const CALIBRATED: &str = "calibrated";
 pub const RECTIFIED: &str = "rectified";
+/// CAM-Convs' camera maps on standard kernels, and calibrated offsets that keep learning
+/// (the kinds beyond the paper's, `calibconv::nn::ConvKind`).
+pub const CAMCONV: &str = "camconv";
+pub const CALIBRATED_LEARNED: &str = "calibrated-learned";
 /// Kernel labels in table order.
-pub const KERNELS: [&str; 3] = [STANDARD, CALIBRATED, RECTIFIED];
+pub const KERNELS: [&str; 5] = [STANDARD, CALIBRATED, RECTIFIED, CAMCONV, CALIBRATED_LEARNED];
 
 /// One row of a table: what was trained and how it was evaluated.
 #[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]

@@ -12,7 +12,8 @@ use std::collections::BTreeMap;
 
 use super::stats::{bootstrap, MeanCi};
 use super::study::{
-    paired_difference, Block, Cell, Observations, Task, CALIBRATED, RECTIFIED, STANDARD,
+    paired_difference, Block, Cell, Observations, Task, CALIBRATED, CALIBRATED_LEARNED, CAMCONV,
+    RECTIFIED, STANDARD,
 };
 use crate::eval::metrics::{Averaging, Metric};
 use crate::eval::record::PerImageRecord;
@@ -21,7 +22,12 @@ use crate::eval::record::PerImageRecord;
 pub const BOOTSTRAP_RESAMPLES: usize = 2000;
 
 /// The comparisons of the difference table: (minuend kernel, subtrahend kernel).
-pub const COMPARISONS: [(&str, &str); 2] = [(CALIBRATED, STANDARD), (RECTIFIED, STANDARD)];
+pub const COMPARISONS: [(&str, &str); 4] = [
+    (CALIBRATED, STANDARD),
+    (RECTIFIED, STANDARD),
+    (CAMCONV, STANDARD),
+    (CALIBRATED_LEARNED, STANDARD),
+];
 
 /// Per seed, per (minuend cell, subtrahend cell, metric): the bootstrap interval over test
 /// images (`None`: not computable, e.g. no shared sample ids).
