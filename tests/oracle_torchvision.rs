@@ -3,8 +3,9 @@
 //! Fixture: `tests/golden/deform_conv2d.safetensors`, written by `tools/make_fixtures.py` (see
 //! `tests/golden/README.md`). Per case `c{n}`: `input`, `offset` (`[2K, Ho, Wo]` shared by the
 //! batch, or `[B, 2K, Ho, Wo]` per item), `weight`, optional `bias`, `probe`, and torchvision's
-//! `output` and the gradients of `(output * probe).sum()` with respect to input, weight and
-//! bias; `meta` = `[stride_h, stride_w, pad_h, pad_w, dil_h, dil_w, groups, has_bias]`. The
+//! `output` and the gradients of `(output * probe).sum()` with respect to input, weight, bias
+//! and the offsets (`grad_offset`, per item `[B, 2K, Ho, Wo]`: what learned offsets train on,
+//! checked against `calibconv::ops::f_deform_conv2d_sampled`); `meta` = `[stride_h, stride_w, pad_h, pad_w, dil_h, dil_w, groups, has_bias]`. The
 //! inputs are float32; the references were computed in float64 and stored as float32.
 
 mod common;
@@ -12,7 +13,7 @@ mod common;
 use std::collections::BTreeMap;
 use std::panic::AssertUnwindSafe;
 
-use calibconv::ops::deform_conv2d;
+use calibconv::ops::{deform_conv2d, f_deform_conv2d_sampled, ConvGeometry};
 use tch::{Kind, Tensor};
 
 use common::{golden, max_rel, read_safetensors};
@@ -39,6 +40,7 @@ struct Case {
     grad_input: Tensor,
     grad_weight: Tensor,
     grad_bias: Option<Tensor>,
+    grad_offset: Tensor,
     stride: [i64; 2],
     padding: [i64; 2],
     dilation: [i64; 2],
@@ -82,6 +84,7 @@ fn take_case(all: &mut BTreeMap<String, Tensor>, name: String) -> Case {
         (need("input"), need("offset"), need("weight"), need("probe"));
     let (output, grad_input, grad_weight) =
         (need("output"), need("grad_input"), need("grad_weight"));
+    let grad_offset = need("grad_offset");
     let (bias, grad_bias) = (take("bias"), take("grad_bias"));
     let has_bias = meta[7] != 0;
     assert_eq!(
@@ -105,6 +108,7 @@ fn take_case(all: &mut BTreeMap<String, Tensor>, name: String) -> Case {
         grad_input,
         grad_weight,
         grad_bias,
+        grad_offset,
         stride: [meta[0], meta[1]],
         padding: [meta[2], meta[3]],
         dilation: [meta[4], meta[5]],
@@ -277,4 +281,51 @@ fn float64_output_and_gradients_match_torchvision() {
         let what = format!("float64 {}", q.name());
         check(&what, F64_REL_TOL, Kind::Double, |c, r| q.pick(c, r));
     }
+}
+
+/// The offset-differentiable op (learned offsets) against torchvision in float64: the output
+/// and every gradient, the offsets' included, on every case (per-item offsets as leaves).
+#[test]
+fn the_sampled_op_and_its_offset_gradient_match_torchvision() {
+    let mut failures = Vec::new();
+    for case in cases() {
+        let kind = Kind::Double;
+        let leaf = |t: &Tensor| t.to_kind(kind).detach().set_requires_grad(true);
+        let b = case.input.size()[0];
+        let per_item = match case.offset.dim() {
+            3 => case.offset.unsqueeze(0).expand([b, -1, -1, -1], false),
+            _ => case.offset.shallow_clone(),
+        };
+        let (input, weight, offset) = (leaf(&case.input), leaf(&case.weight), leaf(&per_item));
+        let bias = case.bias.as_ref().map(leaf);
+        let [kh, kw] = [case.weight.size()[2], case.weight.size()[3]];
+        let geometry = ConvGeometry::new([kh, kw], case.stride, case.padding, case.dilation);
+        let output = f_deform_conv2d_sampled(
+            &input,
+            &offset,
+            &weight,
+            bias.as_ref(),
+            geometry,
+            case.groups,
+        )
+        .unwrap();
+        (&output * case.probe.to_kind(kind)).sum(kind).backward();
+        let mut pairs = vec![
+            ("output", output.detach(), &case.output),
+            ("grad_input", input.grad(), &case.grad_input),
+            ("grad_weight", weight.grad(), &case.grad_weight),
+            ("grad_offset", offset.grad(), &case.grad_offset),
+        ];
+        if let (Some(b), Some(r)) = (&bias, &case.grad_bias) {
+            pairs.push(("grad_bias", b.grad(), r));
+        }
+        for (what, ours, reference) in pairs {
+            let rel = max_rel(&ours, reference);
+            println!("{} sampled {what}: max_rel {rel:.3e}", case.name);
+            if rel.is_nan() || rel >= F64_REL_TOL {
+                failures.push(format!("{} {what}: max_rel {rel:.3e}", case.name));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

@@ -7,8 +7,8 @@ Usage (from the crate root):
 
 Writes, deterministically (fixed seeds):
 
-- ``deform_conv2d.safetensors``: ``torchvision.ops.deform_conv2d`` outputs and gradients for a
-  set of layer geometries (read by ``tests/oracle_torchvision.rs``);
+- ``deform_conv2d.safetensors``: ``torchvision.ops.deform_conv2d`` outputs and gradients (input,
+  weight, bias, and the per-item offsets) for a set of layer geometries (read by ``tests/oracle_torchvision.rs``);
 - ``opencv_fisheye.json``: ``cv2.fisheye.projectPoints`` / ``cv2.fisheye.undistortPoints`` for two
   Kannala-Brandt cameras (read by ``tests/oracle_opencv.rs``);
 - ``opencv_radtan.json``: ``cv2.projectPoints`` / ``cv2.undistortPoints`` for two pinhole
@@ -129,14 +129,15 @@ def make_deform_fixtures(path):
             x = inp.to(dtype).clone().requires_grad_(True)
             wt = weight.to(dtype).clone().requires_grad_(True)
             bs = bias.to(dtype).clone().requires_grad_(True) if has_bias else None
-            out = deform_conv2d(x, off_b.to(dtype).contiguous(), wt, bs, stride=stride,
-                                padding=padding, dilation=dilation)
+            off = off_b.to(dtype).contiguous().clone().requires_grad_(True)
+            out = deform_conv2d(x, off, wt, bs, stride=stride, padding=padding,
+                                dilation=dilation)
             (out * probe.to(dtype)).sum().backward()
             gb = bs.grad if has_bias else None
-            return out.detach(), x.grad, wt.grad, gb
+            return out.detach(), x.grad, wt.grad, gb, off.grad
 
-        out64, gi64, gw64, gb64 = run(torch.float64)
-        out32, gi32, gw32, gb32 = run(torch.float32)
+        out64, gi64, gw64, gb64, go64 = run(torch.float64)
+        out32, gi32, gw32, gb32, _ = run(torch.float32)
 
         # Check 1: torchvision float32 agrees with torchvision float64.
         for what, a, r in (("output", out32, out64), ("grad_input", gi32, gi64),
@@ -170,6 +171,24 @@ def make_deform_fixtures(path):
             fd = (loss(x + e) - loss(x - e)) / 2e-6
             assert abs(fd - gi64.view(-1)[k].item()) < 1e-6, f"{name}: grad_input fd at {k}"
 
+        # Check 4: grad_offset (per item, [B, 2*kh*kw, Ho, Wo]) agrees with central differences.
+        off64 = off_b.double().contiguous()
+        # (Its own generator: the fixture's random draws stay those of the other checks.)
+        fd_gen = torch.Generator().manual_seed(1000 + idx)
+        for k in torch.randint(0, off64.numel(), (5,), generator=fd_gen).tolist():
+            e = torch.zeros_like(off64).view(-1)
+            e[k] = 1e-6
+            e = e.view_as(off64)
+
+            def loss_off(oo):
+                return (deform_conv2d(inp.double(), oo, weight.double(),
+                                      bias.double() if has_bias else None, stride=stride,
+                                      padding=padding, dilation=dilation)
+                        * probe.double()).sum().item()
+
+            fd = (loss_off(off64 + e) - loss_off(off64 - e)) / 2e-6
+            assert abs(fd - go64.view(-1)[k].item()) < 1e-5, f"{name}: grad_offset fd at {k}"
+
         # Statistics: how many sampling locations fall fully outside the map.
         ys = (torch.arange(ho).view(1, ho, 1) * stride[0] - padding[0]
               + (torch.arange(taps) // kw).view(taps, 1, 1) * dilation[0])
@@ -192,6 +211,7 @@ def make_deform_fixtures(path):
         tensors[f"{c}.output"] = out64.float()
         tensors[f"{c}.grad_input"] = gi64.float()
         tensors[f"{c}.grad_weight"] = gw64.float()
+        tensors[f"{c}.grad_offset"] = go64.float()
         tensors[f"{c}.meta"] = torch.tensor(
             [stride[0], stride[1], padding[0], padding[1], dilation[0], dilation[1], groups,
              int(has_bias)], dtype=torch.int64)
