@@ -32,5 +32,14 @@ step fov-a "$BIN" sweep experiments/fov --profile "$PROFILE" --jobs "$JOBS" --th
   --only kb120 --only kb180 --only kb240
 step fov-b "$BIN" sweep experiments/fov --profile "$PROFILE" --jobs "$JOBS" --threads 1 \
   --only kb150 --only kb210
+# The open questions (docs/study.md, "Open questions"): the methods beyond the paper's two
+# (experiments/methods) and the data-efficiency series (experiments/data-efficiency), fine-tuned
+# from the same depth baselines; fractions in order of interest, so that a study cut short has
+# every seed of the fractions it reached.
+step methods "$BIN" sweep experiments/methods --profile "$PROFILE" --jobs "$JOBS" --threads 1
+for n in 16 4 2 8; do
+  step "eff-1of$n" "$BIN" sweep experiments/data-efficiency --profile "$PROFILE" --jobs "$JOBS" \
+    --threads 1 --only "1of$n-"
+done
 step report "$BIN" report results/study --out docs/study --no-ply
 step readme python3 tools/paste_verdict.py docs/study/verdict.md README.md
