@@ -88,6 +88,44 @@ impl Conv2dConfig {
     }
 }
 
+/// The calibrated offsets of a `k x k` layer of `cfg` (`c_in -> c_out`) on an `input_size`
+/// feature map, from the process-wide cache, and the convolution geometry they are for.
+///
+/// # Errors
+/// An even kernel size, groups that do not divide the channels, offsets that cannot be built.
+pub(super) fn layer_offsets(
+    c_in: i64,
+    c_out: i64,
+    k: i64,
+    camera: &Camera,
+    frame: &InputFrame,
+    input_size: [i64; 2],
+    cfg: Conv2dConfig,
+) -> Result<(Arc<Offsets>, ConvGeometry)> {
+    if k < 1 || k % 2 == 0 {
+        return Err(Error::InvalidArgument(format!(
+            "calibrated kernels need an odd size, got {k}"
+        )));
+    }
+    if cfg.groups < 1 || c_in % cfg.groups != 0 || c_out % cfg.groups != 0 {
+        return Err(Error::InvalidArgument(format!(
+            "groups = {} must divide C_in = {c_in} and C_out = {c_out}",
+            cfg.groups
+        )));
+    }
+    let padding = cfg.padding_for(k);
+    let to_usize = |v: [i64; 2]| v.map(|x| x as usize);
+    let geometry = LayerGeometry {
+        kernel: [k as usize; 2],
+        stride: to_usize(cfg.stride),
+        padding: to_usize(padding),
+        dilation: to_usize(cfg.dilation),
+    };
+    let offsets = cached_offsets(camera, to_usize(input_size), &geometry, frame)?;
+    let conv = ConvGeometry::for_offsets(&offsets, cfg.stride, padding, cfg.dilation);
+    Ok((offsets, conv))
+}
+
 /// A `k x k` deformable convolution with fixed, calibrated offsets.
 ///
 /// On the CPU it works channels-last: the output is channels-last (same values and shape) for
@@ -124,39 +162,14 @@ impl CalibratedConv2d {
         input_size: [i64; 2],
         cfg: Conv2dConfig,
     ) -> Result<Self> {
-        if k < 1 || k % 2 == 0 {
-            return Err(Error::InvalidArgument(format!(
-                "calibrated kernels need an odd size, got {k}"
-            )));
-        }
-        if cfg.groups < 1 || c_in % cfg.groups != 0 || c_out % cfg.groups != 0 {
-            return Err(Error::InvalidArgument(format!(
-                "groups = {} must divide C_in = {c_in} and C_out = {c_out}",
-                cfg.groups
-            )));
-        }
-        let padding = cfg.padding_for(k);
-        let to_usize = |v: [i64; 2]| v.map(|x| x as usize);
-        let geometry = LayerGeometry {
-            kernel: [k as usize; 2],
-            stride: to_usize(cfg.stride),
-            padding: to_usize(padding),
-            dilation: to_usize(cfg.dilation),
-        };
-        let offsets = cached_offsets(camera, to_usize(input_size), &geometry, frame)?;
+        let (offsets, conv) = layer_offsets(c_in, c_out, k, camera, frame, input_size, cfg)?;
         // A panorama's kernels continue across its left/right edge.
         let border = if camera.wraps_horizontally() {
             Border::WrapX
         } else {
             Border::Zeros
         };
-        let plan = layer_plan(
-            &offsets,
-            ConvGeometry::for_offsets(&offsets, cfg.stride, padding, cfg.dilation),
-            Kind::Float,
-            border,
-            vs.device(),
-        )?;
+        let plan = layer_plan(&offsets, conv, Kind::Float, border, vs.device())?;
         // Same names, shapes and initialisation as tch's nn::conv2d.
         let tch_cfg = cfg.to_tch(k);
         let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);

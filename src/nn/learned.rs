@@ -15,10 +15,11 @@
 use tch::nn::{self, Module};
 use tch::Tensor;
 
+use super::calibrated::layer_offsets;
 use super::Conv2dConfig;
 use crate::camera::{Camera, CameraModel};
 use crate::error::{Error, Result};
-use crate::kernel::{cached_offsets, InputFrame, LayerGeometry, OffsetsTensor};
+use crate::kernel::{InputFrame, OffsetsTensor};
 use crate::ops::{f_deform_conv2d_sampled, ConvGeometry};
 
 /// A `k x k` deformable convolution at calibrated offsets plus learned ones.
@@ -54,22 +55,8 @@ impl LearnedOffsetConv2d {
                 camera.model_name()
             )));
         }
-        if k < 1 || k % 2 == 0 {
-            return Err(Error::InvalidArgument(format!(
-                "calibrated kernels need an odd size, got {k}"
-            )));
-        }
+        let (calibrated, geometry) = layer_offsets(c_in, c_out, k, camera, frame, input_size, cfg)?;
         let tch_cfg = cfg.to_tch(k);
-        let padding = tch_cfg.padding;
-        let to_usize = |v: [i64; 2]| v.map(|x| x as usize);
-        let layer = LayerGeometry {
-            kernel: [k as usize; 2],
-            stride: to_usize(cfg.stride),
-            padding: to_usize(padding),
-            dilation: to_usize(cfg.dilation),
-        };
-        let calibrated = cached_offsets(camera, to_usize(input_size), &layer, frame)?;
-        let geometry = ConvGeometry::for_offsets(&calibrated, cfg.stride, padding, cfg.dilation);
         let calibrated = calibrated.to_tensor().unsqueeze(0).to_device(vs.device());
         let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
         let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));

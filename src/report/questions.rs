@@ -26,6 +26,7 @@ use super::study::{
 };
 use super::verdict::claim_metrics;
 use crate::data::format::{Manifest, Split};
+use crate::data::loader::fraction_len;
 use crate::error::{Error, Result};
 use crate::io::write_bytes_atomic;
 use crate::plots::{self, line_band_plot, Curve, PlotSpec};
@@ -109,8 +110,7 @@ fn fractions(study: &Study) -> Result<Fractions> {
             }
         };
         let f = fraction.unwrap_or(1.0);
-        // As `Dataset::keep_fraction` draws it.
-        let images = ((n as f64 * f).round() as usize).clamp(1, n.max(1));
+        let images = fraction_len(n, f);
         let set = format!("{}:{split}", path.display());
         out.insert((row.cell.task, row.cell.dataset.clone()), (f, images, set));
     }

@@ -170,6 +170,12 @@ struct Inner {
     inside: Vec<bool>,
 }
 
+/// How many of `n` samples a training-set `fraction` keeps ([`Dataset::keep_fraction`]):
+/// `round(n * fraction)`, at least one.
+pub fn fraction_len(n: usize, fraction: f64) -> usize {
+    ((n as f64 * fraction).round() as usize).clamp(1, n.max(1))
+}
+
 /// A data set folder and one of its splits, served as batches (see the module docs).
 #[derive(Clone)]
 pub struct Dataset {
@@ -255,7 +261,7 @@ impl Dataset {
             )));
         }
         let n = self.inner.ids.len();
-        let keep = ((n as f64 * fraction).round() as usize).clamp(1, n.max(1));
+        let keep = fraction_len(n, fraction);
         let mut order: Vec<usize> = (0..n).collect();
         Rng::derive(seed, &[tag("subset")]).shuffle(&mut order);
         let mut kept = order[..keep.min(n)].to_vec();
