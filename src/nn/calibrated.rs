@@ -88,8 +88,17 @@ impl Conv2dConfig {
     }
 }
 
-/// The calibrated offsets of a `k x k` layer of `cfg` (`c_in -> c_out`) on an `input_size`
-/// feature map, from the process-wide cache, and the convolution geometry they are for.
+/// The input feature map of a camera-dependent layer: the camera whose image it covers, how it
+/// lies on that image (`frame`), and its size `[H, W]`.
+#[derive(Clone, Copy, Debug)]
+pub struct CameraInput<'a> {
+    pub camera: &'a Camera,
+    pub frame: &'a InputFrame,
+    pub size: [i64; 2],
+}
+
+/// The calibrated offsets of a `k x k` layer of `cfg` (`c_in -> c_out`) on `input`, from the
+/// process-wide cache, and the convolution geometry they are for.
 ///
 /// # Errors
 /// An even kernel size, groups that do not divide the channels, offsets that cannot be built.
@@ -97,9 +106,7 @@ pub(super) fn layer_offsets(
     c_in: i64,
     c_out: i64,
     k: i64,
-    camera: &Camera,
-    frame: &InputFrame,
-    input_size: [i64; 2],
+    input: CameraInput<'_>,
     cfg: Conv2dConfig,
 ) -> Result<(Arc<Offsets>, ConvGeometry)> {
     if k < 1 || k % 2 == 0 {
@@ -121,7 +128,7 @@ pub(super) fn layer_offsets(
         padding: to_usize(padding),
         dilation: to_usize(cfg.dilation),
     };
-    let offsets = cached_offsets(camera, to_usize(input_size), &geometry, frame)?;
+    let offsets = cached_offsets(input.camera, to_usize(input.size), &geometry, input.frame)?;
     let conv = ConvGeometry::for_offsets(&offsets, cfg.stride, padding, cfg.dilation);
     Ok((offsets, conv))
 }
@@ -162,7 +169,12 @@ impl CalibratedConv2d {
         input_size: [i64; 2],
         cfg: Conv2dConfig,
     ) -> Result<Self> {
-        let (offsets, conv) = layer_offsets(c_in, c_out, k, camera, frame, input_size, cfg)?;
+        let input = CameraInput {
+            camera,
+            frame,
+            size: input_size,
+        };
+        let (offsets, conv) = layer_offsets(c_in, c_out, k, input, cfg)?;
         // A panorama's kernels continue across its left/right edge.
         let border = if camera.wraps_horizontally() {
             Border::WrapX

@@ -17,10 +17,9 @@
 use tch::nn::{self, Module};
 use tch::Tensor;
 
-use super::Conv2dConfig;
-use crate::camera::Camera;
+use super::{CameraInput, Conv2dConfig};
 use crate::error::Result;
-use crate::kernel::{ray_maps, InputFrame, RAY_MAPS};
+use crate::kernel::{ray_maps, RAY_MAPS};
 
 /// A standard `k x k` convolution plus the CAM-Conv camera-map term.
 #[derive(Debug)]
@@ -35,23 +34,20 @@ pub struct CamMapsConv2d {
 }
 
 impl CamMapsConv2d {
-    /// Creates the layer under `vs` for an input feature map of `input_size` `[H, W]`.
-    #[allow(clippy::too_many_arguments)]
+    /// Creates the layer under `vs` for the input feature map `input`.
     pub fn new(
         vs: &nn::Path,
         c_in: i64,
         c_out: i64,
         k: i64,
-        camera: &Camera,
-        frame: &InputFrame,
-        input_size: [i64; 2],
+        input: CameraInput<'_>,
         cfg: Conv2dConfig,
     ) -> Result<Self> {
         let conv = nn::conv(vs, c_in, c_out, [k, k], cfg.to_tch(k));
-        let size = input_size.map(|v| v.max(0) as usize);
-        let m = ray_maps(camera, size, frame)?;
+        let [h, w] = input.size;
+        let m = ray_maps(input.camera, [h, w].map(|v| v.max(0) as usize), input.frame)?;
         let maps = Tensor::from_slice(&m.data)
-            .view([1, RAY_MAPS as i64, input_size[0], input_size[1]])
+            .view([1, RAY_MAPS as i64, h, w])
             .to_device(vs.device());
         let maps_weight = (vs / super::ADDED / "cam_maps").var(
             "weight",

@@ -16,10 +16,10 @@ use tch::nn::{self, Module};
 use tch::Tensor;
 
 use super::calibrated::layer_offsets;
-use super::Conv2dConfig;
-use crate::camera::{Camera, CameraModel};
+use super::{CameraInput, Conv2dConfig};
+use crate::camera::CameraModel;
 use crate::error::{Error, Result};
-use crate::kernel::{InputFrame, OffsetsTensor};
+use crate::kernel::OffsetsTensor;
 use crate::ops::{f_deform_conv2d_sampled, ConvGeometry};
 
 /// A `k x k` deformable convolution at calibrated offsets plus learned ones.
@@ -36,26 +36,23 @@ pub struct LearnedOffsetConv2d {
 }
 
 impl LearnedOffsetConv2d {
-    /// Creates the layer under `vs` for an input feature map of `input_size` `[H, W]`.
-    #[allow(clippy::too_many_arguments)]
+    /// Creates the layer under `vs` for the input feature map `input`.
     pub fn new(
         vs: &nn::Path,
         c_in: i64,
         c_out: i64,
         k: i64,
-        camera: &Camera,
-        frame: &InputFrame,
-        input_size: [i64; 2],
+        input: CameraInput<'_>,
         cfg: Conv2dConfig,
     ) -> Result<Self> {
-        if camera.wraps_horizontally() {
+        if input.camera.wraps_horizontally() {
             return Err(Error::InvalidArgument(format!(
                 "learned offsets need a camera whose kernels do not wrap around the image \
                  ({} does: a panorama)",
-                camera.model_name()
+                input.camera.model_name()
             )));
         }
-        let (calibrated, geometry) = layer_offsets(c_in, c_out, k, camera, frame, input_size, cfg)?;
+        let (calibrated, geometry) = layer_offsets(c_in, c_out, k, input, cfg)?;
         let tch_cfg = cfg.to_tch(k);
         let calibrated = calibrated.to_tensor().unsqueeze(0).to_device(vs.device());
         let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);

@@ -19,7 +19,7 @@ mod camconv;
 mod learned;
 pub mod unet;
 
-pub use calibrated::{CalibratedConv2d, Conv2dConfig, ConvSite};
+pub use calibrated::{CalibratedConv2d, CameraInput, Conv2dConfig, ConvSite};
 pub use camconv::CamMapsConv2d;
 pub use learned::LearnedOffsetConv2d;
 pub use unet::{Head, UNet, UNetConfig, UpMode};
@@ -127,9 +127,13 @@ pub fn conv2d(
         )),
         ConvKind::CalibratedLearned { camera, frame } if k > 1 => {
             if cfg.level >= LEARNED_FROM_LEVEL {
-                Ok(Conv::Learned(LearnedOffsetConv2d::new(
-                    vs, c_in, c_out, k, camera, frame, input_size, cfg,
-                )?))
+                let input = CameraInput {
+                    camera,
+                    frame,
+                    size: input_size,
+                };
+                let conv = LearnedOffsetConv2d::new(vs, c_in, c_out, k, input, cfg)?;
+                Ok(Conv::Learned(conv))
             } else {
                 Ok(Conv::Calibrated(CalibratedConv2d::new(
                     vs, c_in, c_out, k, camera, frame, input_size, cfg,
@@ -137,8 +141,13 @@ pub fn conv2d(
             }
         }
         ConvKind::CamConv { camera, frame } if k > 1 && cfg.site == ConvSite::AfterSkip => {
+            let input = CameraInput {
+                camera,
+                frame,
+                size: input_size,
+            };
             Ok(Conv::CamMaps(CamMapsConv2d::new(
-                vs, c_in, c_out, k, camera, frame, input_size, cfg,
+                vs, c_in, c_out, k, input, cfg,
             )?))
         }
         _ => Ok(Conv::Standard(nn::conv(

@@ -128,18 +128,8 @@ pub fn f_deform_conv2d(
     dilation: [i64; 2],
     groups: i64,
 ) -> Result<Tensor> {
-    let (_, _, h, w) = input.size4().map_err(|_| {
-        Error::InvalidArgument(format!(
-            "input must be [B, C, H, W], got {:?}",
-            input.size()
-        ))
-    })?;
-    let (_, _, kh, kw) = weight.size4().map_err(|_| {
-        Error::InvalidArgument(format!(
-            "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
-            weight.size()
-        ))
-    })?;
+    let (_, _, h, w) = size4(input, "input", INPUT_DIMS)?;
+    let (_, _, kh, kw) = size4(weight, "weight", WEIGHT_DIMS)?;
     let plan = tensor_plan(
         offsets,
         [h, w],
@@ -274,20 +264,7 @@ pub fn deform_conv2d_planned_with(
     groups: i64,
     backend: Backend,
 ) -> Result<Tensor> {
-    check_call(input, plan, weight, bias, groups)?;
-    #[cfg(calibconv_native)]
-    if backend == Backend::Auto && input.device() == tch::Device::Cpu {
-        return native::deform_conv2d_cpu(
-            input,
-            plan,
-            weight,
-            bias,
-            groups,
-            native::OutLayout::Input,
-        );
-    }
-    let _ = backend;
-    aten_deform_conv2d(input, plan, weight, bias, groups)
+    PlannedCall::checked(input, plan, weight, bias, groups)?.run(backend)
 }
 
 /// The layout of a calibrated layer's output on the CPU ([`deform_conv2d_planned_as`]).
@@ -317,24 +294,28 @@ pub(crate) fn deform_conv2d_planned_as(
     groups: i64,
     layout: CpuLayout,
 ) -> Result<Tensor> {
-    let image = input.dim() == 4 && input.size()[1] <= 4;
+    let call = PlannedCall::checked(input, plan, weight, bias, groups)?;
+    let image = input.size()[1] <= 4;
     #[cfg(calibconv_native)]
     if input.device() == tch::Device::Cpu && (image || layout == CpuLayout::Nchw) {
         let out = match layout {
             CpuLayout::ChannelsLast => native::OutLayout::ChannelsLast,
             CpuLayout::Nchw => native::OutLayout::Nchw,
         };
-        check_call(input, plan, weight, bias, groups)?;
-        return native::deform_conv2d_cpu(input, plan, weight, bias, groups, out);
+        return native::deform_conv2d_cpu(&call, out);
     }
     let _ = image;
     match layout {
         CpuLayout::ChannelsLast => {
-            deform_conv2d_planned(&channels_last(input), plan, weight, bias, groups)
+            // The same operands in another memory layout: still checked.
+            let input = channels_last(input);
+            PlannedCall {
+                input: &input,
+                ..call
+            }
+            .run(Backend::Auto)
         }
-        CpuLayout::Nchw => {
-            Ok(deform_conv2d_planned(input, plan, weight, bias, groups)?.contiguous())
-        }
+        CpuLayout::Nchw => Ok(call.run(Backend::Auto)?.contiguous()),
     }
 }
 
@@ -343,89 +324,119 @@ fn channels_last(x: &Tensor) -> Tensor {
     x.permute([0, 2, 3, 1]).contiguous().permute([0, 3, 1, 2])
 }
 
-/// Checks the arguments of a planned call: shapes, kinds, devices, groups.
-fn check_call(
-    input: &Tensor,
-    plan: &SamplingPlan,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
+/// The operands of a planned call, checked: shapes, kinds, devices and groups fit
+/// ([`PlannedCall::checked`]), so either implementation can take them as they are.
+#[derive(Clone, Copy)]
+struct PlannedCall<'a> {
+    input: &'a Tensor,
+    plan: &'a SamplingPlan,
+    weight: &'a Tensor,
+    bias: Option<&'a Tensor>,
     groups: i64,
-) -> Result<()> {
-    let (_, c, _, _) = plan.check_input(input)?;
-    let (c_out, c_per_group, kh, kw) = weight.size4().map_err(|_| {
-        Error::InvalidArgument(format!(
-            "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
-            weight.size()
-        ))
-    })?;
-    if [kh, kw] != plan.kernel() {
-        return Err(Error::InvalidArgument(format!(
-            "weight kernel {kh}x{kw} does not match the plan's {:?}",
-            plan.kernel()
-        )));
-    }
-    if groups < 1 || c % groups != 0 || c_out % groups != 0 || c_per_group * groups != c {
-        return Err(Error::InvalidArgument(format!(
-            "groups = {groups} does not fit input channels {c}, weight {:?}",
-            weight.size()
-        )));
-    }
-    let same = |t: &Tensor| t.kind() == input.kind() && t.device() == input.device();
-    if !same(weight) {
-        return Err(Error::InvalidArgument(format!(
-            "weight is {:?} on {:?} but input is {:?} on {:?}",
-            weight.kind(),
-            weight.device(),
-            input.kind(),
-            input.device()
-        )));
-    }
-    if let Some(bias) = bias {
-        if bias.size() != [c_out] || !same(bias) {
-            return Err(Error::InvalidArgument(format!(
-                "bias must be [{c_out}] {:?} on {:?}, got {:?} {:?} on {:?}",
-                input.kind(),
-                input.device(),
-                bias.size(),
-                bias.kind(),
-                bias.device()
-            )));
-        }
-    }
-    Ok(())
 }
 
-/// The ATen composition: columns by `embedding_bag`, then one batched `matmul`.
-fn aten_deform_conv2d(
-    input: &Tensor,
-    plan: &SamplingPlan,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    groups: i64,
-) -> Result<Tensor> {
-    let cols = plan.f_columns(input)?; // [B, P, K, C]
-    let (b, p, taps, _) = cols.size4()?;
-    let (c_out, c_per_group, _, _) = weight.size4()?;
-    let [ho, wo] = plan.output_size();
-    let (g, c_out_g) = (groups, c_out / groups);
-    // Columns [B, G, P, K*Cg] against weights [G, K*Cg, C_out/G], both tap-major then channel.
-    let cols = cols
-        .f_view([b, p, taps, g, c_per_group])?
-        .f_permute([0, 3, 1, 2, 4])?
-        .f_reshape([b, g, p, taps * c_per_group])?;
-    let w = weight
-        .f_view([g, c_out_g, c_per_group, taps])?
-        .f_permute([0, 3, 2, 1])?
-        .f_reshape([g, taps * c_per_group, c_out_g])?;
-    // [B, G, P, C_out/G] -> [B, C_out, H_out, W_out]
-    let mut out = cols
-        .f_matmul(&w)?
-        .f_permute([0, 1, 3, 2])?
-        .f_reshape([b, c_out, ho, wo])?;
-    if let Some(bias) = bias {
-        out = out.f_add(&bias.view([1, c_out, 1, 1]))?;
+impl<'a> PlannedCall<'a> {
+    /// The operands of [`deform_conv2d_planned`], once they are checked.
+    fn checked(
+        input: &'a Tensor,
+        plan: &'a SamplingPlan,
+        weight: &'a Tensor,
+        bias: Option<&'a Tensor>,
+        groups: i64,
+    ) -> Result<Self> {
+        let (_, c, _, _) = plan.check_input(input)?;
+        let (c_out, c_per_group, kh, kw) = size4(weight, "weight", WEIGHT_DIMS)?;
+        if [kh, kw] != plan.kernel() {
+            return Err(Error::InvalidArgument(format!(
+                "weight kernel {kh}x{kw} does not match the plan's {:?}",
+                plan.kernel()
+            )));
+        }
+        if groups < 1 || c % groups != 0 || c_out % groups != 0 || c_per_group * groups != c {
+            return Err(Error::InvalidArgument(format!(
+                "groups = {groups} does not fit input channels {c}, weight {:?}",
+                weight.size()
+            )));
+        }
+        let same = |t: &Tensor| t.kind() == input.kind() && t.device() == input.device();
+        if !same(weight) {
+            return Err(Error::InvalidArgument(format!(
+                "weight is {:?} on {:?} but input is {:?} on {:?}",
+                weight.kind(),
+                weight.device(),
+                input.kind(),
+                input.device()
+            )));
+        }
+        if let Some(bias) = bias {
+            if bias.size() != [c_out] || !same(bias) {
+                return Err(Error::InvalidArgument(format!(
+                    "bias must be [{c_out}] {:?} on {:?}, got {:?} {:?} on {:?}",
+                    input.kind(),
+                    input.device(),
+                    bias.size(),
+                    bias.kind(),
+                    bias.device()
+                )));
+            }
+        }
+        Ok(PlannedCall {
+            input,
+            plan,
+            weight,
+            bias,
+            groups,
+        })
     }
-    Ok(out)
+
+    /// The convolution through `backend` (output in the input's layout).
+    fn run(self, backend: Backend) -> Result<Tensor> {
+        #[cfg(calibconv_native)]
+        if backend == Backend::Auto && self.input.device() == tch::Device::Cpu {
+            return native::deform_conv2d_cpu(&self, native::OutLayout::Input);
+        }
+        let _ = backend;
+        self.aten()
+    }
+
+    /// The ATen composition: columns by `embedding_bag`, then one batched `matmul`.
+    fn aten(self) -> Result<Tensor> {
+        let cols = self.plan.f_columns(self.input)?; // [B, P, K, C]
+        let (b, p, taps, _) = cols.size4()?;
+        let (c_out, c_per_group, _, _) = self.weight.size4()?;
+        let [ho, wo] = self.plan.output_size();
+        let (g, c_out_g) = (self.groups, c_out / self.groups);
+        // Columns [B, G, P, K*Cg] against weights [G, K*Cg, C_out/G], both tap-major then channel.
+        let cols = cols
+            .f_view([b, p, taps, g, c_per_group])?
+            .f_permute([0, 3, 1, 2, 4])?
+            .f_reshape([b, g, p, taps * c_per_group])?;
+        let w = self
+            .weight
+            .f_view([g, c_out_g, c_per_group, taps])?
+            .f_permute([0, 3, 2, 1])?
+            .f_reshape([g, taps * c_per_group, c_out_g])?;
+        // [B, G, P, C_out/G] -> [B, C_out, H_out, W_out]
+        let mut out = cols
+            .f_matmul(&w)?
+            .f_permute([0, 1, 3, 2])?
+            .f_reshape([b, c_out, ho, wo])?;
+        if let Some(bias) = self.bias {
+            out = out.f_add(&bias.view([1, c_out, 1, 1]))?;
+        }
+        Ok(out)
+    }
+}
+
+/// The layout of an input, as [`size4`] names it.
+const INPUT_DIMS: &str = "[B, C, H, W]";
+/// The layout of a weight, as [`size4`] names it.
+const WEIGHT_DIMS: &str = "[C_out, C_in/groups, kh, kw]";
+
+/// The four sizes of `t`, or an error saying that `name` must be `dims`.
+fn size4(t: &Tensor, name: &str, dims: &str) -> Result<(i64, i64, i64, i64)> {
+    t.size4()
+        .map_err(|_| Error::InvalidArgument(format!("{name} must be {dims}, got {:?}", t.size())))
 }
 
 /// Checks that a tensor is floating point (float32 or float64).

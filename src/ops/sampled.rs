@@ -16,7 +16,7 @@
 
 use tch::{Kind, Tensor};
 
-use super::ConvGeometry;
+use super::{size4, ConvGeometry, INPUT_DIMS, WEIGHT_DIMS};
 use crate::error::{Error, Result};
 
 /// Deformable 2-D convolution, differentiable in `input`, `offsets`, `weight` and `bias`.
@@ -35,18 +35,8 @@ pub fn f_deform_conv2d_sampled(
     geometry: ConvGeometry,
     groups: i64,
 ) -> Result<Tensor> {
-    let (b, c_in, h, w) = input.size4().map_err(|_| {
-        Error::InvalidArgument(format!(
-            "input must be [B, C, H, W], got {:?}",
-            input.size()
-        ))
-    })?;
-    let (c_out, c_pg, kh, kw) = weight.size4().map_err(|_| {
-        Error::InvalidArgument(format!(
-            "weight must be [C_out, C_in/groups, kh, kw], got {:?}",
-            weight.size()
-        ))
-    })?;
+    let (b, c_in, h, w) = size4(input, "input", INPUT_DIMS)?;
+    let (c_out, c_pg, kh, kw) = size4(weight, "weight", WEIGHT_DIMS)?;
     if groups < 1 || c_in % groups != 0 || c_out % groups != 0 || c_pg * groups != c_in {
         return Err(Error::InvalidArgument(format!(
             "groups = {groups} does not fit C_in = {c_in}, C_out = {c_out} and weight {:?}",

@@ -9,7 +9,7 @@ use std::ffi::{c_char, CStr};
 use tch::Tensor;
 use torch_sys::C_tensor;
 
-use super::plan::SamplingPlan;
+use super::PlannedCall;
 use crate::error::{Error, Result};
 
 extern "C" {
@@ -108,18 +108,11 @@ pub(super) enum OutLayout {
 }
 
 /// The deformable convolution of CPU tensors through the native kernels, its output in
-/// `out_layout`. The caller has checked shapes, kinds and devices (see `super::check_call`).
-pub(super) fn deform_conv2d_cpu(
-    input: &Tensor,
-    plan: &SamplingPlan,
-    weight: &Tensor,
-    bias: Option<&Tensor>,
-    groups: i64,
-    out_layout: OutLayout,
-) -> Result<Tensor> {
-    let kind = input.kind();
+/// `out_layout`. The operands are checked (see [`PlannedCall::checked`]).
+pub(super) fn deform_conv2d_cpu(call: &PlannedCall, out_layout: OutLayout) -> Result<Tensor> {
+    let plan = call.plan;
     let frac = plan.frac();
-    let frac = frac.to_kind(kind);
+    let frac = frac.to_kind(call.input.kind());
     let [ho, wo] = plan.output_size();
     let mut out: *mut C_tensor = std::ptr::null_mut();
     // SAFETY: every pointer is a live tensor handle borrowed for the duration of the call (the
@@ -127,15 +120,15 @@ pub(super) fn deform_conv2d_cpu(
     // success with a fresh handle whose ownership passes to us.
     let err = unsafe {
         calibconv_deform_conv2d_cpu(
-            input.as_ptr(),
-            weight.as_ptr(),
-            bias.map_or(std::ptr::null(), |b| b.as_ptr()),
+            call.input.as_ptr(),
+            call.weight.as_ptr(),
+            call.bias.map_or(std::ptr::null(), |b| b.as_ptr()),
             plan.top_left().as_ptr(),
             frac.as_ptr(),
             plan.rows().as_ptr(),
             ho,
             wo,
-            groups,
+            call.groups,
             i32::from(plan.batch().is_some()),
             i32::from(plan.border() == super::plan::Border::WrapX),
             out_layout as i32,

@@ -85,29 +85,6 @@ impl Layout {
             wrap: self.border == Border::WrapX,
         }
     }
-
-    /// Fills the corners and fractions of the `wo * K` samples of output row `row` (item-major:
-    /// `row = item * H_out + oy`) from the offsets `off` (`[items, 2K, H_out, W_out]`); returns
-    /// the lowest and highest input row of its in-range corners (`[i32::MAX, i32::MIN]` if none):
-    /// [`plan::PlanLayout::fill_row`] (a unit test holds every corner and fraction to the
-    /// per-sample reference `tests::bilinear_border`; with `portable`, the fill without wrap
-    /// takes its portable clone even where AVX2 is there).
-    #[cfg(test)]
-    pub(super) fn fill_row<O: Copy + Into<f64>, W: plan::PlanFloat>(
-        &self,
-        off: &[O],
-        row: usize,
-        top_left: &mut [i32],
-        frac: &mut [W],
-        portable: bool,
-    ) -> [i32; 2] {
-        let layout = self.plan_layout();
-        if portable {
-            layout.fill_row_portable(off, row, top_left, frac)
-        } else {
-            layout.fill_row(off, row, top_left, frac)
-        }
-    }
 }
 
 impl Layout {

@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 // `top_left` indices read it (one row above and two below, one column on each side).
 use calibconv_geometry::plan::padded_size;
 
-use super::check_float;
+use super::{check_float, size4, INPUT_DIMS};
 use crate::error::{Error, Result};
 use crate::kernel::Offsets;
 use fill::{elements, filled, Layout};
@@ -423,12 +423,7 @@ impl SamplingPlan {
     /// for per-item plans), on the plan's device. Returns `(B, C, H, W)`.
     pub(crate) fn check_input(&self, input: &Tensor) -> Result<(i64, i64, i64, i64)> {
         check_float(input, "input")?;
-        let (b, c, h, w) = input.size4().map_err(|_| {
-            Error::InvalidArgument(format!(
-                "input must be [B, C, H, W], got {:?}",
-                input.size()
-            ))
-        })?;
+        let (b, c, h, w) = size4(input, "input", INPUT_DIMS)?;
         if [h, w] != self.input_size {
             return Err(Error::InvalidArgument(format!(
                 "input is {h}x{w} but the offsets were built for {}x{}",
