@@ -28,7 +28,9 @@
 
 use super::intrinsics::{deref_intrinsics, eq_by_fields};
 use super::radtan::RadTan;
-use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::schema::{
+    check_finite, check_rule, checked, raw_camera_file, CameraFile, Checked, Invalid,
+};
 use super::solve::last_ok;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 use crate::vec3::{finite3, normalize};
@@ -171,12 +173,7 @@ impl PinholeRadTan {
     pub fn validate(&self) -> Checked {
         check_finite(self.fields())?;
         self.intrinsics.validate()?;
-        if self.rpmax < 0.0 {
-            return Err(Invalid::new(
-                "rpmax",
-                format!("must be >= 0 (0: no bound), found {}", self.rpmax),
-            ));
-        }
+        check_rule("rpmax", self.rpmax, self.rpmax >= 0.0, ">= 0 (0: no bound)")?;
         if self.unproject([self.cx, self.cy]).is_none() {
             return Err(Invalid::new(
                 "k4, k5, k6",
