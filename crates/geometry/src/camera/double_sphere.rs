@@ -35,7 +35,7 @@
 use super::extended_unified::eucm_m;
 use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
-    check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
+    check_rule, check_unit_interval, plain_fisheye_file, CameraFile, Checked,
 };
 use super::unified::unified_w;
 use super::{CameraModel, Intrinsics};
@@ -58,12 +58,8 @@ plain_fisheye_file!(DoubleSphere, "double-sphere", [xi, alpha]);
 impl DoubleSphere {
     /// `xi in (-1, 1]` and `alpha in [0, 1]` (part of [`DoubleSphere::validate`]).
     fn check_parameters(&self) -> Checked {
-        if !(self.xi > -1.0 && self.xi <= 1.0) {
-            return Err(Invalid::new(
-                "xi",
-                format!("must be in (-1, 1], found {}", self.xi),
-            ));
-        }
+        let xi_holds = self.xi > -1.0 && self.xi <= 1.0;
+        check_rule("xi", self.xi, xi_holds, "in (-1, 1]")?;
         check_unit_interval("alpha", self.alpha)
     }
 

@@ -30,7 +30,7 @@
 
 use super::intrinsics::{fisheye_extent, Divided};
 use super::schema::{
-    check_unit_interval, plain_fisheye_file, CameraFile, Checked, Invalid,
+    check_rule, check_unit_interval, plain_fisheye_file, CameraFile, Checked,
 };
 use super::unified::{unified_den, unified_w};
 use super::{CameraModel, Intrinsics};
@@ -76,13 +76,7 @@ impl ExtendedUnified {
     /// `alpha in [0, 1]` and `beta > 0` (part of [`ExtendedUnified::validate`]).
     fn check_parameters(&self) -> Checked {
         check_unit_interval("alpha", self.alpha)?;
-        if self.beta <= 0.0 {
-            return Err(Invalid::new(
-                "beta",
-                format!("must be > 0, found {}", self.beta),
-            ));
-        }
-        Ok(())
+        check_rule("beta", self.beta, self.beta > 0.0, "> 0")
     }
 
     /// Largest angle to the optical axis that projects, in radians (exclusive):

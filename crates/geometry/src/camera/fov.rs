@@ -24,7 +24,7 @@
 use std::f64::consts::PI;
 
 use super::intrinsics::fisheye_extent;
-use super::schema::{plain_fisheye_file, CameraFile, Checked, Invalid};
+use super::schema::{check_rule, plain_fisheye_file, CameraFile, Checked};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::project_off_axis;
 
@@ -48,13 +48,8 @@ plain_fisheye_file!(Fov, "fov", [w]);
 impl Fov {
     /// `0 < w < pi` (part of [`Fov::validate`]).
     fn check_parameters(&self) -> Checked {
-        if !(self.w > 0.0 && self.w < PI) {
-            return Err(Invalid::new(
-                "w",
-                format!("must be in (0, pi) radians, found {}", self.w),
-            ));
-        }
-        Ok(())
+        let holds = self.w > 0.0 && self.w < PI;
+        check_rule("w", self.w, holds, "in (0, pi) radians")
     }
 
     /// Largest angle to the optical axis that projects, in radians: `pi` (exclusive; every ray

@@ -32,7 +32,7 @@
 
 use super::intrinsics::{deref_intrinsics, eq_by_fields, fisheye_extent};
 use super::radtan::RadTan;
-use super::schema::{check_fov_in_domain, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::schema::{check_fov_in_domain, check_rule, checked, raw_camera_file, CameraFile, Checked, Invalid};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::{finite3, normalize};
 
@@ -119,12 +119,7 @@ impl Mei {
     pub fn validate(&self) -> Checked {
         self.intrinsics
             .validate_fisheye(&self.fields(), self.fov_deg)?;
-        if self.xi < 0.0 {
-            return Err(Invalid::new(
-                "xi",
-                format!("must be >= 0, found {}", self.xi),
-            ));
-        }
+        check_rule("xi", self.xi, self.xi >= 0.0, ">= 0")?;
         check_fov_in_domain(self.fov_deg, self.theta_max(), "xi, k1, k2")
     }
 

@@ -28,7 +28,9 @@
 
 use super::intrinsics::{deref_intrinsics, eq_by_fields};
 use super::radtan::RadTan;
-use super::schema::{check_finite, checked, raw_camera_file, CameraFile, Checked, Invalid};
+use super::schema::{
+    check_finite, check_rule, checked, raw_camera_file, CameraFile, Checked, Invalid,
+};
 use super::solve::last_ok;
 use super::{Camera, CameraModel, Intrinsics, PixelConvention};
 use crate::vec3::{finite3, normalize};
@@ -171,12 +173,7 @@ impl PinholeRadTan {
     pub fn validate(&self) -> Checked {
         check_finite(self.fields())?;
         self.intrinsics.validate()?;
-        if self.rpmax < 0.0 {
-            return Err(Invalid::new(
-                "rpmax",
-                format!("must be >= 0 (0: no bound), found {}", self.rpmax),
-            ));
-        }
+        check_rule("rpmax", self.rpmax, self.rpmax >= 0.0, ">= 0 (0: no bound)")?;
         if self.unproject([self.cx, self.cy]).is_none() {
             return Err(Invalid::new(
                 "k4, k5, k6",
@@ -270,7 +267,7 @@ impl CameraModel for PinholeRadTan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::tests::{euroc, radtan, worst_over_pixels};
+    use crate::camera::tests::{assert_newton_on_every_pixel, euroc, radtan};
 
     /// Newton to |step| < 1e-12 with quadratic convergence leaves round-off, ~1e-16 of the
     /// normalised coordinates (~1e-13 px); 1e-9 px is margin.
@@ -312,17 +309,14 @@ mod tests {
     #[test]
     fn newton_converges_on_every_euroc_pixel() {
         let c = euroc();
-        let (worst, worst_err) = worst_over_pixels(&c, |target| {
+        // The error in pixels.
+        let solve = |target: [f64; 2]| {
             let (m, iters) = c.undistort(target).expect("converges");
             let back = c.distort(m);
             let err = (c.fx * (back[0] - target[0])).hypot(c.fy * (back[1] - target[1]));
             (iters, err)
-        });
-        assert!(
-            worst <= 8,
-            "Newton took {worst} steps (measured: 6 at most)"
-        );
-        assert!(worst_err < PX_TOL, "{worst_err} px");
+        };
+        assert_newton_on_every_pixel(&c, solve, [8, 6], PX_TOL);
     }
 
     /// A distortion that folds inside the image (k1 = -0.5 on a wide sensor, and a rational

@@ -197,12 +197,21 @@ macro_rules! plain_fisheye_file {
 }
 pub(crate) use plain_fisheye_file;
 
+/// A parameter's range check: `Ok` where `holds`, else the error naming `field`: "must be
+/// `{rule}`, found `{v}`" (`rule` as the model's docs state it: `in (-1, 1]`, `> 0`).
+pub(crate) fn check_rule(field: &str, v: f64, holds: bool, rule: &str) -> Checked {
+    if holds {
+        Ok(())
+    } else {
+        Err(Invalid::new(field, format!("must be {rule}, found {v}")))
+    }
+}
+
 /// The first non-finite field, if any.
 pub(crate) fn check_finite<'a>(fields: impl IntoIterator<Item = (&'a str, f64)>) -> Checked {
-    match fields.into_iter().find(|(_, v)| !v.is_finite()) {
-        Some((field, v)) => Err(Invalid::new(field, format!("must be finite, found {v}"))),
-        None => Ok(()),
-    }
+    fields
+        .into_iter()
+        .try_for_each(|(field, v)| check_rule(field, v, v.is_finite(), "finite"))
 }
 
 /// `width, height > 0`.
@@ -217,23 +226,13 @@ pub(crate) fn check_size(width: usize, height: usize) -> Checked {
 
 /// `0 < fov_deg < 360`.
 pub(crate) fn check_fov(fov_deg: f64) -> Checked {
-    if fov_deg > 0.0 && fov_deg < 360.0 {
-        Ok(())
-    } else {
-        Err(Invalid::new(
-            "fov_deg",
-            format!("must be in (0, 360) degrees, found {fov_deg}"),
-        ))
-    }
+    let holds = fov_deg > 0.0 && fov_deg < 360.0;
+    check_rule("fov_deg", fov_deg, holds, "in (0, 360) degrees")
 }
 
 /// `v in [0, 1]`.
 pub(crate) fn check_unit_interval(field: &str, v: f64) -> Checked {
-    if (0.0..=1.0).contains(&v) {
-        Ok(())
-    } else {
-        Err(Invalid::new(field, format!("must be in [0, 1], found {v}")))
-    }
+    check_rule(field, v, (0.0..=1.0).contains(&v), "in [0, 1]")
 }
 
 /// `fov_deg / 2` must be below the model's largest projectable angle `theta_max` (radians),

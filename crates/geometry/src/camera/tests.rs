@@ -61,13 +61,17 @@ pub(super) fn assert_round_trips<C: CameraModel>(
     }
 }
 
-/// The largest iteration count and the largest error that `solve` reports over the normalised
+/// Asserts that a Newton inverse converges everywhere it is used: over the normalised
 /// coordinates `[(u - cx) / fx, (v - cy) / fy]` of every pixel `(u, v)` of the image of
-/// `intrinsics`: a Newton inverse checked everywhere it is used.
-pub(super) fn worst_over_pixels(
+/// `intrinsics`, `solve` (returning `(iterations, error)`) takes at most `max_steps` steps
+/// (`measured`: the most seen, for the message) and its error stays below `tol`. Returns the
+/// largest step count.
+pub(super) fn assert_newton_on_every_pixel(
     intrinsics: &Intrinsics,
     solve: impl Fn([f64; 2]) -> (usize, f64),
-) -> (usize, f64) {
+    [max_steps, measured]: [usize; 2],
+    tol: f64,
+) -> usize {
     let (mut worst, mut worst_err) = (0, 0.0f64);
     for v in 0..intrinsics.height {
         for u in 0..intrinsics.width {
@@ -80,7 +84,12 @@ pub(super) fn worst_over_pixels(
             worst_err = worst_err.max(err);
         }
     }
-    (worst, worst_err)
+    assert!(
+        worst <= max_steps,
+        "Newton took {worst} steps (measured: {measured} at most)"
+    );
+    assert!(worst_err < tol, "worst error {worst_err}");
+    worst
 }
 
 /// Asserts that every entry `[r][k]` of `jacobian`, the analytic Jacobian of a map `f` to 2-D

@@ -31,7 +31,7 @@
 //! file reader. Pixels are `[u, v]` = (column, row), top-left pixel centre at `(0, 0)`; radians.
 
 use super::intrinsics::{fisheye_extent, Divided};
-use super::schema::{plain_fisheye_file, CameraFile, Checked, Invalid};
+use super::schema::{check_rule, plain_fisheye_file, CameraFile, Checked};
 use super::{CameraModel, Intrinsics};
 use crate::vec3::normalize;
 
@@ -73,16 +73,9 @@ plain_fisheye_file!(Unified, "unified", [alpha]);
 impl Unified {
     /// `alpha in [0, 1)` (part of [`Unified::validate`]).
     fn check_parameters(&self) -> Checked {
-        if !(self.alpha >= 0.0 && self.alpha < 1.0) {
-            return Err(Invalid::new(
-                "alpha",
-                format!(
-                    "must be in [0, 1) (alpha = 1 puts Mei's xi at infinity), found {}",
-                    self.alpha
-                ),
-            ));
-        }
-        Ok(())
+        let holds = self.alpha >= 0.0 && self.alpha < 1.0;
+        let rule = "in [0, 1) (alpha = 1 puts Mei's xi at infinity)";
+        check_rule("alpha", self.alpha, holds, rule)
     }
 
     /// Largest angle to the optical axis that projects, in radians: `acos(-w)` (exclusive).

@@ -71,78 +71,63 @@ pub(super) fn read(text: &str, path: &Path, options: &ImportOptions) -> Result<P
 
 /// The model of a camera line: `name` (COLMAP's `MODEL`) with its `PARAMS`, on line `line`; the
 /// principal point moved by [`COLMAP_PIXEL_CENTRE`].
+///
+/// `PARAMS` start with the intrinsics, `f, cx, cy` (one focal length: the `SIMPLE_*` models and
+/// `RADIAL`) or `fx, fy, cx, cy`, and go on with the distortion's coefficients.
 fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> {
     let field = |what: &str| format!("line {line}: {what}");
-    let count = |n: usize, names: &str| {
-        expect_len(
-            params,
-            n,
-            path,
-            &field("PARAMS"),
-            &format!("{name} {names}"),
-        )
-    };
     let c = COLMAP_PIXEL_CENTRE;
+    // `PARAMS` checked to be `names` (`n` of them), split into `[fx, fy, cx, cy]` and the rest.
+    let split = |n: usize, names: &str, simple: bool| -> Result<([f64; 4], &[f64])> {
+        let what = format!("{name} {names}");
+        expect_len(params, n, path, &field("PARAMS"), &what)?;
+        Ok(if simple {
+            let [f, cx, cy] = [params[0], params[1], params[2]];
+            ([f, f, cx - c, cy - c], &params[3..])
+        } else {
+            let [fx, fy, cx, cy] = [params[0], params[1], params[2], params[3]];
+            ([fx, fy, cx - c, cy - c], &params[4..])
+        })
+    };
+    let simple = |n: usize, names: &str| split(n, names, true);
+    let full = |n: usize, names: &str| split(n, names, false);
     Ok(match name {
-        "SIMPLE_PINHOLE" => {
-            count(3, "f, cx, cy")?;
-            Model::Pinhole {
-                f: [params[0], params[0], params[1] - c, params[2] - c],
-            }
-        }
-        "PINHOLE" => {
-            count(4, "fx, fy, cx, cy")?;
-            Model::Pinhole {
-                f: [params[0], params[1], params[2] - c, params[3] - c],
-            }
-        }
+        "SIMPLE_PINHOLE" => Model::Pinhole {
+            f: simple(3, "f, cx, cy")?.0,
+        },
+        "PINHOLE" => Model::Pinhole {
+            f: full(4, "fx, fy, cx, cy")?.0,
+        },
         "SIMPLE_RADIAL" => {
-            count(4, "f, cx, cy, k")?;
-            Model::radtan(
-                [params[0], params[0], params[1] - c, params[2] - c],
-                [params[3], 0.0, 0.0],
-                [0.0, 0.0],
-            )
+            let (f, k) = simple(4, "f, cx, cy, k")?;
+            Model::radtan(f, [k[0], 0.0, 0.0], [0.0, 0.0])
         }
         "RADIAL" => {
-            count(5, "f, cx, cy, k1, k2")?;
-            Model::radtan(
-                [params[0], params[0], params[1] - c, params[2] - c],
-                [params[3], params[4], 0.0],
-                [0.0, 0.0],
-            )
+            let (f, k) = simple(5, "f, cx, cy, k1, k2")?;
+            Model::radtan(f, [k[0], k[1], 0.0], [0.0, 0.0])
         }
         "OPENCV" => {
-            count(8, "fx, fy, cx, cy, k1, k2, p1, p2")?;
-            Model::radtan(
-                [params[0], params[1], params[2] - c, params[3] - c],
-                [params[4], params[5], 0.0],
-                [params[6], params[7]],
-            )
+            let (f, d) = full(8, "fx, fy, cx, cy, k1, k2, p1, p2")?;
+            Model::radtan(f, [d[0], d[1], 0.0], [d[2], d[3]])
         }
         "FULL_OPENCV" => {
-            count(12, "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6")?;
+            let (f, d) = full(12, "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6")?;
             Model::RadTan {
-                f: [params[0], params[1], params[2] - c, params[3] - c],
-                k: [
-                    params[4], params[5], params[8], params[9], params[10], params[11],
-                ],
-                p: [params[6], params[7]],
+                f,
+                k: [d[0], d[1], d[4], d[5], d[6], d[7]],
+                p: [d[2], d[3]],
                 rpmax: 0.0,
             }
         }
         "FOV" => {
-            count(5, "fx, fy, cx, cy, omega")?;
-            Model::Fov {
-                f: [params[0], params[1], params[2] - c, params[3] - c],
-                w: params[4],
-            }
+            let (f, d) = full(5, "fx, fy, cx, cy, omega")?;
+            Model::Fov { f, w: d[0] }
         }
         "OPENCV_FISHEYE" => {
-            count(8, "fx, fy, cx, cy, k1, k2, k3, k4")?;
+            let (f, k) = full(8, "fx, fy, cx, cy, k1, k2, k3, k4")?;
             Model::KannalaBrandt {
-                f: [params[0], params[1], params[2] - c, params[3] - c],
-                k: [params[4], params[5], params[6], params[7]],
+                f,
+                k: [k[0], k[1], k[2], k[3]],
             }
         }
         other => {
@@ -156,4 +141,61 @@ fn model(name: &str, params: &[f64], line: usize, path: &Path) -> Result<Model> 
             ))
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every model's `PARAMS` land in their fields: all values distinct, so a swapped index shows.
+    #[test]
+    fn params_land_in_their_fields() {
+        let c = COLMAP_PIXEL_CENTRE;
+        let params: Vec<f64> = (1..=13).map(f64::from).collect();
+        let (simple_f, full_f) = ([1.0, 1.0, 2.0 - c, 3.0 - c], [1.0, 2.0, 3.0 - c, 4.0 - c]);
+        let cases = [
+            ("SIMPLE_PINHOLE", 3, Model::Pinhole { f: simple_f }),
+            ("PINHOLE", 4, Model::Pinhole { f: full_f }),
+            (
+                "SIMPLE_RADIAL",
+                4,
+                Model::radtan(simple_f, [4.0, 0.0, 0.0], [0.0, 0.0]),
+            ),
+            (
+                "RADIAL",
+                5,
+                Model::radtan(simple_f, [4.0, 5.0, 0.0], [0.0, 0.0]),
+            ),
+            (
+                "OPENCV",
+                8,
+                Model::radtan(full_f, [5.0, 6.0, 0.0], [7.0, 8.0]),
+            ),
+            (
+                "FULL_OPENCV",
+                12,
+                Model::RadTan {
+                    f: full_f,
+                    k: [5.0, 6.0, 9.0, 10.0, 11.0, 12.0],
+                    p: [7.0, 8.0],
+                    rpmax: 0.0,
+                },
+            ),
+            ("FOV", 5, Model::Fov { f: full_f, w: 5.0 }),
+            (
+                "OPENCV_FISHEYE",
+                8,
+                Model::KannalaBrandt {
+                    f: full_f,
+                    k: [5.0, 6.0, 7.0, 8.0],
+                },
+            ),
+        ];
+        let path = Path::new("cameras.txt");
+        for (name, n, expected) in cases {
+            let got = model(name, &params[..n], 1, path).unwrap();
+            assert_eq!(format!("{got:?}"), format!("{expected:?}"), "{name}");
+            assert!(model(name, &params[..n + 1], 1, path).is_err(), "{name}");
+        }
+    }
 }

@@ -90,74 +90,69 @@ impl Entry<'_> {
         let (camera_model, distortion) = (self.camera_model, self.distortion);
         let (intrinsics, coeffs) = (self.intrinsics, self.coeffs);
         let field = |name: &str| format!("{}.{name}", self.key);
-        let ints =
-            |n: usize, what: &str| expect_len(intrinsics, n, path, &field("intrinsics"), what);
+        // Kalibr's intrinsics: the projection's own parameters, then `[fu, fv, pu, pv]`; checked
+        // to be the `n` values `what` and split there.
+        let ints = |n: usize, what: &str| -> Result<(&[f64], [f64; 4])> {
+            expect_len(intrinsics, n, path, &field("intrinsics"), what)?;
+            let (params, f) = intrinsics.split_at(n - 4);
+            Ok((params, [f[0], f[1], f[2], f[3]]))
+        };
         let coefs =
             |n: usize, what: &str| expect_len(coeffs, n, path, &field("distortion_coeffs"), what);
         let zero_coeffs = coeffs.iter().all(|c| *c == 0.0);
         let name = self.name();
         Ok(match (camera_model, distortion) {
             ("pinhole", "equidistant") => {
-                ints(4, "[fu, fv, pu, pv]")?;
+                let (_, f) = ints(4, "[fu, fv, pu, pv]")?;
                 coefs(4, "[k1, k2, k3, k4]")?;
                 Model::KannalaBrandt {
-                    f: [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
+                    f,
                     k: [coeffs[0], coeffs[1], coeffs[2], coeffs[3]],
                 }
             }
             ("pinhole", "radtan") => {
-                ints(4, "[fu, fv, pu, pv]")?;
+                let (_, f) = ints(4, "[fu, fv, pu, pv]")?;
                 coefs(4, "[k1, k2, p1, p2]")?;
                 notes.push("k3 = 0: Kalibr's radtan has four coefficients".to_string());
-                Model::radtan(
-                    [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
-                    [coeffs[0], coeffs[1], 0.0],
-                    [coeffs[2], coeffs[3]],
-                )
+                Model::radtan(f, [coeffs[0], coeffs[1], 0.0], [coeffs[2], coeffs[3]])
             }
             ("pinhole", "fov") => {
-                ints(4, "[fu, fv, pu, pv]")?;
+                let (_, f) = ints(4, "[fu, fv, pu, pv]")?;
                 coefs(1, "[w]")?;
-                Model::Fov {
-                    f: [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
-                    w: coeffs[0],
-                }
+                Model::Fov { f, w: coeffs[0] }
             }
             ("omni", "radtan") if !zero_coeffs => {
-                ints(5, "[xi, fu, fv, pu, pv]")?;
+                let (params, f) = ints(5, "[xi, fu, fv, pu, pv]")?;
                 coefs(4, "[k1, k2, p1, p2]")?;
                 Model::Mei {
-                    f: [intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4]],
-                    xi: intrinsics[0],
+                    f,
+                    xi: params[0],
                     k: [coeffs[0], coeffs[1]],
                     p: [coeffs[2], coeffs[3]],
                 }
             }
-            ("pinhole", "none") => {
-                ints(4, "[fu, fv, pu, pv]")?;
-                Model::Pinhole {
-                    f: [intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]],
-                }
-            }
+            ("pinhole", "none") => Model::Pinhole {
+                f: ints(4, "[fu, fv, pu, pv]")?.1,
+            },
             ("ds", "none") => {
-                ints(6, "[xi, alpha, fu, fv, pu, pv]")?;
+                let (params, f) = ints(6, "[xi, alpha, fu, fv, pu, pv]")?;
                 Model::DoubleSphere {
-                    f: [intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]],
-                    xi: intrinsics[0],
-                    alpha: intrinsics[1],
+                    f,
+                    xi: params[0],
+                    alpha: params[1],
                 }
             }
             ("eucm", "none") => {
-                ints(6, "[alpha, beta, fu, fv, pu, pv]")?;
+                let (params, f) = ints(6, "[alpha, beta, fu, fv, pu, pv]")?;
                 Model::ExtendedUnified {
-                    f: [intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]],
-                    alpha: intrinsics[0],
-                    beta: intrinsics[1],
+                    f,
+                    alpha: params[0],
+                    beta: params[1],
                 }
             }
             ("omni", "none") | ("omni", "radtan") if zero_coeffs => {
-                ints(5, "[xi, fu, fv, pu, pv]")?;
-                let xi = intrinsics[0];
+                let (params, [fu, fv, pu, pv]) = ints(5, "[xi, fu, fv, pu, pv]")?;
+                let xi = params[0];
                 if xi.is_nan() || xi <= -1.0 {
                     return Err(camera_error(
                         path,
@@ -170,12 +165,7 @@ impl Entry<'_> {
                  fx = fu / (1 + xi), fy = fv / (1 + xi)"
                 ));
                 Model::Unified {
-                    f: [
-                        intrinsics[1] / (1.0 + xi),
-                        intrinsics[2] / (1.0 + xi),
-                        intrinsics[3],
-                        intrinsics[4],
-                    ],
+                    f: [fu / (1.0 + xi), fv / (1.0 + xi), pu, pv],
                     alpha: xi / (1.0 + xi),
                 }
             }
