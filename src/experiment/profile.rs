@@ -92,6 +92,13 @@ impl std::str::FromStr for Override {
     }
 }
 
+impl std::fmt::Display for Override {
+    /// `KEY=VALUE`, the value as TOML: what [`Override::from_str`](std::str::FromStr) reads back.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}={}", self.key, self.value)
+    }
+}
+
 impl Profile {
     /// Reads `PROFILES_DIR/NAME.toml`.
     pub fn load(file: &Path) -> Result<Profile> {
@@ -234,7 +241,7 @@ pub fn apply(path: &Path, text: &str, profile: &Profile, overrides: &[Override])
         header += &format!(" with profile `{}`", profile.name);
     }
     for o in overrides {
-        header += &format!(", --set {}={}", o.key, o.value);
+        header += &format!(", --set {o}");
     }
     Ok(format!(
         "{header}\n{}",

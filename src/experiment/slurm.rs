@@ -199,7 +199,7 @@ fn sweep_command(dir: &Path, profile: &Profile, overrides: &[Override], seeds: &
         common += &format!(" --profile {}", quote(&f.display().to_string()));
     }
     for o in overrides {
-        common += &format!(" --set {}", quote(&format!("{}={}", o.key, o.value)));
+        common += &format!(" --set {}", quote(&o.to_string()));
     }
     if !seeds.seeds.is_empty() {
         let list: Vec<String> = seeds.seeds.iter().map(u64::to_string).collect();

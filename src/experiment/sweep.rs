@@ -51,10 +51,8 @@ pub struct Planned {
     pub exp: Experiment,
     /// The replicate it belongs to (`None`: a sweep without seeds).
     pub seed: Option<u64>,
-    /// The experiment file.
+    /// The experiment file, as the sweep found it (the merged text it runs with is `exp.text`).
     pub file: PathBuf,
-    /// The merged text it runs with.
-    pub text: String,
     /// Keys ([`Planned::key`]) of the runs of this sweep it starts from.
     pub deps: Vec<String>,
     /// 0 for runs without dependencies in the sweep, else 1 + the deepest dependency's level.
@@ -348,12 +346,11 @@ fn replicate(
     if baseline && seeds.share_baseline && seed.is_some() && seed != first {
         return Ok(None);
     }
-    let (text, mut exp) = match seed {
-        None => (merged.to_string(), exp.clone()),
+    let mut exp = match seed {
+        None => exp.clone(),
         Some(s) => {
             let text = with_seed(file, merged, s)?;
-            let exp = super::parse(&text, file)?.resolve(file, &text)?;
-            (text, exp)
+            super::parse(&text, file)?.resolve(file, &text)?
         }
     };
     let mut dep = None;
@@ -372,7 +369,6 @@ fn replicate(
         exp,
         seed,
         file: file.to_path_buf(),
-        text,
         deps: Vec::new(),
         level: 0,
     };
@@ -430,10 +426,7 @@ pub fn study_record(
         dir: dir.to_path_buf(),
         profile: profile.name.clone(),
         profile_file: profile.file.clone(),
-        overrides: overrides
-            .iter()
-            .map(|o| format!("{}={}", o.key, o.value))
-            .collect(),
+        overrides: overrides.iter().map(Override::to_string).collect(),
         seeds: seeds.seeds.clone(),
         share_baseline: seeds.share_baseline,
         git: git_revision(),
@@ -484,8 +477,8 @@ pub fn state(exp: &Experiment) -> Result<State> {
     })
 }
 
-/// `Err` if the run directory holds another configuration than `text`.
-fn check_same_config(exp: &Experiment, text: &str) -> Result<()> {
+/// `Err` if the run directory holds another configuration than `exp.text`.
+fn check_same_config(exp: &Experiment) -> Result<()> {
     let stored = run::run_dir(exp).experiment_toml();
     let old = match std::fs::read_to_string(&stored) {
         Ok(t) => t,
@@ -493,7 +486,7 @@ fn check_same_config(exp: &Experiment, text: &str) -> Result<()> {
         Err(e) => return Err(Error::io(&stored, e)),
     };
     let parse = |t: &str| toml::from_str::<toml::Table>(t).ok();
-    if parse(&old) != parse(text) {
+    if parse(&old) != parse(&exp.text) {
         return Err(Error::Config {
             path: exp.file.clone(),
             field: "name".into(),
@@ -561,7 +554,7 @@ fn cause_chain(e: &Error) -> String {
 
 fn run_locked(p: &Planned, opts: &SweepOptions<'_>, lock: &RunLock) -> Result<Outcome> {
     let exp = &p.exp;
-    check_same_config(exp, &p.text)?;
+    check_same_config(exp)?;
     let before = state(exp)?;
     if before == State::Complete {
         return Ok(Outcome::Skipped);
@@ -615,11 +608,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
         file: p.file.clone(),
         profile: opts.profile.name.clone(),
         profile_file: opts.profile.file.clone(),
-        overrides: opts
-            .overrides
-            .iter()
-            .map(|o| format!("{}={}", o.key, o.value))
-            .collect(),
+        overrides: opts.overrides.iter().map(Override::to_string).collect(),
         seed: p.seed,
         level: p.level,
         depends_on: p.deps.clone(),
@@ -629,7 +618,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
         seconds,
         finished_unix: seconds.map(|_| layout::unix_now()),
         error,
-        experiment_text: p.text.clone(),
+        experiment_text: p.exp.text.clone(),
     };
     write_record(&run::run_dir(&p.exp).sweep_json(), &doc)
 }
