@@ -47,6 +47,36 @@ pub struct Curve {
     pub std: Vec<f64>,
 }
 
+impl Curve {
+    /// The curve through `(x, mean, interval)` points, its band each interval `[lo, hi]`
+    /// (centred on the mean: half-width `(hi - lo) / 2`); no band unless every point has an
+    /// interval.
+    pub fn with_intervals(
+        label: String,
+        colour: [u8; 3],
+        points: impl IntoIterator<Item = (f64, f64, Option<[f64; 2]>)>,
+    ) -> Curve {
+        let (x, mean, intervals): (Vec<f64>, Vec<f64>, Vec<Option<[f64; 2]>>) =
+            points.into_iter().collect();
+        let std = if intervals.iter().all(Option::is_some) {
+            intervals
+                .iter()
+                .flatten()
+                .map(|[lo, hi]| (hi - lo) / 2.0)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        Curve {
+            label,
+            colour,
+            x,
+            mean,
+            std,
+        }
+    }
+}
+
 /// Titles and size of a plot.
 #[derive(Clone, Debug)]
 pub struct PlotSpec {

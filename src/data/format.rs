@@ -208,7 +208,9 @@ pub fn decode(path: &Path) -> Result<DynamicImage> {
         .map_err(|e| image_error(path, e))
 }
 
-fn check_size(path: &Path, img: &DynamicImage, size: [usize; 2]) -> Result<()> {
+/// Decodes `path` and checks that it is `size` `[width, height]`.
+fn decode_sized(path: &Path, size: [usize; 2]) -> Result<DynamicImage> {
+    let img = decode(path)?;
     let got = [img.width() as usize, img.height() as usize];
     if got != size {
         return Err(Error::data(
@@ -219,7 +221,7 @@ fn check_size(path: &Path, img: &DynamicImage, size: [usize; 2]) -> Result<()> {
             ),
         ));
     }
-    Ok(())
+    Ok(img)
 }
 
 fn colour_error(path: &Path, img: &DynamicImage, expected: &str) -> Error {
@@ -231,9 +233,7 @@ fn colour_error(path: &Path, img: &DynamicImage, expected: &str) -> Error {
 
 /// Reads an 8-bit RGB PNG of `size` `[width, height]` (row-major pixels).
 pub fn read_rgb(path: &Path, size: [usize; 2]) -> Result<Vec<[u8; 3]>> {
-    let img = decode(path)?;
-    check_size(path, &img, size)?;
-    match img {
+    match decode_sized(path, size)? {
         DynamicImage::ImageRgb8(b) => Ok(b.pixels().map(|p| p.0).collect()),
         other => Err(colour_error(path, &other, "8-bit RGB")),
     }
@@ -241,9 +241,7 @@ pub fn read_rgb(path: &Path, size: [usize; 2]) -> Result<Vec<[u8; 3]>> {
 
 /// Reads a 16-bit depth PNG of `size` into metres (`value * scale`, 0 = missing).
 pub fn read_depth(path: &Path, size: [usize; 2], scale: f64) -> Result<Vec<f32>> {
-    let img = decode(path)?;
-    check_size(path, &img, size)?;
-    match img {
+    match decode_sized(path, size)? {
         DynamicImage::ImageLuma16(b) => Ok(b
             .as_raw()
             .iter()
@@ -253,53 +251,66 @@ pub fn read_depth(path: &Path, size: [usize; 2], scale: f64) -> Result<Vec<f32>>
     }
 }
 
-/// Reads a label PNG of `size`; every value must be a class id or [`UNKNOWN_PNG_LABEL`].
-pub fn read_labels(path: &Path, size: [usize; 2]) -> Result<Vec<u8>> {
-    let img = decode(path)?;
-    check_size(path, &img, size)?;
+/// What an 8-bit grey PNG holds and which values it may hold.
+struct GreyLayer {
+    /// The expected colour type, named (`8-bit grey labels`).
+    colour: &'static str,
+    /// What an invalid value is called in the error (`mask value`).
+    value: &'static str,
+    /// The valid values, described.
+    expected: String,
+    valid: fn(u8) -> bool,
+}
+
+/// Reads an 8-bit grey PNG of `size` whose every value is `layer.valid`; the first invalid
+/// value is an error naming it and its pixel.
+fn read_grey(path: &Path, size: [usize; 2], layer: GreyLayer) -> Result<Vec<u8>> {
+    let img = decode_sized(path, size)?;
     let DynamicImage::ImageLuma8(b) = img else {
-        return Err(colour_error(path, &img, "8-bit grey labels"));
+        return Err(colour_error(path, &img, layer.colour));
     };
     let raw = b.into_raw();
-    if let Some(i) = raw
-        .iter()
-        .position(|&l| l as usize >= NUM_CLASSES && l != UNKNOWN_PNG_LABEL)
-    {
+    if let Some(i) = raw.iter().position(|&v| !(layer.valid)(v)) {
         return Err(Error::data(
             path,
             format!(
-                "unknown class index {} at pixel ({}, {}): expected 0..{} ({}) or {} (unknown)",
+                "{} {} at pixel ({}, {}): expected {}",
+                layer.value,
                 raw[i],
                 i % size[0],
                 i / size[0],
-                NUM_CLASSES - 1,
-                CLASSES.join(", "),
-                UNKNOWN_PNG_LABEL
+                layer.expected
             ),
         ));
     }
     Ok(raw)
 }
 
+/// Reads a label PNG of `size`; every value must be a class id or [`UNKNOWN_PNG_LABEL`].
+pub fn read_labels(path: &Path, size: [usize; 2]) -> Result<Vec<u8>> {
+    let layer = GreyLayer {
+        colour: "8-bit grey labels",
+        value: "unknown class index",
+        expected: format!(
+            "0..{} ({}) or {} (unknown)",
+            NUM_CLASSES - 1,
+            CLASSES.join(", "),
+            UNKNOWN_PNG_LABEL
+        ),
+        valid: |l| (l as usize) < NUM_CLASSES || l == UNKNOWN_PNG_LABEL,
+    };
+    read_grey(path, size, layer)
+}
+
 /// Reads a mask PNG of `size`; values must be 0 or 255.
 pub fn read_mask(path: &Path, size: [usize; 2]) -> Result<Vec<bool>> {
-    let img = decode(path)?;
-    check_size(path, &img, size)?;
-    let DynamicImage::ImageLuma8(b) = img else {
-        return Err(colour_error(path, &img, "8-bit grey mask"));
+    let layer = GreyLayer {
+        colour: "8-bit grey mask",
+        value: "mask value",
+        expected: "0 or 255".into(),
+        valid: |m| m == 0 || m == 255,
     };
-    let raw = b.into_raw();
-    if let Some(i) = raw.iter().position(|&m| m != 0 && m != 255) {
-        return Err(Error::data(
-            path,
-            format!(
-                "mask value {} at pixel ({}, {}): expected 0 or 255",
-                raw[i],
-                i % size[0],
-                i / size[0]
-            ),
-        ));
-    }
+    let raw = read_grey(path, size, layer)?;
     Ok(raw.into_iter().map(|m| m == 255).collect())
 }
 
@@ -441,56 +452,46 @@ impl Manifest {
     pub fn parse(text: &str, path: &Path) -> Result<Manifest> {
         let value: serde_json::Value = serde_json::from_str(text)
             .map_err(|e| Error::data(path, format!("not valid JSON: {e}")))?;
-        let generator = value.get("generator").and_then(|v| v.as_str());
-        if generator != Some(GENERATOR) {
-            return Err(Error::data(
-                path,
-                format!(
-                    "field `generator`: expected \"{GENERATOR}\", found {}",
-                    value
-                        .get("generator")
-                        .map_or("nothing".into(), |v| v.to_string())
-                ),
+        let field =
+            |name: &str, problem: String| Error::data(path, format!("field `{name}`: {problem}"));
+        let raw =
+            |name: &str, absent: &str| value.get(name).map_or(absent.into(), |v| v.to_string());
+        if value.get("generator").and_then(|v| v.as_str()) != Some(GENERATOR) {
+            let found = raw("generator", "nothing");
+            return Err(field(
+                "generator",
+                format!("expected \"{GENERATOR}\", found {found}"),
             ));
         }
         let version = value.get("generator_version").and_then(|v| v.as_u64());
         if version != Some(GENERATOR_VERSION as u64) {
-            return Err(Error::data(
-                path,
+            let found = raw("generator_version", "(missing)");
+            return Err(field(
+                "generator_version",
                 format!(
-                    "field `generator_version`: the data set was made by generator version {}, \
-                     this build reads version {GENERATOR_VERSION}; regenerate it with \
-                     `calibconv synth --force`",
-                    value
-                        .get("generator_version")
-                        .map_or("(missing)".into(), |v| v.to_string())
+                    "the data set was made by generator version {found}, this build reads \
+                     version {GENERATOR_VERSION}; regenerate it with `calibconv synth --force`"
                 ),
             ));
         }
         let m: Manifest = serde_json::from_value(value)
             .map_err(|e| Error::data(path, format!("malformed manifest: {e}")))?;
         if m.classes != CLASSES {
-            return Err(Error::data(
-                path,
-                format!(
-                    "field `classes`: expected {CLASSES:?}, found {:?}",
-                    m.classes
-                ),
+            let found = &m.classes;
+            return Err(field(
+                "classes",
+                format!("expected {CLASSES:?}, found {found:?}"),
             ));
         }
         if !(m.depth_scale.is_finite() && m.depth_scale > 0.0) {
-            return Err(Error::data(
-                path,
-                format!("field `depth_scale`: must be > 0, found {}", m.depth_scale),
-            ));
+            let found = m.depth_scale;
+            return Err(field("depth_scale", format!("must be > 0, found {found}")));
         }
         if m.unknown_label != UNKNOWN_PNG_LABEL {
-            return Err(Error::data(
-                path,
-                format!(
-                    "field `unknown_label`: expected {UNKNOWN_PNG_LABEL}, found {}",
-                    m.unknown_label
-                ),
+            let found = m.unknown_label;
+            return Err(field(
+                "unknown_label",
+                format!("expected {UNKNOWN_PNG_LABEL}, found {found}"),
             ));
         }
         Ok(m)

@@ -283,21 +283,15 @@ pub fn render_view(
 }
 
 fn collect_view(w: usize, h: usize, rows: Vec<Vec<ViewPixel>>) -> View {
-    let mut view = View {
+    let (rgb, depth, labels, mask) = rows.into_iter().flatten().collect();
+    View {
         width: w,
         height: h,
-        rgb: Vec::with_capacity(w * h),
-        depth: Vec::with_capacity(w * h),
-        labels: Vec::with_capacity(w * h),
-        mask: Vec::with_capacity(w * h),
-    };
-    for (rgb, d, l, m) in rows.into_iter().flatten() {
-        view.rgb.push(rgb);
-        view.depth.push(d);
-        view.labels.push(l);
-        view.mask.push(m);
+        rgb,
+        depth,
+        labels,
+        mask,
     }
-    view
 }
 
 /// The pinhole camera a fisheye is rectified to: the same image size, the fisheye's principal

@@ -102,9 +102,9 @@ impl Evaluation {
         let per_image = self.per_image_record();
         let mut text = format!(
             "{{\"format\": \"{}\", \"version\": {}, \"task\": \"{}\", \"classes\": {},\n\"samples\": [\n",
-            per_image.format,
-            per_image.version,
-            per_image.task,
+            per_image.header.format,
+            per_image.header.version,
+            per_image.header.task,
             serde_json::to_string(&per_image.classes).expect("json")
         );
         for (i, s) in per_image.samples.iter().enumerate() {

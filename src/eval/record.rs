@@ -118,14 +118,52 @@ pub struct About {
     pub other: serde_json::Map<String, serde_json::Value>,
 }
 
-/// `metrics.json`.
+/// The fields both files open with: what the file is and the evaluation's task.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MetricsRecord {
-    /// [`METRICS_FORMAT`] and [`VERSION`].
+pub struct RecordHeader {
+    /// [`METRICS_FORMAT`] or [`PER_IMAGE_FORMAT`], and [`VERSION`].
     pub format: String,
     pub version: u32,
     /// `depth` or `segmentation`.
     pub task: String,
+}
+
+impl RecordHeader {
+    /// The header of a `format` file ([`VERSION`]) of an evaluation with `head`.
+    fn new(format: &str, head: &Head) -> Self {
+        RecordHeader {
+            format: format.into(),
+            version: VERSION,
+            task: head.task_name().into(),
+        }
+    }
+
+    /// Whether the file is of a depth evaluation.
+    pub fn is_depth(&self) -> bool {
+        self.task == "depth"
+    }
+
+    /// Refuses `path` unless it is a `want` file of [`VERSION`].
+    fn check(&self, path: &Path, want: &str) -> Result<()> {
+        let (format, version) = (&self.format, self.version);
+        if format != want || version != VERSION {
+            return Err(Error::Format {
+                path: path.to_path_buf(),
+                message: format!(
+                    "format `{format}` version {version}, expected `{want}` version {VERSION}"
+                ),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// `metrics.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MetricsRecord {
+    /// [`METRICS_FORMAT`].
+    #[serde(flatten)]
+    pub header: RecordHeader,
     /// Samples evaluated and valid (depth) / labelled (segmentation) pixels among them.
     pub images: u64,
     pub pixels: u64,
@@ -161,7 +199,7 @@ pub const SEGMENTATION_AVERAGING: &str = "one confusion matrix over the set";
 impl MetricsRecord {
     /// Whether this is a depth evaluation.
     pub fn is_depth(&self) -> bool {
-        self.task == "depth"
+        self.header.is_depth()
     }
 
     /// The set's value of `m` under `averaging`: depth from [`DepthVariants`], segmentation
@@ -180,7 +218,7 @@ impl MetricsRecord {
     /// Reads and checks `path`.
     pub fn read(path: &Path) -> Result<Self> {
         let r: MetricsRecord = read_json(path)?;
-        check_format(path, &r.format, r.version, METRICS_FORMAT)?;
+        r.header.check(path, METRICS_FORMAT)?;
         Ok(r)
     }
 }
@@ -206,11 +244,9 @@ pub struct SampleRecord {
 /// `per_image.json`: every evaluated image, in the source's order.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PerImageRecord {
-    /// [`PER_IMAGE_FORMAT`] and [`VERSION`].
-    pub format: String,
-    pub version: u32,
-    /// `depth` or `segmentation`.
-    pub task: String,
+    /// [`PER_IMAGE_FORMAT`].
+    #[serde(flatten)]
+    pub header: RecordHeader,
     /// Segmentation: the class names, in count order; empty for depth.
     #[serde(default)]
     pub classes: Vec<String>,
@@ -221,8 +257,8 @@ impl PerImageRecord {
     /// Reads and checks `path`.
     pub fn read(path: &Path) -> Result<Self> {
         let r: PerImageRecord = read_json(path)?;
-        check_format(path, &r.format, r.version, PER_IMAGE_FORMAT)?;
-        let depth = r.task == "depth";
+        r.header.check(path, PER_IMAGE_FORMAT)?;
+        let depth = r.header.is_depth();
         for s in &r.samples {
             let ok = if depth {
                 s.depth_sums.is_some()
@@ -234,7 +270,7 @@ impl PerImageRecord {
             if !ok {
                 return Err(Error::Format {
                     path: path.to_path_buf(),
-                    message: format!("sample `{}`: no {} data", s.id, r.task),
+                    message: format!("sample `{}`: no {} data", s.id, r.header.task),
                 });
             }
         }
@@ -247,7 +283,7 @@ impl PerImageRecord {
     /// metric, depth `pooled` = the metrics of the summed sums, segmentation = the scores of
     /// the summed class counts (whatever `averaging`).
     pub fn aggregate(&self, indices: &[usize], averaging: Averaging) -> Vec<(Metric, f64)> {
-        if self.task == "depth" {
+        if self.header.is_depth() {
             let values = match averaging {
                 Averaging::Pooled => {
                     let mut total = DepthSums::default();
@@ -331,9 +367,7 @@ impl Evaluation {
             })
             .collect();
         Ok(MetricsRecord {
-            format: METRICS_FORMAT.into(),
-            version: VERSION,
-            task: self.head.task_name().into(),
+            header: RecordHeader::new(METRICS_FORMAT, &self.head),
             images: self.images,
             pixels: self.pixels,
             seconds: self.seconds,
@@ -355,9 +389,7 @@ impl Evaluation {
     /// The `per_image.json` record.
     pub fn per_image_record(&self) -> PerImageRecord {
         PerImageRecord {
-            format: PER_IMAGE_FORMAT.into(),
-            version: VERSION,
-            task: self.head.task_name().into(),
+            header: RecordHeader::new(PER_IMAGE_FORMAT, &self.head),
             classes: match self.head {
                 Head::Segmentation { classes } => class_names(classes as usize),
                 Head::Depth => Vec::new(),
@@ -383,16 +415,4 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
             },
         }
     })
-}
-
-fn check_format(path: &Path, format: &str, version: u32, want: &str) -> Result<()> {
-    if format != want || version != VERSION {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            message: format!(
-                "format `{format}` version {version}, expected `{want}` version {VERSION}"
-            ),
-        });
-    }
-    Ok(())
 }

@@ -18,7 +18,6 @@ use super::tables::comparison_pairs;
 use super::verdict::claim_metrics;
 use crate::camera::{self, CameraModel};
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
 use crate::plots::{line_band_plot, Curve, PlotSpec};
 
 /// One point of the curve.
@@ -122,39 +121,20 @@ pub fn write_fov_gain(rows: &[FovRow], out: &Path) -> Result<Vec<PathBuf>> {
     if rows.is_empty() {
         return Ok(Vec::new());
     }
-    let mut files = Vec::new();
-    let json = out.join("fov_gain.json");
-    let text = serde_json::to_string_pretty(rows).expect("fov rows serialise");
-    write_bytes_atomic(&json, text.as_bytes())?;
-    files.push(json);
-    let mut groups: BTreeMap<(&str, &str), Vec<&FovRow>> = BTreeMap::new();
-    for r in rows {
-        groups
-            .entry((r.task.as_str(), r.metric.as_str()))
-            .or_default()
-            .push(r);
-    }
+    let mut files = vec![super::write_json(rows, out, "fov_gain.json")?];
+    let groups = super::group_by(rows, |r| (r.task.as_str(), r.metric.as_str()));
     let headline = groups
         .keys()
         .find(|k| **k == ("depth", "rmse"))
         .or_else(|| groups.keys().next())
         .copied();
     for ((task, metric), points) in &groups {
-        let curve = Curve {
-            label: format!("calibrated − standard ({metric})"),
-            colour: [40, 90, 200],
-            x: points.iter().map(|r| r.fov_deg).collect(),
-            mean: points.iter().map(|r| r.mean).collect(),
-            // The band is the 95% interval's half-width (none with one seed).
-            std: if points.iter().all(|r| r.ci95.is_some()) {
-                points
-                    .iter()
-                    .map(|r| r.ci95.map(|[lo, hi]| (hi - lo) / 2.0).unwrap_or(0.0))
-                    .collect()
-            } else {
-                Vec::new()
-            },
-        };
+        // The band is the 95% interval (none with one seed).
+        let curve = Curve::with_intervals(
+            format!("calibrated − standard ({metric})"),
+            [40, 90, 200],
+            points.iter().map(|r| (r.fov_deg, r.mean, r.ci95)),
+        );
         let n = points.iter().map(|r| r.n_seeds).min().unwrap_or(0);
         let spec = PlotSpec {
             title: format!("FT {task}: calibrated − standard {metric} vs field of view"),

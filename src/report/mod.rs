@@ -21,3 +21,29 @@ pub mod stats;
 pub mod study;
 pub mod tables;
 pub mod verdict;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::error::Result;
+use crate::io::write_bytes_atomic;
+
+/// Writes `value` as pretty-printed JSON to `out/name` (atomically); returns the file's path.
+fn write_json(value: &(impl serde::Serialize + ?Sized), out: &Path, name: &str) -> Result<PathBuf> {
+    let path = out.join(name);
+    let text = serde_json::to_string_pretty(value).expect("report records serialise");
+    write_bytes_atomic(&path, text.as_bytes())?;
+    Ok(path)
+}
+
+/// `rows` grouped by `key`, groups in key order, rows in their order.
+fn group_by<'r, R, K: Ord>(
+    rows: impl IntoIterator<Item = &'r R>,
+    key: impl Fn(&'r R) -> K,
+) -> BTreeMap<K, Vec<&'r R>> {
+    let mut groups: BTreeMap<K, Vec<&R>> = BTreeMap::new();
+    for r in rows {
+        groups.entry(key(r)).or_default().push(r);
+    }
+    groups
+}

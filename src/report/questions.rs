@@ -28,7 +28,6 @@ use super::verdict::claim_metrics;
 use crate::data::format::{Manifest, Split};
 use crate::data::loader::fraction_len;
 use crate::error::{Error, Result};
-use crate::io::write_bytes_atomic;
 use crate::plots::{self, line_band_plot, Curve, PlotSpec};
 
 /// One set size of the data-efficiency series.
@@ -212,38 +211,22 @@ pub fn methods(obs: &Observations) -> Vec<MethodRow> {
     rows
 }
 
-fn half_widths(cis: &[Option<[f64; 2]>]) -> Vec<f64> {
-    if cis.iter().all(|c| c.is_some()) {
-        cis.iter()
-            .map(|c| c.map(|[lo, hi]| (hi - lo) / 2.0).unwrap_or(0.0))
-            .collect()
-    } else {
-        Vec::new()
-    }
-}
-
 /// Writes `data_efficiency.json` and its plots into `out` (nothing without rows); returns the
 /// files written.
 pub fn write_data_efficiency(rows: &[EfficiencyRow], out: &Path) -> Result<Vec<PathBuf>> {
     if rows.is_empty() {
         return Ok(Vec::new());
     }
-    let json = out.join("data_efficiency.json");
-    let text = serde_json::to_string_pretty(rows).expect("rows serialise");
-    write_bytes_atomic(&json, text.as_bytes())?;
-    let mut files = vec![json];
-    let mut groups: BTreeMap<(&str, &str), Vec<&EfficiencyRow>> = BTreeMap::new();
-    for r in rows {
-        groups.entry((&r.task, &r.metric)).or_default().push(r);
-    }
+    let mut files = vec![super::write_json(rows, out, "data_efficiency.json")?];
+    let groups = super::group_by(rows, |r| (r.task.as_str(), r.metric.as_str()));
     for ((task, metric), points) in groups {
-        let curve = Curve {
-            label: format!("calibrated − standard ({metric})"),
-            colour: plots::CALIBRATED_BLUE,
-            x: points.iter().map(|r| r.train_images as f64).collect(),
-            mean: points.iter().map(|r| r.diff_mean).collect(),
-            std: half_widths(&points.iter().map(|r| r.ci95).collect::<Vec<_>>()),
-        };
+        let curve = Curve::with_intervals(
+            format!("calibrated − standard ({metric})"),
+            plots::CALIBRATED_BLUE,
+            points
+                .iter()
+                .map(|r| (r.train_images as f64, r.diff_mean, r.ci95)),
+        );
         let n = points.iter().map(|r| r.n_seeds).min().unwrap_or(0);
         let spec = PlotSpec {
             title: format!("FT {task}: calibrated − standard {metric} vs training views"),
@@ -265,17 +248,11 @@ pub fn write_methods(rows: &[MethodRow], out: &Path) -> Result<Vec<PathBuf>> {
     if rows.is_empty() {
         return Ok(Vec::new());
     }
-    let json = out.join("methods.json");
-    let text = serde_json::to_string_pretty(rows).expect("rows serialise");
-    write_bytes_atomic(&json, text.as_bytes())?;
-    let mut files = vec![json];
-    let mut groups: BTreeMap<(&str, &str, &str), Vec<&MethodRow>> = BTreeMap::new();
-    for r in rows.iter().filter(|r| r.method != STANDARD) {
-        groups
-            .entry((&r.lens, &r.task, &r.metric))
-            .or_default()
-            .push(r);
-    }
+    let mut files = vec![super::write_json(rows, out, "methods.json")?];
+    let methods = rows.iter().filter(|r| r.method != STANDARD);
+    let groups = super::group_by(methods, |r| {
+        (r.lens.as_str(), r.task.as_str(), r.metric.as_str())
+    });
     let colour = |m: &str| match m {
         CALIBRATED => plots::CALIBRATED_BLUE,
         CAMCONV => plots::CAMCONV_ORANGE,
@@ -288,14 +265,12 @@ pub fn write_methods(rows: &[MethodRow], out: &Path) -> Result<Vec<PathBuf>> {
             .map(|r| {
                 let x = METHODS.iter().position(|m| *m == r.method).unwrap_or(0) as f64;
                 // A short horizontal segment per method, its band the 95% interval.
-                let hw = half_widths(&[r.diff_vs_standard.ci95]);
-                Curve {
-                    label: r.method.clone(),
-                    colour: colour(&r.method),
-                    x: vec![x - 0.2, x + 0.2],
-                    mean: vec![r.diff_vs_standard.mean; 2],
-                    std: if hw.is_empty() { hw } else { vec![hw[0]; 2] },
-                }
+                let d = &r.diff_vs_standard;
+                Curve::with_intervals(
+                    r.method.clone(),
+                    colour(&r.method),
+                    [(x - 0.2, d.mean, d.ci95), (x + 0.2, d.mean, d.ci95)],
+                )
             })
             .collect();
         if curves.is_empty() {

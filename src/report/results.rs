@@ -130,12 +130,8 @@ fn verdict_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
         verdict_md += "\nThe BL rows come from one baseline shared by every seed (`study.json`: \
                        `share_baseline`), so C5 has one observation and no interval.\n";
     }
-    let verdict_json = out.join("verdict.json");
+    let verdict_json = super::write_json(&v, out, "verdict.json")?;
     let verdict_file = out.join("verdict.md");
-    write_bytes_atomic(
-        &verdict_json,
-        serde_json::to_string_pretty(&v).expect("json").as_bytes(),
-    )?;
     write_bytes_atomic(&verdict_file, verdict_md.as_bytes())?;
     files.extend([verdict_json.clone(), verdict_file.clone()]);
     Ok(format!(
@@ -491,6 +487,18 @@ fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
     Ok(md)
 }
 
+/// Markdown embedding every PNG of `written` (paths relative to `out`) under `alt`, and the
+/// blank line that closes the section.
+fn embed_plots(written: &[PathBuf], alt: &str, out: &Path) -> String {
+    let mut md = String::new();
+    for f in written {
+        if f.extension().is_some_and(|e| e == "png") {
+            md += &format!("\n![{alt}]({})\n", rel(f, out));
+        }
+    }
+    md + "\n"
+}
+
 /// The data-efficiency series and the methods beyond the paper's ([`super::questions`]), when
 /// their runs exist.
 fn questions_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
@@ -524,12 +532,7 @@ FT from the same baseline on a fraction of the training \
                 ci(r.ci95)
             );
         }
-        for f in &written {
-            if f.extension().is_some_and(|e| e == "png") {
-                md += &format!("\n![data efficiency]({})\n", rel(f, cx.out));
-            }
-        }
-        md += "\n";
+        md += &embed_plots(&written, "data efficiency", cx.out);
         files.extend(written);
     }
     let methods = super::questions::methods(cx.obs);
@@ -555,12 +558,7 @@ FT from the same baseline on a fraction of the training \
                 ci(r.diff_vs_standard.ci95)
             );
         }
-        for f in &written {
-            if f.extension().is_some_and(|e| e == "png") {
-                md += &format!("\n![methods]({})\n", rel(f, cx.out));
-            }
-        }
-        md += "\n";
+        md += &embed_plots(&written, "methods", cx.out);
         files.extend(written);
     }
     Ok(md)

@@ -290,7 +290,7 @@ pub fn paired_bootstrap(
         .enumerate()
         .filter_map(|(i, s)| index.get(s.id.as_str()).map(|&j| (i, j)))
         .unzip();
-    if ia.is_empty() || a.task != b.task {
+    if ia.is_empty() || a.header.task != b.header.task {
         return None;
     }
     let metrics: Vec<Metric> = a.aggregate(&ia, averaging).iter().map(|p| p.0).collect();
@@ -317,7 +317,7 @@ pub fn paired_bootstrap(
 mod tests {
     use super::*;
     use crate::eval::metrics::DepthSums;
-    use crate::eval::record::{metric_map, SampleRecord};
+    use crate::eval::record::{metric_map, RecordHeader, SampleRecord};
 
     fn obs(seeds: &[(f64, f64)]) -> Observations {
         let mut o = Observations::default();
@@ -416,9 +416,11 @@ mod tests {
             })
             .collect();
         PerImageRecord {
-            format: "calibconv-per-image".into(),
-            version: 2,
-            task: "depth".into(),
+            header: RecordHeader {
+                format: "calibconv-per-image".into(),
+                version: 2,
+                task: "depth".into(),
+            },
             classes: vec![],
             samples,
         }

@@ -44,9 +44,6 @@ use scene::Scene;
 /// One rendered pixel: RGB, depth, label.
 type PanoPixel = ([u8; 3], f32, u8);
 
-/// One downsampled row: RGB, depth and label buffers.
-type PanoRow = (Vec<[u8; 3]>, Vec<f32>, Vec<u8>);
-
 /// An equirectangular panorama with per-pixel colour, distance and class (row-major,
 /// `height` rows of `width` pixels).
 #[derive(Clone, Debug, PartialEq)]
@@ -164,45 +161,46 @@ impl Panorama {
             return Ok(self.clone());
         }
         let (w, h) = (self.width / factor, self.height / factor);
-        let rows: Vec<PanoRow> = (0..h)
+        let rows: Vec<Vec<PanoPixel>> = (0..h)
             .into_par_iter()
             .map(|r| {
-                let mut rgb = Vec::with_capacity(w);
-                let mut depth = Vec::with_capacity(w);
-                let mut labels = Vec::with_capacity(w);
-                for c in 0..w {
-                    let mut acc = [0u32; 3];
-                    for dr in 0..factor {
-                        let row = (r * factor + dr) * self.width;
-                        for dc in 0..factor {
-                            let p = self.rgb[row + c * factor + dc];
-                            for k in 0..3 {
-                                acc[k] += p[k] as u32;
+                (0..w)
+                    .map(|c| {
+                        let mut acc = [0u32; 3];
+                        for dr in 0..factor {
+                            let row = (r * factor + dr) * self.width;
+                            for dc in 0..factor {
+                                let p = self.rgb[row + c * factor + dc];
+                                for k in 0..3 {
+                                    acc[k] += p[k] as u32;
+                                }
                             }
                         }
-                    }
-                    let n = (factor * factor) as u32;
-                    rgb.push(acc.map(|a| ((a + n / 2) / n) as u8));
-                    let centre = (r * factor + factor / 2) * self.width + c * factor + factor / 2;
-                    depth.push(self.depth[centre]);
-                    labels.push(self.labels[centre]);
-                }
-                (rgb, depth, labels)
+                        let n = (factor * factor) as u32;
+                        let centre =
+                            (r * factor + factor / 2) * self.width + c * factor + factor / 2;
+                        (
+                            acc.map(|a| ((a + n / 2) / n) as u8),
+                            self.depth[centre],
+                            self.labels[centre],
+                        )
+                    })
+                    .collect()
             })
             .collect();
-        let mut out = Panorama {
-            width: w,
-            height: h,
-            rgb: Vec::with_capacity(w * h),
-            depth: Vec::with_capacity(w * h),
-            labels: Vec::with_capacity(w * h),
-        };
-        for (rgb, depth, labels) in rows {
-            out.rgb.extend(rgb);
-            out.depth.extend(depth);
-            out.labels.extend(labels);
+        Ok(Panorama::from_pixels(w, h, rows.into_iter().flatten()))
+    }
+
+    /// A `width x height` panorama of `pixels` in row-major order.
+    fn from_pixels(width: usize, height: usize, pixels: impl Iterator<Item = PanoPixel>) -> Self {
+        let (rgb, depth, labels) = pixels.collect();
+        Panorama {
+            width,
+            height,
+            rgb,
+            depth,
+            labels,
         }
-        Ok(out)
     }
 }
 
@@ -210,7 +208,7 @@ impl Panorama {
 /// parallel.
 pub fn render(scene: &Scene, height: usize) -> Panorama {
     let width = 2 * height;
-    let rows: Vec<Vec<(usize, PanoPixel)>> = (0..height)
+    let rows: Vec<Vec<PanoPixel>> = (0..height)
         .into_par_iter()
         .map(|v| {
             (0..width)
@@ -226,25 +224,12 @@ pub fn render(scene: &Scene, height: usize) -> Panorama {
                     } else {
                         UNKNOWN_PNG_LABEL
                     };
-                    (i, (rgb, s.depth as f32, label))
+                    (rgb, s.depth as f32, label)
                 })
                 .collect()
         })
         .collect();
-    let n = width * height;
-    let mut pano = Panorama {
-        width,
-        height,
-        rgb: vec![[0; 3]; n],
-        depth: vec![0.0; n],
-        labels: vec![UNKNOWN_PNG_LABEL; n],
-    };
-    for (i, (rgb, depth, label)) in rows.into_iter().flatten() {
-        pano.rgb[i] = rgb;
-        pano.depth[i] = depth;
-        pano.labels[i] = label;
-    }
-    pano
+    Panorama::from_pixels(width, height, rows.into_iter().flatten())
 }
 
 /// Seed of procedural panorama `index` of a data set with seed `seed`.
