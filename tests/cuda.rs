@@ -17,7 +17,9 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::camera::Camera;
 use calibconv::kernel::InputFrame;
-use calibconv::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, Head, UNet, UNetConfig};
+use calibconv::nn::{
+    CalibratedConv2d, CameraInput, Conv2dConfig, ConvKind, Head, UNet, UNetConfig,
+};
 use calibconv::ops::{self, Backend, ConvGeometry};
 use calibconv::train::checkpoint;
 
@@ -235,8 +237,9 @@ fn calibrated_layer(device: Device, size: [i64; 2]) -> (VarStore, CalibratedConv
     let vs = VarStore::new(device);
     let camera = f195();
     let frame = InputFrame::default();
+    let input = CameraInput::new(&camera, &frame, size);
     let cfg = Conv2dConfig::default();
-    let layer = CalibratedConv2d::new(&vs.root(), 8, 8, 3, &camera, &frame, size, cfg).unwrap();
+    let layer = CalibratedConv2d::new(&vs.root(), 8, 8, 3, input, cfg).unwrap();
     (vs, layer)
 }
 

@@ -8,7 +8,7 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::camera::{self, Camera, CameraModel, Equirectangular};
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, Offsets, OffsetsTensor};
-use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
+use calibconv::nn::{CalibratedConv2d, CameraInput, Conv2dConfig};
 use calibconv::ops::{deform_conv2d_planned, Border, ConvGeometry, SamplingPlan};
 
 use common::max_rel;
@@ -175,9 +175,7 @@ fn calibrated_conv_on_a_panorama_commutes_with_turning_it() {
         3,
         5,
         3,
-        &cam,
-        &InputFrame::default(),
-        size,
+        CameraInput::new(&cam, &InputFrame::default(), size),
         Conv2dConfig::default(),
     )
     .unwrap();

@@ -8,7 +8,7 @@ use tch::{Device, Kind, Tensor};
 
 use calibconv::camera;
 use calibconv::kernel::InputFrame;
-use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
+use calibconv::nn::{CalibratedConv2d, CameraInput, Conv2dConfig};
 
 fn is_channels_last(x: &Tensor) -> bool {
     let (_, c, h, w) = x.size4().unwrap();
@@ -32,9 +32,7 @@ fn few_outputs_are_nchw_with_several_threads_and_the_values_do_not_change() {
             c_in,
             c_out,
             3,
-            &cam,
-            &InputFrame::default(),
-            size,
+            CameraInput::new(&cam, &InputFrame::default(), size),
             Conv2dConfig::default(),
         )
         .unwrap();

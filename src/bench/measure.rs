@@ -8,7 +8,7 @@ use super::proc::{cpu_seconds, peak_mib, pin_malloc_threshold};
 use super::*;
 use crate::camera::CameraModel;
 use crate::kernel::{compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, OffsetsTensor};
-use crate::nn::{CalibratedConv2d, Conv2dConfig, ConvKind, UNet, UpMode};
+use crate::nn::{CalibratedConv2d, CameraInput, Conv2dConfig, ConvKind, UNet, UpMode};
 use crate::ops::{
     deform_conv2d, deform_conv2d_planned_with, Backend, Border, ConvGeometry, SamplingPlan,
 };
@@ -57,9 +57,7 @@ impl LayerTensors {
             c_in,
             c_out,
             3,
-            camera,
-            &InputFrame::default(),
-            [h, w],
+            CameraInput::new(camera, &InputFrame::default(), [h, w]),
             Conv2dConfig::default(),
         )?;
         let x = Tensor::randn([b, c_in, h, w], opts).set_requires_grad(layer.input_grad);

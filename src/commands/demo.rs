@@ -10,7 +10,7 @@ use calibconv::io::write_bytes_atomic;
 use calibconv::kernel::{
     compute_offsets, pyramid_sizes, InputFrame, LayerGeometry, Offsets, OffsetsTensor,
 };
-use calibconv::nn::{CalibratedConv2d, Conv2dConfig};
+use calibconv::nn::{CalibratedConv2d, CameraInput, Conv2dConfig};
 use calibconv::report::kernels::{draw_kernels, image_circle, KernelFigure};
 
 use super::{load_camera, save_png, write_safetensors};
@@ -93,9 +93,7 @@ fn time_calibrated_conv(
         16,
         16,
         3,
-        camera,
-        frame,
-        [fh, fw],
+        CameraInput::new(camera, frame, [fh, fw]),
         Conv2dConfig::default(),
     )?;
     tch::manual_seed(0);

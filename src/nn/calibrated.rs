@@ -97,6 +97,17 @@ pub struct CameraInput<'a> {
     pub size: [i64; 2],
 }
 
+impl<'a> CameraInput<'a> {
+    /// The feature map `size` `[H, W]` of `camera`'s image, placed on it by `frame`.
+    pub fn new(camera: &'a Camera, frame: &'a InputFrame, size: [i64; 2]) -> Self {
+        CameraInput {
+            camera,
+            frame,
+            size,
+        }
+    }
+}
+
 /// The calibrated offsets of a `k x k` layer of `cfg` (`c_in -> c_out`) on `input`, from the
 /// process-wide cache, and the convolution geometry they are for.
 ///
@@ -157,26 +168,18 @@ pub struct CalibratedConv2d {
 }
 
 impl CalibratedConv2d {
-    /// Creates the layer under `vs` for an input feature map of `input_size` `[H, W]`.
-    #[allow(clippy::too_many_arguments)]
+    /// Creates the layer under `vs` for the input feature map `input`.
     pub fn new(
         vs: &nn::Path,
         c_in: i64,
         c_out: i64,
         k: i64,
-        camera: &Camera,
-        frame: &InputFrame,
-        input_size: [i64; 2],
+        input: CameraInput<'_>,
         cfg: Conv2dConfig,
     ) -> Result<Self> {
-        let input = CameraInput {
-            camera,
-            frame,
-            size: input_size,
-        };
         let (offsets, conv) = layer_offsets(c_in, c_out, k, input, cfg)?;
         // A panorama's kernels continue across its left/right edge.
-        let border = if camera.wraps_horizontally() {
+        let border = if input.camera.wraps_horizontally() {
             Border::WrapX
         } else {
             Border::Zeros

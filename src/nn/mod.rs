@@ -121,31 +121,23 @@ pub fn conv2d(
     input_size: [i64; 2],
     cfg: Conv2dConfig,
 ) -> Result<Conv> {
+    let input = |camera, frame| CameraInput::new(camera, frame, input_size);
     match kind {
         ConvKind::Calibrated { camera, frame } if k > 1 => Ok(Conv::Calibrated(
-            CalibratedConv2d::new(vs, c_in, c_out, k, camera, frame, input_size, cfg)?,
+            CalibratedConv2d::new(vs, c_in, c_out, k, input(camera, frame), cfg)?,
         )),
         ConvKind::CalibratedLearned { camera, frame } if k > 1 => {
+            let input = input(camera, frame);
             if cfg.level >= LEARNED_FROM_LEVEL {
-                let input = CameraInput {
-                    camera,
-                    frame,
-                    size: input_size,
-                };
                 let conv = LearnedOffsetConv2d::new(vs, c_in, c_out, k, input, cfg)?;
                 Ok(Conv::Learned(conv))
             } else {
-                Ok(Conv::Calibrated(CalibratedConv2d::new(
-                    vs, c_in, c_out, k, camera, frame, input_size, cfg,
-                )?))
+                let conv = CalibratedConv2d::new(vs, c_in, c_out, k, input, cfg)?;
+                Ok(Conv::Calibrated(conv))
             }
         }
         ConvKind::CamConv { camera, frame } if k > 1 && cfg.site == ConvSite::AfterSkip => {
-            let input = CameraInput {
-                camera,
-                frame,
-                size: input_size,
-            };
+            let input = input(camera, frame);
             Ok(Conv::CamMaps(CamMapsConv2d::new(
                 vs, c_in, c_out, k, input, cfg,
             )?))
