@@ -45,7 +45,11 @@ impl CamMapsConv2d {
     ) -> Result<Self> {
         let conv = nn::conv(vs, c_in, c_out, [k, k], cfg.to_tch(k));
         let [h, w] = input.size;
-        let m = ray_maps(input.camera, [h, w].map(|v| v.max(0) as usize), input.frame)?;
+        let m = ray_maps(
+            input.camera,
+            input.size.map(|v| v.max(0) as usize),
+            input.frame,
+        )?;
         let maps = Tensor::from_slice(&m.data)
             .view([1, RAY_MAPS as i64, h, w])
             .to_device(vs.device());

@@ -26,13 +26,13 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::error::Result;
-use crate::io::write_bytes_atomic;
+use crate::experiment::layout::write_record;
 
-/// Writes `value` as pretty-printed JSON to `out/name` (atomically); returns the file's path.
+/// Writes `value` as pretty-printed JSON to `out/name` ([`write_record`]: atomically); returns
+/// the file's path.
 fn write_json(value: &(impl serde::Serialize + ?Sized), out: &Path, name: &str) -> Result<PathBuf> {
     let path = out.join(name);
-    let text = serde_json::to_string_pretty(value).expect("report records serialise");
-    write_bytes_atomic(&path, text.as_bytes())?;
+    write_record(&path, &value)?;
     Ok(path)
 }
 
