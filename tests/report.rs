@@ -249,9 +249,10 @@ fn a_shared_baseline_leaves_c5_without_an_interval() {
     }
     let study = calibconv::experiment::layout::StudyRecord {
         dir: "experiments/paper".into(),
-        profile: "quick".into(),
-        profile_file: None,
-        overrides: vec![],
+        overlay: calibconv::experiment::layout::Overlay {
+            profile: "quick".into(),
+            ..Default::default()
+        },
         seeds: vec![0, 1, 2],
         share_baseline: true,
         git: None,

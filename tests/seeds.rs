@@ -222,7 +222,7 @@ fn the_command_runs_every_seed_records_the_study_and_emits_slurm_arrays_by_seed(
     }
     let study = results.study_if_any().unwrap().unwrap();
     assert_eq!(study.seeds, [0, 1]);
-    assert_eq!(study.profile, "rep");
+    assert_eq!(study.overlay.profile, "rep");
     assert_eq!(study.runs.len(), 6);
 
     let slurm = dir.join("slurm");

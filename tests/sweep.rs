@@ -105,8 +105,8 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     assert!(matches!(by("after-broken"), Outcome::Blocked(_)), "{out:?}");
     // Each run records what produced it.
     let rec = RunDir::new(dir.join("runs/ft")).read_sweep().unwrap();
-    assert_eq!(rec.profile, "tiny");
-    assert_eq!(rec.overrides, ["train.batch_size=1"]);
+    assert_eq!(rec.overlay.profile, "tiny");
+    assert_eq!(rec.overlay.overrides, ["train.batch_size=1"]);
     assert_eq!(rec.depends_on, ["bl"]);
     assert_eq!(rec.status, SweepStatus::Done);
     assert!(rec.experiment_text.contains("steps = 2"));

@@ -548,17 +548,33 @@ pub enum SweepStatus {
     Interrupted,
 }
 
+/// What a sweep laid over every experiment file: the profile and the `--set` overrides. Both
+/// [`SweepRecord`] and [`StudyRecord`] flatten it, so its keys stand at their top level.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Overlay {
+    /// The profile's name (empty for none) and file.
+    pub profile: String,
+    pub profile_file: Option<PathBuf>,
+    /// `--set KEY=VALUE` overrides, as given.
+    pub overrides: Vec<String>,
+}
+
+impl Overlay {
+    /// The profile's name, `None` for a sweep without one.
+    pub fn profile_name(&self) -> Option<&str> {
+        Some(self.profile.as_str()).filter(|p| !p.is_empty())
+    }
+}
+
 /// `sweep.json`: the sweep invocation that last ran (or failed to run) a run directory.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SweepRecord {
     pub experiment: String,
     /// The experiment file.
     pub file: PathBuf,
-    /// The profile's name (empty for none) and file.
-    pub profile: String,
-    pub profile_file: Option<PathBuf>,
-    /// `--set KEY=VALUE` overrides, as given.
-    pub overrides: Vec<String>,
+    /// The profile and overrides it ran with.
+    #[serde(flatten)]
+    pub overlay: Overlay,
     /// The replicate's seed (`None`: a sweep without seeds; the experiment's own seed).
     #[serde(default)]
     pub seed: Option<u64>,
@@ -607,9 +623,9 @@ pub struct StudyRun {
 pub struct StudyRecord {
     /// The experiments folder.
     pub dir: PathBuf,
-    pub profile: String,
-    pub profile_file: Option<PathBuf>,
-    pub overrides: Vec<String>,
+    /// The profile and overrides of every run.
+    #[serde(flatten)]
+    pub overlay: Overlay,
     /// The replicates' seeds; empty for a sweep without seeds.
     pub seeds: Vec<u64>,
     /// Whether one baseline (in the first seed's folder) serves the fine-tunings of every seed.
@@ -653,6 +669,54 @@ mod tests {
         let o: Summary = serde_json::from_str(old).unwrap();
         assert_eq!(o.best.unwrap().metric, "rmse");
         assert_eq!(o.timing, Timing::default());
+    }
+
+    #[test]
+    fn the_overlay_keys_stand_in_the_records_where_they_always_stood() {
+        let overlay = Overlay {
+            profile: "quick".into(),
+            profile_file: Some("p.toml".into()),
+            overrides: vec!["train.steps=2".into()],
+        };
+        let study = StudyRecord {
+            dir: "e".into(),
+            overlay: overlay.clone(),
+            seeds: vec![0],
+            share_baseline: false,
+            git: None,
+            runs: vec![],
+        };
+        let text = serde_json::to_string(&study).unwrap();
+        assert_eq!(
+            text,
+            r#"{"dir":"e","profile":"quick","profile_file":"p.toml","overrides":["train.steps=2"],"seeds":[0],"share_baseline":false,"git":null,"runs":[]}"#
+        );
+        assert_eq!(serde_json::from_str::<StudyRecord>(&text).unwrap(), study);
+        let sweep = SweepRecord {
+            experiment: "x".into(),
+            file: "x.toml".into(),
+            overlay,
+            seed: None,
+            level: 0,
+            depends_on: vec![],
+            git: None,
+            status: SweepStatus::Done,
+            action: None,
+            seconds: None,
+            finished_unix: None,
+            error: None,
+            experiment_text: String::new(),
+        };
+        let text = serde_json::to_string(&sweep).unwrap();
+        assert!(
+            text.starts_with(
+                r#"{"experiment":"x","file":"x.toml","profile":"quick","profile_file":"p.toml","overrides":["train.steps=2"],"seed":null,"level":0,"#
+            ),
+            "{text}"
+        );
+        assert_eq!(serde_json::from_str::<SweepRecord>(&text).unwrap(), sweep);
+        assert_eq!(sweep.overlay.profile_name(), Some("quick"));
+        assert_eq!(Overlay::default().profile_name(), None);
     }
 
     #[test]

@@ -360,9 +360,7 @@ mod tests {
         SweepRecord {
             experiment: "r".into(),
             file: "r.toml".into(),
-            profile: String::new(),
-            profile_file: None,
-            overrides: Vec::new(),
+            overlay: Default::default(),
             seed: None,
             level: 0,
             depends_on: Vec::new(),

@@ -38,7 +38,9 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use super::layout::{self, write_record, RunLock, StudyRecord, StudyRun, SweepRecord, SweepStatus};
+use super::layout::{
+    self, write_record, Overlay, RunLock, StudyRecord, StudyRun, SweepRecord, SweepStatus,
+};
 use super::profile::{self, Override, Profile};
 use super::run::{self, git_revision, RunOptions};
 use super::{Experiment, InitSpec, SourceOpener};
@@ -414,6 +416,15 @@ fn order_by_level(dir: &Path, all: Vec<(Planned, Option<String>)>) -> Result<Vec
     Ok(out)
 }
 
+/// The record of a profile and overrides, as [`StudyRecord`] and [`SweepRecord`] store them.
+fn overlay(profile: &Profile, overrides: &[Override]) -> Overlay {
+    Overlay {
+        profile: profile.name.clone(),
+        profile_file: profile.file.clone(),
+        overrides: overrides.iter().map(Override::to_string).collect(),
+    }
+}
+
 /// The `study.json` record of a plan.
 pub fn study_record(
     dir: &Path,
@@ -424,9 +435,7 @@ pub fn study_record(
 ) -> StudyRecord {
     StudyRecord {
         dir: dir.to_path_buf(),
-        profile: profile.name.clone(),
-        profile_file: profile.file.clone(),
-        overrides: overrides.iter().map(Override::to_string).collect(),
+        overlay: overlay(profile, overrides),
         seeds: seeds.seeds.clone(),
         share_baseline: seeds.share_baseline,
         git: git_revision(),
@@ -606,9 +615,7 @@ fn record(p: &Planned, opts: &SweepOptions<'_>, outcome: &Outcome, _lock: &RunLo
     let doc = SweepRecord {
         experiment: p.exp.name.clone(),
         file: p.file.clone(),
-        profile: opts.profile.name.clone(),
-        profile_file: opts.profile.file.clone(),
-        overrides: opts.overrides.iter().map(Override::to_string).collect(),
+        overlay: overlay(opts.profile, opts.overrides),
         seed: p.seed,
         level: p.level,
         depends_on: p.deps.clone(),

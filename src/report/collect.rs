@@ -163,9 +163,9 @@ fn read_run(run: &RunDir, seed: Option<u64>) -> Result<(RunInfo, Vec<Row>)> {
         git: record.as_ref().and_then(|r| r.last_git().map(String::from)),
         overrides: sweep
             .as_ref()
-            .map(|s| s.overrides.clone())
+            .map(|s| s.overlay.overrides.clone())
             .unwrap_or_default(),
-        profile: sweep.map(|s| s.profile).filter(|p| !p.is_empty()),
+        profile: sweep.and_then(|s| s.overlay.profile_name().map(String::from)),
     };
     let train_set = TrainSet::of(run)?;
     let mut rows = Vec::new();
@@ -315,11 +315,7 @@ impl Study {
     /// if none; comma-separated if several).
     pub fn profile(&self) -> String {
         if let Some(s) = &self.study {
-            return if s.profile.is_empty() {
-                "none".into()
-            } else {
-                s.profile.clone()
-            };
+            return s.overlay.profile_name().unwrap_or("none").into();
         }
         let mut p: Vec<&str> = self
             .runs
