@@ -18,7 +18,7 @@ use super::tables::comparison_pairs;
 use super::verdict::claim_metrics;
 use crate::camera::{self, CameraModel};
 use crate::error::{Error, Result};
-use crate::plots::{line_band_plot, Curve, PlotSpec};
+use crate::plots::{Curve, PlotSpec};
 
 /// One point of the curve.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -118,17 +118,13 @@ pub fn fov_gain(study: &Study, obs: &Observations) -> Result<Vec<FovRow>> {
 /// Writes `fov_gain.json` and the plots into `out` (nothing when `rows` is empty); returns the
 /// files written.
 pub fn write_fov_gain(rows: &[FovRow], out: &Path) -> Result<Vec<PathBuf>> {
-    if rows.is_empty() {
-        return Ok(Vec::new());
-    }
-    let mut files = vec![super::write_json(rows, out, "fov_gain.json")?];
     let groups = super::group_by(rows, |r| (r.task.as_str(), r.metric.as_str()));
     let headline = groups
         .keys()
         .find(|k| **k == ("depth", "rmse"))
         .or_else(|| groups.keys().next())
         .copied();
-    for ((task, metric), points) in &groups {
+    let plots = groups.iter().flat_map(|(&(task, metric), points)| {
         // The band is the 95% interval (none with one seed).
         let curve = Curve::with_intervals(
             format!("calibrated − standard ({metric})"),
@@ -146,16 +142,18 @@ pub fn write_fov_gain(rows: &[FovRow], out: &Path) -> Result<Vec<PathBuf>> {
             },
             ..Default::default()
         };
-        let file = out.join(format!("fov_gain_{task}_{metric}.png"));
-        line_band_plot(&file, &spec, std::slice::from_ref(&curve))?;
-        files.push(file);
-        if headline == Some((*task, *metric)) {
-            let file = out.join("fov_gain.png");
-            line_band_plot(&file, &spec, std::slice::from_ref(&curve))?;
-            files.push(file);
-        }
-    }
-    Ok(files)
+        let own = format!("fov_gain_{task}_{metric}.png");
+        // The headline pair is drawn a second time as `fov_gain.png`.
+        let again = (headline == Some((task, metric))).then(|| {
+            (
+                "fov_gain.png".to_string(),
+                spec.clone(),
+                vec![curve.clone()],
+            )
+        });
+        std::iter::once((own, spec, vec![curve])).chain(again)
+    });
+    super::write_rows_and_plots(rows, out, "fov_gain.json", plots)
 }
 
 #[cfg(test)]

@@ -27,6 +27,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::Result;
 use crate::experiment::layout::write_record;
+use crate::plots::{line_band_plot, Curve, PlotSpec};
 
 /// Writes `value` as pretty-printed JSON to `out/name` ([`write_record`]: atomically); returns
 /// the file's path.
@@ -34,6 +35,27 @@ fn write_json(value: &(impl serde::Serialize + ?Sized), out: &Path, name: &str) 
     let path = out.join(name);
     write_record(&path, &value)?;
     Ok(path)
+}
+
+/// A table's file and its plots: writes `rows` as JSON to `out/json`, then each plot of
+/// `plots` (file name in `out`, titles, curves); nothing at all when `rows` is empty. Returns
+/// the files written, the JSON first.
+fn write_rows_and_plots<R: serde::Serialize>(
+    rows: &[R],
+    out: &Path,
+    json: &str,
+    plots: impl IntoIterator<Item = (String, PlotSpec, Vec<Curve>)>,
+) -> Result<Vec<PathBuf>> {
+    if rows.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut files = vec![write_json(rows, out, json)?];
+    for (name, spec, curves) in plots {
+        let file = out.join(name);
+        line_band_plot(&file, &spec, &curves)?;
+        files.push(file);
+    }
+    Ok(files)
 }
 
 /// `rows` grouped by `key`, groups in key order, rows in their order.

@@ -28,7 +28,7 @@ use super::verdict::claim_metrics;
 use crate::data::format::{Manifest, Split};
 use crate::data::loader::fraction_len;
 use crate::error::{Error, Result};
-use crate::plots::{self, line_band_plot, Curve, PlotSpec};
+use crate::plots::{self, Curve, PlotSpec};
 
 /// One set size of the data-efficiency series.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -214,12 +214,8 @@ pub fn methods(obs: &Observations) -> Vec<MethodRow> {
 /// Writes `data_efficiency.json` and its plots into `out` (nothing without rows); returns the
 /// files written.
 pub fn write_data_efficiency(rows: &[EfficiencyRow], out: &Path) -> Result<Vec<PathBuf>> {
-    if rows.is_empty() {
-        return Ok(Vec::new());
-    }
-    let mut files = vec![super::write_json(rows, out, "data_efficiency.json")?];
     let groups = super::group_by(rows, |r| (r.task.as_str(), r.metric.as_str()));
-    for ((task, metric), points) in groups {
+    let plots = groups.into_iter().map(|((task, metric), points)| {
         let curve = Curve::with_intervals(
             format!("calibrated − standard ({metric})"),
             plots::CALIBRATED_BLUE,
@@ -234,21 +230,19 @@ pub fn write_data_efficiency(rows: &[EfficiencyRow], out: &Path) -> Result<Vec<P
             y_label: format!("{metric} difference (mean over {n} seeds, 95% t band)"),
             ..Default::default()
         };
-        let file = out.join(format!("data_efficiency_{task}_{metric}.png"));
-        line_band_plot(&file, &spec, &[curve])?;
-        files.push(file);
-    }
-    Ok(files)
+        (
+            format!("data_efficiency_{task}_{metric}.png"),
+            spec,
+            vec![curve],
+        )
+    });
+    super::write_rows_and_plots(rows, out, "data_efficiency.json", plots)
 }
 
 /// Writes `methods.json` and its plots into `out` (nothing without rows); returns the files
 /// written. The plot shows each method's difference to standard kernels with its interval, as
 /// points along the method axis (1 = calibrated, 2 = camconv, 3 = calibrated-learned).
 pub fn write_methods(rows: &[MethodRow], out: &Path) -> Result<Vec<PathBuf>> {
-    if rows.is_empty() {
-        return Ok(Vec::new());
-    }
-    let mut files = vec![super::write_json(rows, out, "methods.json")?];
     let methods = rows.iter().filter(|r| r.method != STANDARD);
     let groups = super::group_by(methods, |r| {
         (r.lens.as_str(), r.task.as_str(), r.metric.as_str())
@@ -258,35 +252,35 @@ pub fn write_methods(rows: &[MethodRow], out: &Path) -> Result<Vec<PathBuf>> {
         CAMCONV => plots::CAMCONV_ORANGE,
         _ => plots::LEARNED_PURPLE,
     };
-    for ((lens, task, metric), points) in groups {
-        let curves: Vec<Curve> = points
-            .iter()
-            .filter(|r| r.diff_vs_standard.mean.is_finite())
-            .map(|r| {
-                let x = METHODS.iter().position(|m| *m == r.method).unwrap_or(0) as f64;
-                // A short horizontal segment per method, its band the 95% interval.
-                let d = &r.diff_vs_standard;
-                Curve::with_intervals(
-                    r.method.clone(),
-                    colour(&r.method),
-                    [(x - 0.2, d.mean, d.ci95), (x + 0.2, d.mean, d.ci95)],
-                )
-            })
-            .collect();
-        if curves.is_empty() {
-            continue;
-        }
-        let spec = PlotSpec {
-            title: format!("FT {lens} {task}: method − standard kernels, {metric}"),
-            x_label: "1 calibrated, 2 camconv, 3 calibrated-learned".into(),
-            y_label: format!("{metric} difference (mean over seeds, 95% t band)"),
-            ..Default::default()
-        };
-        let file = out.join(format!("methods_{task}_{metric}.png"));
-        line_band_plot(&file, &spec, &curves)?;
-        files.push(file);
-    }
-    Ok(files)
+    let plots = groups
+        .into_iter()
+        .filter_map(|((lens, task, metric), points)| {
+            let curves: Vec<Curve> = points
+                .iter()
+                .filter(|r| r.diff_vs_standard.mean.is_finite())
+                .map(|r| {
+                    let x = METHODS.iter().position(|m| *m == r.method).unwrap_or(0) as f64;
+                    // A short horizontal segment per method, its band the 95% interval.
+                    let d = &r.diff_vs_standard;
+                    Curve::with_intervals(
+                        r.method.clone(),
+                        colour(&r.method),
+                        [(x - 0.2, d.mean, d.ci95), (x + 0.2, d.mean, d.ci95)],
+                    )
+                })
+                .collect();
+            if curves.is_empty() {
+                return None;
+            }
+            let spec = PlotSpec {
+                title: format!("FT {lens} {task}: method − standard kernels, {metric}"),
+                x_label: "1 calibrated, 2 camconv, 3 calibrated-learned".into(),
+                y_label: format!("{metric} difference (mean over seeds, 95% t band)"),
+                ..Default::default()
+            };
+            Some((format!("methods_{task}_{metric}.png"), spec, curves))
+        });
+    super::write_rows_and_plots(rows, out, "methods.json", plots)
 }
 
 #[cfg(test)]

@@ -474,17 +474,25 @@ fn fov_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
          data set | n | mean | 95% CI |\n|---|---|---:|---|---:|---:|---|\n",
     );
     for r in &rows {
-        let ci = r
-            .ci95
-            .map(|[lo, hi]| format!("[{lo:+.4}, {hi:+.4}]"))
-            .unwrap_or_else(|| "needs >= 2 seeds".into());
         md += &format!(
-            "| {} | {} | {:.0} | {} | {} | {:+.4} | {ci} |\n",
-            r.task, r.metric, r.fov_deg, r.dataset, r.n_seeds, r.mean
+            "| {} | {} | {:.0} | {} | {} | {:+.4} | {} |\n",
+            r.task,
+            r.metric,
+            r.fov_deg,
+            r.dataset,
+            r.n_seeds,
+            r.mean,
+            ci_cell(r.ci95)
         );
     }
     md += "\n![gain vs field of view](fov_gain.png)\n\n";
     Ok(md)
+}
+
+/// A table cell with a 95% interval over seeds, `[lo, hi]`, or why there is none.
+fn ci_cell(c: Option<[f64; 2]>) -> String {
+    c.map(|[lo, hi]| format!("[{lo:+.4}, {hi:+.4}]"))
+        .unwrap_or_else(|| "needs >= 2 seeds".into())
 }
 
 /// Markdown embedding every PNG of `written` (paths relative to `out`) under `alt`, and the
@@ -502,10 +510,6 @@ fn embed_plots(written: &[PathBuf], alt: &str, out: &Path) -> String {
 /// The data-efficiency series and the methods beyond the paper's ([`super::questions`]), when
 /// their runs exist.
 fn questions_section(cx: &Ctx<'_>, files: &mut Vec<PathBuf>) -> Result<String> {
-    let ci = |c: Option<[f64; 2]>| {
-        c.map(|[lo, hi]| format!("[{lo:+.4}, {hi:+.4}]"))
-            .unwrap_or_else(|| "needs >= 2 seeds".into())
-    };
     let mut md = String::new();
     let eff = super::questions::data_efficiency(cx.study, cx.obs)?;
     let written = super::questions::write_data_efficiency(&eff, cx.out)?;
@@ -529,7 +533,7 @@ FT from the same baseline on a fraction of the training \
                 r.standard,
                 r.calibrated,
                 r.diff_mean,
-                ci(r.ci95)
+                ci_cell(r.ci95)
             );
         }
         md += &embed_plots(&written, "data efficiency", cx.out);
@@ -553,9 +557,9 @@ FT from the same baseline on a fraction of the training \
                 r.method,
                 r.n_seeds,
                 r.mean,
-                ci(r.ci95),
+                ci_cell(r.ci95),
                 r.diff_vs_standard.mean,
-                ci(r.diff_vs_standard.ci95)
+                ci_cell(r.diff_vs_standard.ci95)
             );
         }
         md += &embed_plots(&written, "methods", cx.out);
