@@ -220,31 +220,35 @@ pub struct ImportArgs {
     pub out: PathBuf,
 }
 
+/// The experiment of `train` and `eval`, and how much they say while they run.
 #[derive(Debug, Args)]
-pub struct TrainArgs {
+pub struct ExperimentArgs {
     /// Experiment file (TOML, see experiments/).
     pub experiment: PathBuf,
-    /// Continue the interrupted run at its last checkpoint (same step, same data order).
-    #[arg(long)]
-    pub resume: bool,
     /// No progress bars or status lines.
     #[arg(long, short)]
     pub quiet: bool,
 }
 
 #[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Continue the interrupted run at its last checkpoint (same step, same data order).
+    #[arg(long)]
+    pub resume: bool,
+    #[command(flatten)]
+    pub run: ExperimentArgs,
+}
+
+#[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// Experiment file (TOML, see experiments/).
-    pub experiment: PathBuf,
     /// Checkpoint to evaluate (default: the run's best, else its last).
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
     /// Run only these evaluations (by name; repeatable).
     #[arg(long = "only", value_name = "NAME")]
     pub only: Vec<String>,
-    /// No progress bars or status lines.
-    #[arg(long, short)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: ExperimentArgs,
 }
 
 /// How the network input relates to the camera image.

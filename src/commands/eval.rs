@@ -1,32 +1,23 @@
 //! `calibconv eval EXPERIMENT.toml [--checkpoint P] [--only NAME]`: run the experiment's
 //! evaluations on a checkpoint.
 
-use std::io::IsTerminal;
-
 use anyhow::{bail, Context, Result};
 
-use calibconv::experiment::{self, DefaultOpener, RunOptions};
+use calibconv::experiment;
 use calibconv::train::stop::StopFlag;
 
 use crate::cli::EvalArgs;
 
 pub fn run(args: EvalArgs) -> Result<()> {
-    let exp = experiment::load(&args.experiment)
-        .with_context(|| format!("cannot use experiment {}", args.experiment.display()))?;
+    let exp = args.run.load()?;
     if exp.evals.is_empty() {
         bail!(
             "{} has no evaluations: add [[eval]] entries or a data.test source",
-            args.experiment.display()
+            args.run.experiment.display()
         );
     }
-    let opts = RunOptions {
-        resume: false,
-        progress: !args.quiet && std::io::stderr().is_terminal(),
-        verbose: !args.quiet,
-        opener: &DefaultOpener,
-        // No signal handlers here: Ctrl-C ends an evaluation at once (it writes no state).
-        stop: StopFlag::detached(),
-    };
+    // No signal handlers here: Ctrl-C ends an evaluation at once (it writes no state).
+    let opts = args.run.options(false, StopFlag::detached());
     let outcomes = experiment::evaluate(&exp, args.checkpoint.as_deref(), &args.only, &opts)
         .with_context(|| format!("evaluating {} failed", exp.name))?;
     for o in &outcomes {

@@ -16,6 +16,7 @@ mod sweep;
 pub(crate) mod synth;
 mod train;
 
+use std::io::IsTerminal;
 use std::path::Path;
 
 use anyhow::{Context, Result};
@@ -23,10 +24,12 @@ use tch::Tensor;
 
 use calibconv::camera::Camera;
 use calibconv::data::synth::DEFAULT_CAMERAS;
+use calibconv::experiment::{self, DefaultOpener, Experiment, RunOptions};
 use calibconv::io::{write_atomic, write_png_atomic};
 use calibconv::kernel::InputFrame;
+use calibconv::train::stop::StopFlag;
 
-use crate::cli::{Command, FrameArgs};
+use crate::cli::{Command, ExperimentArgs, FrameArgs};
 
 pub fn run(command: Command) -> Result<()> {
     match command {
@@ -44,6 +47,26 @@ pub fn run(command: Command) -> Result<()> {
         Command::Export(args) => export::run(args),
         Command::Sweep(args) => sweep::run(args),
         Command::Report(args) => report::run(args),
+    }
+}
+
+impl ExperimentArgs {
+    /// The experiment file, loaded and resolved.
+    fn load(&self) -> Result<Experiment> {
+        experiment::load(&self.experiment)
+            .with_context(|| format!("cannot use experiment {}", self.experiment.display()))
+    }
+
+    /// How `train` and `eval` run it: progress bars on a terminal and status lines unless
+    /// `--quiet`, the data sources of the command line.
+    fn options(&self, resume: bool, stop: StopFlag) -> RunOptions<'static> {
+        RunOptions {
+            resume,
+            progress: !self.quiet && std::io::stderr().is_terminal(),
+            verbose: !self.quiet,
+            opener: &DefaultOpener,
+            stop,
+        }
     }
 }
 

@@ -1,26 +1,17 @@
 //! `calibconv train EXPERIMENT.toml [--resume]`: train, then evaluate, in the run directory.
 
-use std::io::IsTerminal;
-
 use anyhow::{Context, Result};
 
-use calibconv::experiment::{self, DefaultOpener, RunOptions};
+use calibconv::experiment;
 use calibconv::train::stop::{self, StopFlag};
 
 use crate::cli::TrainArgs;
 
 pub fn run(args: TrainArgs) -> Result<()> {
-    let exp = experiment::load(&args.experiment)
-        .with_context(|| format!("cannot use experiment {}", args.experiment.display()))?;
+    let exp = args.run.load()?;
     // SIGUSR1, SIGTERM, SIGINT: finish the step, write the checkpoint, exit with status 75.
     stop::install().context("cannot install the signal handlers")?;
-    let opts = RunOptions {
-        resume: args.resume,
-        progress: !args.quiet && std::io::stderr().is_terminal(),
-        verbose: !args.quiet,
-        opener: &DefaultOpener,
-        stop: StopFlag::process(),
-    };
+    let opts = args.run.options(args.resume, StopFlag::process());
     let outcome =
         experiment::train(&exp, &opts).with_context(|| format!("training {} failed", exp.name))?;
     let s = &outcome.summary;
