@@ -35,6 +35,16 @@ impl PlanFloat for f64 {
     }
 }
 
+/// Which clone of the fill without wrap [`PlanLayout::fill_row`] runs (the values are the same).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FillPath {
+    /// AVX2 where the CPU has it, else portable.
+    Fastest,
+    /// The portable clone even where AVX2 is there (for the tests that hold both clones to the
+    /// reference).
+    Portable,
+}
+
 /// `[H + 3, W + 2]`: the size of an `[H, W]` input padded as the plan's `top_left` indices read
 /// it (one row above and two below, one column on each side).
 pub fn padded_size([h, w]: [i64; 2]) -> [i64; 2] {
@@ -85,7 +95,7 @@ impl PlanLayout {
             .par_chunks_mut(row)
             .zip(frac.par_chunks_mut(2 * row))
             .enumerate()
-            .map(|(r, (t, f))| self.fill_row(off, r, t, f))
+            .map(|(r, (t, f))| self.fill_row(off, r, t, f, FillPath::Fastest))
             .collect()
     }
 
@@ -95,37 +105,14 @@ impl PlanLayout {
     ///
     /// torchvision's bilinear rule (`calibconv`'s plan tests hold every corner and fraction to a
     /// per-sample reference), with the row's tap positions and offset rows looked up once, and
-    /// the corners chosen without branches (AVX2 where the CPU has it).
+    /// the corners chosen without branches (AVX2 where the CPU has it and `path` allows it).
     pub fn fill_row<O: Copy + Into<f64>, W: PlanFloat>(
         &self,
         off: &[O],
         row: usize,
         top_left: &mut [i32],
         frac: &mut [W],
-    ) -> [i32; 2] {
-        self.fill_row_with(off, row, top_left, frac, false)
-    }
-
-    /// [`PlanLayout::fill_row`] through the portable clone of the fill without wrap even where
-    /// AVX2 is there (the same values; for the tests that hold both clones to the reference).
-    #[doc(hidden)]
-    pub fn fill_row_portable<O: Copy + Into<f64>, W: PlanFloat>(
-        &self,
-        off: &[O],
-        row: usize,
-        top_left: &mut [i32],
-        frac: &mut [W],
-    ) -> [i32; 2] {
-        self.fill_row_with(off, row, top_left, frac, true)
-    }
-
-    fn fill_row_with<O: Copy + Into<f64>, W: PlanFloat>(
-        &self,
-        off: &[O],
-        row: usize,
-        top_left: &mut [i32],
-        frac: &mut [W],
-        portable: bool,
+        path: FillPath,
     ) -> [i32; 2] {
         let (ho, wo, h, w) = (self.ho, self.wo, self.h, self.w);
         let PlanLayout {
@@ -160,13 +147,13 @@ impl PlanLayout {
         if !wrap {
             let args = [stride[1], h, w];
             #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx2") && !portable {
+            if std::arch::is_x86_feature_detected!("avx2") && path == FillPath::Fastest {
                 // SAFETY: the CPU has AVX2, the only feature the function enables.
                 return unsafe {
                     fill_row_zeros_avx2(&taps_of_row, args, padded_base, top_left, frac)
                 };
             }
-            let _ = portable;
+            let _ = path;
             return fill_row_zeros(&taps_of_row, args, padded_base, top_left, frac);
         }
         let mut reach = [i32::MAX, i32::MIN];

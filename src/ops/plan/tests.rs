@@ -1,13 +1,9 @@
 //! The plan's fill against a per-sample reference of torchvision's bilinear rule.
 
-use calibconv_geometry::plan::PlanLayout;
+use calibconv_geometry::plan::FillPath;
 
 use super::fill::{floor, Layout};
 use super::{corners_of_top_left, padded_size, Border, ConvGeometry};
-
-/// One output row's fill of a plan (float64 offsets and fractions): [`PlanLayout::fill_row`] or
-/// its portable clone; returns the row's reach of input rows.
-type RowFill = fn(&PlanLayout, &[f64], usize, &mut [i32], &mut [f64]) -> [i32; 2];
 
 /// torchvision's bilinear interpolation with zeros outside, as (flat index or `None` for an
 /// out-of-range corner, weight) for the corners (y0, x0), (y0, x1), (y1, x0), (y1, x1). With
@@ -122,12 +118,12 @@ fn fill_row_matches_bilinear_sample_by_sample() {
         // The geometry crate's fill of one row, through both clones of the fill without wrap
         // (AVX2 where the CPU has it, and portable).
         let plan_layout = layout.plan_layout();
-        let fills: [RowFill; 2] = [PlanLayout::fill_row, PlanLayout::fill_row_portable];
-        for (r, fill) in (0..(n_items * ho) as usize).flat_map(|r| fills.map(|f| (r, f))) {
+        let paths = [FillPath::Fastest, FillPath::Portable];
+        for (r, path) in (0..(n_items * ho) as usize).flat_map(|r| paths.map(|p| (r, p))) {
             let mut idx = vec![-7i32; 4 * row];
             let mut frac = vec![-7.0f64; 2 * row];
             let mut top_left = vec![-7i32; row];
-            let reach = fill(&plan_layout, &off, r, &mut top_left, &mut frac);
+            let reach = plan_layout.fill_row(&off, r, &mut top_left, &mut frac, path);
             // The ATen path's corner indices, derived from the top-left corners.
             corners_of_top_left(&top_left, [h, w], border, &mut idx);
             let (item, oy) = (r as i64 / ho, r as i64 % ho);

@@ -229,6 +229,12 @@ macro_rules! camera_models {
                 match self { $(Camera::$variant(m) => m.project_jacobian(ray),)* }
             }
 
+            /// The model's checks (each model's `validate`, which its validating constructor
+            /// runs); the error names the field.
+            pub(crate) fn validate(&self) -> schema::Checked {
+                match self { $(Camera::$variant(m) => m.validate(),)* }
+            }
+
             /// `width`, `height`, then the model's fields, one `key = value` line each.
             fn write_fields(&self, out: &mut String) {
                 use schema::CameraFile;

@@ -38,7 +38,12 @@ impl CameraFile for Pinhole {
 impl Pinhole {
     /// A checked camera (see [`Pinhole::validate`]).
     pub fn new(intrinsics: Intrinsics) -> Result<Self, Invalid> {
-        checked(Pinhole { intrinsics }, Self::validate)
+        checked(Self::unchecked(intrinsics), Self::validate)
+    }
+
+    /// The camera without the checks.
+    pub(crate) fn unchecked(intrinsics: Intrinsics) -> Self {
+        Pinhole { intrinsics }
     }
 
     /// Every float finite and the intrinsics' checks ([`Intrinsics::validate`]).

@@ -55,6 +55,7 @@ mod orbslam3;
 mod ros;
 mod tree;
 
+use super::schema::checked;
 use super::{
     Camera, CameraModel, DoubleSphere, ExtendedUnified, Fov, Intrinsics, Invalid, KannalaBrandt,
     Mei, Pinhole, PinholeRadTan, Scaramuzza, Unified,
@@ -274,53 +275,36 @@ struct Parsed {
     notes: Vec<String>,
 }
 
-/// The camera for `fov_deg` (ignored by the pinhole models), through the models' validating
-/// constructors: exactly what the written camera file will read back as.
+/// The camera for `fov_deg` (ignored by the pinhole models), checked as its model's validating
+/// constructor checks it: exactly what the written camera file will read back as.
 fn build(model: &Model, size: [usize; 2], fov_deg: f64) -> std::result::Result<Camera, Invalid> {
-    let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
-    Ok(match model.clone() {
-        Model::KannalaBrandt { f, k } => {
-            Camera::KannalaBrandt(KannalaBrandt::new(intrinsics(f), k, fov_deg)?)
-        }
-        Model::Pinhole { f } => Camera::Pinhole(Pinhole::new(intrinsics(f))?),
-        Model::RadTan { f, k, p, rpmax } => {
-            Camera::PinholeRadTan(PinholeRadTan::rational(intrinsics(f), k, p, rpmax)?)
-        }
-        Model::Mei { f, xi, k, p } => Camera::Mei(Mei::new(intrinsics(f), xi, k, p, fov_deg)?),
-        Model::Fov { f, w } => Camera::Fov(Fov::new(intrinsics(f), w, fov_deg)?),
-        Model::DoubleSphere { f, xi, alpha } => {
-            Camera::DoubleSphere(DoubleSphere::new(intrinsics(f), xi, alpha, fov_deg)?)
-        }
-        Model::Unified { f, alpha } => {
-            Camera::Unified(Unified::new(intrinsics(f), alpha, fov_deg)?)
-        }
-        Model::ExtendedUnified { f, alpha, beta } => {
-            Camera::ExtendedUnified(ExtendedUnified::new(intrinsics(f), alpha, beta, fov_deg)?)
-        }
-        Model::Scaramuzza {
-            poly,
-            inv_poly,
-            centre,
-            cde,
-        } => Camera::Scaramuzza(Scaramuzza::new(poly, inv_poly, centre, cde, size, fov_deg)?),
-    })
+    checked(unchecked(model, size, fov_deg), Camera::validate)
 }
 
 /// A fisheye camera without the checks, to probe the model's domain before `fov_deg` is chosen
 /// (the domain does not depend on it); `None` for the pinhole models, which derive theirs.
 fn probe(model: &Model, size: [usize; 2]) -> Option<Camera> {
+    let pinhole = matches!(model, Model::Pinhole { .. } | Model::RadTan { .. });
+    (!pinhole).then(|| unchecked(model, size, 180.0))
+}
+
+/// The camera of `model` for `fov_deg` (ignored by the pinhole models), through the models'
+/// constructors without the checks.
+fn unchecked(model: &Model, size: [usize; 2], fov_deg: f64) -> Camera {
     let intrinsics = |f: [f64; 4]| Intrinsics::from_parts(f, size);
-    let fov_deg = 180.0;
-    Some(match model.clone() {
-        Model::Pinhole { .. } | Model::RadTan { .. } => return None,
+    match model.clone() {
         Model::KannalaBrandt { f, k } => {
             Camera::KannalaBrandt(KannalaBrandt::unchecked(intrinsics(f), k, fov_deg))
         }
-        Model::DoubleSphere { f, xi, alpha } => {
-            Camera::DoubleSphere(DoubleSphere::unchecked(intrinsics(f), xi, alpha, fov_deg))
+        Model::Pinhole { f } => Camera::Pinhole(Pinhole::unchecked(intrinsics(f))),
+        Model::RadTan { f, k, p, rpmax } => {
+            Camera::PinholeRadTan(PinholeRadTan::unchecked(intrinsics(f), k, p, rpmax))
         }
         Model::Mei { f, xi, k, p } => Camera::Mei(Mei::unchecked(intrinsics(f), xi, k, p, fov_deg)),
         Model::Fov { f, w } => Camera::Fov(Fov::unchecked(intrinsics(f), w, fov_deg)),
+        Model::DoubleSphere { f, xi, alpha } => {
+            Camera::DoubleSphere(DoubleSphere::unchecked(intrinsics(f), xi, alpha, fov_deg))
+        }
         Model::Unified { f, alpha } => {
             Camera::Unified(Unified::unchecked(intrinsics(f), alpha, fov_deg))
         }
@@ -335,7 +319,7 @@ fn probe(model: &Model, size: [usize; 2]) -> Option<Camera> {
         } => Camera::Scaramuzza(Scaramuzza::unchecked(
             poly, inv_poly, centre, cde, size, fov_deg,
         )),
-    })
+    }
 }
 
 /// Rounds the width-derived field of view down to 1e-3 deg (readable, and never past an edge).
