@@ -261,7 +261,7 @@ impl<'a> PlannedCall<'a> {
                 plan.kernel()
             )));
         }
-        if groups < 1 || c % groups != 0 || c_out % groups != 0 || c_per_group * groups != c {
+        if !groups_fit(groups, c, c_out, c_per_group) {
             return Err(Error::InvalidArgument(format!(
                 "groups = {groups} does not fit input channels {c}, weight {:?}",
                 weight.size()
@@ -346,6 +346,12 @@ const WEIGHT_DIMS: &str = "[C_out, C_in/groups, kh, kw]";
 fn size4(t: &Tensor, name: &str, dims: &str) -> Result<(i64, i64, i64, i64)> {
     t.size4()
         .map_err(|_| Error::InvalidArgument(format!("{name} must be {dims}, got {:?}", t.size())))
+}
+
+/// Whether `groups` fits `c_in` input and `c_out` output channels and a weight of `c_per_group`
+/// input channels (`[c_out, c_per_group, kh, kw]`).
+fn groups_fit(groups: i64, c_in: i64, c_out: i64, c_per_group: i64) -> bool {
+    groups >= 1 && c_in % groups == 0 && c_out % groups == 0 && c_per_group * groups == c_in
 }
 
 /// Checks that a tensor is floating point (float32 or float64).
