@@ -23,7 +23,7 @@ use serde::Serialize;
 use tch::Device;
 
 use crate::error::{Error, Result};
-use crate::ops;
+use crate::ops::{self, NativeSetting};
 
 /// One CUDA device as the driver names it.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -109,7 +109,7 @@ impl RuntimeInfo {
             )
             .map(|f| unsafe { f() }),
             native_cpu_kernels: ops::native_available(),
-            small_kernel_isa: format!("{:?}", ops::small_kernel_isa()),
+            small_kernel_isa: format!("{:?}", ops::SmallKernelIsa::current()),
             threads: tch::get_num_threads(),
             interop_threads: tch::get_num_interop_threads(),
         }

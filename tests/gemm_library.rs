@@ -2,7 +2,7 @@
 //! (oneDNN, the BLAS) against the ATen composition, in a process of their own: the choice is
 //! process-wide, and the library tests compare bits between runs.
 
-use calibconv::ops::{gemm_library, native_available, set_gemm_library, Backend, GemmLibrary};
+use calibconv::ops::{native_available, Backend, GemmLibrary, NativeSetting};
 
 mod common;
 use common::{max_rel, Layer3x3};
@@ -13,7 +13,7 @@ fn both_gemm_libraries_match_the_aten_composition() {
         return; // ops::tests::native_kernels_are_built fails instead
     }
     // The default is the BLAS on every CPU (oneDNN only when asked for).
-    assert_eq!(gemm_library(), GemmLibrary::Blas);
+    assert_eq!(GemmLibrary::current(), GemmLibrary::Blas);
     tch::manual_seed(3);
     // 24 -> 40 channels (no few-output-channel kernels: every product through the library),
     // several tiles.
@@ -24,7 +24,7 @@ fn both_gemm_libraries_match_the_aten_composition() {
         libs.push(GemmLibrary::OneDnn);
     }
     for lib in libs {
-        assert_eq!(set_gemm_library(Some(lib)), lib);
+        assert_eq!(GemmLibrary::set(Some(lib)), lib);
         let got = layer.run(Backend::Auto);
         for (name, g, a) in ["output", "grad input", "grad weight", "grad bias"]
             .iter()
@@ -36,5 +36,5 @@ fn both_gemm_libraries_match_the_aten_composition() {
             assert!(rel < 2e-5, "{lib:?}: {name} differs from ATen by {rel:e}");
         }
     }
-    assert_eq!(set_gemm_library(None), GemmLibrary::Blas);
+    assert_eq!(GemmLibrary::set(None), GemmLibrary::Blas);
 }

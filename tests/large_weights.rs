@@ -1,9 +1,7 @@
 //! The two libraries of the large weights' products (the few-output-channel kernels, the BLAS)
 //! against the ATen composition, in a process of their own: the choice is process-wide.
 
-use calibconv::ops::{
-    native_available, set_large_weights, small_kernel_isa, Backend, LargeWeights, SmallKernelIsa,
-};
+use calibconv::ops::{native_available, Backend, LargeWeights, NativeSetting, SmallKernelIsa};
 
 mod common;
 use common::{max_rel, Layer3x3};
@@ -12,7 +10,7 @@ const NAMES: [&str; 4] = ["output", "grad input", "grad weight", "grad bias"];
 
 #[test]
 fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
-    if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
+    if !native_available() || SmallKernelIsa::current() != SmallKernelIsa::Avx512 {
         // The choice exists only where the kernels take 512 and 1024 outputs (AVX-512).
         return;
     }
@@ -34,7 +32,7 @@ fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
         let aten = layer.run(Backend::Aten);
         let mut by_lib = Vec::new();
         for lib in [LargeWeights::Kernels, LargeWeights::Blas] {
-            assert_eq!(set_large_weights(Some(lib)), lib);
+            assert_eq!(LargeWeights::set(Some(lib)), lib);
             let got = layer.run(Backend::Auto);
             for ((name, g), a) in NAMES.iter().zip(&got).zip(&aten) {
                 let rel = max_rel(g, a);
@@ -52,5 +50,5 @@ fn both_libraries_of_large_weights_match_aten_and_split_where_documented() {
         assert_eq!(!same(1), gradients_chosen, "{c}->{co} {h}x{w}: grad input");
         assert_eq!(!same(2), gradients_chosen, "{c}->{co} {h}x{w}: grad weight");
     }
-    set_large_weights(None);
+    LargeWeights::set(None);
 }

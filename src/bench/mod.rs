@@ -58,6 +58,7 @@ use crate::camera::Camera;
 use crate::error::Result;
 use crate::kernel::pyramid_sizes;
 use crate::nn::{Head, UNetConfig};
+use crate::ops::{GemmLibrary, LargeWeights, NativeSetting, SmallKernelIsa};
 
 pub use measure::memory_child;
 use measure::{bench_functional, bench_pyramid, bench_shape, bench_unet, ratio, warm_like_trainer};
@@ -290,11 +291,11 @@ pub struct Report {
     /// The CPU's name (`/proc/cpuinfo`), where known.
     cpu: Option<String>,
     threads: i32,
-    /// The instruction-set level of the few-output-channel kernels (`ops::small_kernel_isa`).
+    /// The instruction-set level of the few-output-channel kernels (`ops::SmallKernelIsa`).
     small_kernels: String,
-    /// The library of the large weights' products (`ops::large_weights`).
+    /// The library of the large weights' products (`ops::LargeWeights`).
     large_weights: String,
-    /// The library of the other float32 products (`ops::gemm_library`).
+    /// The library of the other float32 products (`ops::GemmLibrary`).
     gemm: String,
     /// `/proc/loadavg` (1, 5, 15 minutes) before and after the timings.
     load_before: Option<[f64; 3]>,
@@ -354,9 +355,9 @@ pub fn run(
     let run_part = |p: Part| args.only.is_empty() || args.only.contains(&p);
     let threads = tch::get_num_threads();
     let load_before = load_average();
-    let small_kernels = format!("{:?}", crate::ops::small_kernel_isa());
-    let gemm = format!("{:?}", crate::ops::gemm_library());
-    let large_weights = format!("{:?}", crate::ops::large_weights());
+    let small_kernels = format!("{:?}", SmallKernelIsa::current());
+    let gemm = format!("{:?}", GemmLibrary::current());
+    let large_weights = format!("{:?}", LargeWeights::current());
     let cpu = cpu_model();
     println!(
         "calibconv bench: {}, {threads} libtorch threads, camera {}, load {}, few-output-channel \

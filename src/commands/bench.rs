@@ -6,7 +6,7 @@ use anyhow::{bail, Context, Result};
 
 use calibconv::bench::{self, MemoryReport, Options, Part};
 use calibconv::io::write_bytes_atomic;
-use calibconv::ops::{GemmLibrary, LargeWeights, SmallKernelIsa};
+use calibconv::ops::{GemmLibrary, LargeWeights, NativeSetting, SmallKernelIsa};
 
 use super::load_camera;
 use crate::cli::{BenchArgs, BenchPart, GemmChoice, LargeWeightsChoice, SmallKernelLevel};
@@ -27,21 +27,21 @@ pub fn run(args: BenchArgs) -> Result<()> {
         tch::set_num_threads(n);
     }
     if let Some(level) = args.small_kernels {
-        calibconv::ops::cap_small_kernel_isa(match level {
+        SmallKernelIsa::set(Some(match level {
             SmallKernelLevel::None => SmallKernelIsa::None,
             SmallKernelLevel::Avx2 => SmallKernelIsa::Avx2,
             SmallKernelLevel::Avx512 => SmallKernelIsa::Avx512,
-        });
+        }));
     }
     if let Some(choice) = args.gemm {
-        calibconv::ops::set_gemm_library(match choice {
+        GemmLibrary::set(match choice {
             GemmChoice::Auto => None,
             GemmChoice::Onednn => Some(GemmLibrary::OneDnn),
             GemmChoice::Blas => Some(GemmLibrary::Blas),
         });
     }
     if let Some(choice) = args.large_weights {
-        calibconv::ops::set_large_weights(match choice {
+        LargeWeights::set(match choice {
             LargeWeightsChoice::Auto => None,
             LargeWeightsChoice::Kernels => Some(LargeWeights::Kernels),
             LargeWeightsChoice::Blas => Some(LargeWeights::Blas),

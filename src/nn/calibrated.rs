@@ -108,6 +108,22 @@ impl<'a> CameraInput<'a> {
     }
 }
 
+/// The convolution's own parameters under `vs`: `weight` `[c_out, c_in / groups, k, k]` and, if
+/// `cfg.bias`, `bias` `[c_out]`, with the same names, shapes and initialisation as tch's
+/// `nn::conv2d` (so that a standard checkpoint loads into a calibrated layer unchanged).
+pub(super) fn conv_parameters(
+    vs: &nn::Path,
+    c_in: i64,
+    c_out: i64,
+    k: i64,
+    cfg: Conv2dConfig,
+) -> (Tensor, Option<Tensor>) {
+    let tch_cfg = cfg.to_tch(k);
+    let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
+    let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
+    (ws, bs)
+}
+
 /// The calibrated offsets of a `k x k` layer of `cfg` (`c_in -> c_out`) on `input`, from the
 /// process-wide cache, and the convolution geometry they are for.
 ///
@@ -185,10 +201,7 @@ impl CalibratedConv2d {
             Border::Zeros
         };
         let plan = layer_plan(&offsets, conv, Kind::Float, border, vs.device())?;
-        // Same names, shapes and initialisation as tch's nn::conv2d.
-        let tch_cfg = cfg.to_tch(k);
-        let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
-        let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
+        let (ws, bs) = conv_parameters(vs, c_in, c_out, k, cfg);
         Ok(CalibratedConv2d {
             ws,
             bs,

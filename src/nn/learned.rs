@@ -15,7 +15,7 @@
 use tch::nn::{self, Module};
 use tch::Tensor;
 
-use super::calibrated::layer_offsets;
+use super::calibrated::{conv_parameters, layer_offsets};
 use super::{CameraInput, Conv2dConfig};
 use crate::camera::CameraModel;
 use crate::error::{Error, Result};
@@ -55,8 +55,7 @@ impl LearnedOffsetConv2d {
         let (calibrated, geometry) = layer_offsets(c_in, c_out, k, input, cfg)?;
         let tch_cfg = cfg.to_tch(k);
         let calibrated = calibrated.to_tensor().unsqueeze(0).to_device(vs.device());
-        let ws = vs.var("weight", &[c_out, c_in / cfg.groups, k, k], tch_cfg.ws_init);
-        let bs = cfg.bias.then(|| vs.var("bias", &[c_out], tch_cfg.bs_init));
+        let (ws, bs) = conv_parameters(vs, c_in, c_out, k, cfg);
         let offsets = nn::conv(
             vs / super::ADDED / "offsets",
             c_in,

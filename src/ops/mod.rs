@@ -27,7 +27,7 @@
 //!   on the number of threads. Products go through the BLAS (`at::mm`; oneDNN when asked, see
 //!   [`GemmLibrary`]) or, for few output channels (float32, one group, 8 to 1024 outputs on
 //!   AVX-512, 8 to 32 on AVX2), through register-blocked kernels on L1-sized blocks of pixels,
-//!   compiled per instruction-set level and picked at run time ([`small_kernel_isa`]; both levels
+//!   compiled per instruction-set level and picked at run time ([`SmallKernelIsa`]; both levels
 //!   give identical values; large weights on Intel CPUs with MKL: [`LargeWeights`]). Float32 and
 //!   float64; no double backward (an error, not a wrong result); C++ exceptions come back as
 //!   [`Error::Torch`], never across the FFI boundary. The design of each pass is in the comments
@@ -62,23 +62,19 @@ mod native;
 /// Without the native kernels their settings are fixed: there is nothing to choose.
 #[cfg(not(calibconv_native))]
 mod native {
-    use super::{GemmLibrary, LargeWeights, SmallKernelIsa};
-    pub(super) fn small_kernel_isa(_cap: Option<SmallKernelIsa>) -> SmallKernelIsa {
-        SmallKernelIsa::None
-    }
-    pub(super) fn gemm_library(_choice: Option<Option<GemmLibrary>>) -> GemmLibrary {
-        GemmLibrary::Blas
-    }
-    pub(super) fn large_weights(_choice: Option<Option<LargeWeights>>) -> LargeWeights {
-        LargeWeights::Kernels
+    use super::settings::sealed::Entry;
+    pub(super) fn setting(_entry: Entry, _choice: Option<Option<i32>>) -> Option<i32> {
+        None
     }
 }
 mod plan;
 mod sampled;
+mod settings;
 
 pub use cache::{clear_plan_caches, layer_plan, tensor_plan, TENSOR_PLANS};
 pub use plan::{Border, ConvGeometry, SamplingPlan};
 pub use sampled::f_deform_conv2d_sampled;
+pub use settings::{GemmLibrary, LargeWeights, NativeSetting, SmallKernelIsa};
 
 use tch::{Kind, Tensor};
 
@@ -154,93 +150,6 @@ pub enum Backend {
 /// Whether the native CPU kernels were compiled into this build.
 pub fn native_available() -> bool {
     cfg!(calibconv_native)
-}
-
-/// The instruction-set level of the native few-output-channel kernels (float32, one group, 8
-/// to 1024 output channels): their register blocking is compiled per level and picked
-/// at run time from the CPU.
-/// (The discriminants are the native code's `SmallIsa`.)
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-#[repr(i32)]
-pub enum SmallKernelIsa {
-    /// Not used (no native kernels, not x86-64, or a CPU without AVX2 and FMA): such layers
-    /// go through the GEMM library like any other.
-    None = 0,
-    /// x86-64-v3 (AVX2, FMA): 16 registers of 8 floats; 8, 16 and 32 outputs (64 and 128 go
-    /// through the GEMM library, faster at this level).
-    Avx2 = 1,
-    /// x86-64-v4 (AVX-512): 32 registers of 16 floats.
-    Avx512 = 2,
-}
-
-/// The level of the few-output-channel kernels this process uses.
-pub fn small_kernel_isa() -> SmallKernelIsa {
-    native::small_kernel_isa(None)
-}
-
-/// Limits the few-output-channel kernels to at most `cap` for the rest of the process (every
-/// thread; both levels compute identical values, `None` sends those layers through the GEMM
-/// library); returns the level now in use. For tests and A/B timings.
-pub fn cap_small_kernel_isa(cap: SmallKernelIsa) -> SmallKernelIsa {
-    native::small_kernel_isa(Some(cap))
-}
-
-/// The library of the float32 products of one group that the few-output-channel kernels do not
-/// take (more than 1024 or other output counts, weights over 36 MiB; the weight gradient from 32
-/// outputs on where those kernels are absent). Both give the same values up to rounding.
-/// (The discriminants are the native code's.)
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(i32)]
-pub enum GemmLibrary {
-    /// oneDNN, as a 1x1 convolution (the library `conv2d` uses), for A/B timings: it reorders
-    /// the weight on every call.
-    OneDnn = 1,
-    /// The BLAS (`at::mm`, libtorch's MKL), the default: at the shapes left to the library
-    /// (128-1024 channels) faster than oneDNN's 1x1 convolution on an AMD Zen 3 (AVX2) and on a
-    /// Zen 4 (AVX-512), with less memory (docs/bench/cpu-kernels.md).
-    Blas = 2,
-}
-
-/// The GEMM library this process uses ([`GemmLibrary::Blas`] without the native kernels, whose
-/// ATen composition multiplies with `at::mm`-style ops).
-pub fn gemm_library() -> GemmLibrary {
-    native::gemm_library(None)
-}
-
-/// Sets the GEMM library for the rest of the process (every thread; `None`: the default, the
-/// BLAS; oneDNN only where libtorch has it) and returns the one now in use. For A/B timings
-/// (`calibconv bench --gemm`); the results differ only by rounding.
-pub fn set_gemm_library(choice: Option<GemmLibrary>) -> GemmLibrary {
-    native::gemm_library(Some(choice))
-}
-
-/// The library of the products of large weights (see [`LargeWeights::Blas`])
-/// where the few-output-channel kernels exist. Both give the same values up to rounding.
-/// (The discriminants are the native code's.)
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(i32)]
-pub enum LargeWeights {
-    /// The few-output-channel kernels multiply every product (the default except on Intel CPUs
-    /// with MKL).
-    Kernels = 1,
-    /// The BLAS computes the column and weight gradients of weights over 4 MiB (256->512 and
-    /// 512->256 on) and the forward of such weights on fewer than 1024 output pixels a pass
-    /// (`classic`'s 512->1024 and 1024->1024 on 16x16 maps at B2): the default where the BLAS is
-    /// MKL on an Intel CPU, which runs its AVX-512 code there only (docs/bench/cpu-kernels.md).
-    Blas = 2,
-}
-
-/// The library of the large weights' products this process uses ([`LargeWeights::Kernels`]
-/// without the native kernels, where there are none to choose).
-pub fn large_weights() -> LargeWeights {
-    native::large_weights(None)
-}
-
-/// Sets the library of the large weights' products for the rest of the process (every thread;
-/// `None`: the CPU's default) and returns the one now in use. For tests and A/B timings
-/// (`calibconv bench --large-weights`); the results differ only by rounding.
-pub fn set_large_weights(choice: Option<LargeWeights>) -> LargeWeights {
-    native::large_weights(Some(choice))
 }
 
 /// The deformable convolution through a prebuilt plan (see [`f_deform_conv2d`] for shapes).
@@ -352,7 +261,7 @@ impl<'a> PlannedCall<'a> {
                 plan.kernel()
             )));
         }
-        if groups < 1 || c % groups != 0 || c_out % groups != 0 || c_per_group * groups != c {
+        if !groups_fit(groups, c, c_out, c_per_group) {
             return Err(Error::InvalidArgument(format!(
                 "groups = {groups} does not fit input channels {c}, weight {:?}",
                 weight.size()
@@ -437,6 +346,12 @@ const WEIGHT_DIMS: &str = "[C_out, C_in/groups, kh, kw]";
 fn size4(t: &Tensor, name: &str, dims: &str) -> Result<(i64, i64, i64, i64)> {
     t.size4()
         .map_err(|_| Error::InvalidArgument(format!("{name} must be {dims}, got {:?}", t.size())))
+}
+
+/// Whether `groups` fits `c_in` input and `c_out` output channels and a weight of `c_per_group`
+/// input channels (`[c_out, c_per_group, kh, kw]`).
+fn groups_fit(groups: i64, c_in: i64, c_out: i64, c_per_group: i64) -> bool {
+    groups >= 1 && c_in % groups == 0 && c_out % groups == 0 && c_per_group * groups == c_in
 }
 
 /// Checks that a tensor is floating point (float32 or float64).

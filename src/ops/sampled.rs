@@ -16,7 +16,7 @@
 
 use tch::{Kind, Tensor};
 
-use super::{size4, ConvGeometry, INPUT_DIMS, WEIGHT_DIMS};
+use super::{groups_fit, size4, ConvGeometry, INPUT_DIMS, WEIGHT_DIMS};
 use crate::error::{Error, Result};
 
 /// Deformable 2-D convolution, differentiable in `input`, `offsets`, `weight` and `bias`.
@@ -37,7 +37,7 @@ pub fn f_deform_conv2d_sampled(
 ) -> Result<Tensor> {
     let (b, c_in, h, w) = size4(input, "input", INPUT_DIMS)?;
     let (c_out, c_pg, kh, kw) = size4(weight, "weight", WEIGHT_DIMS)?;
-    if groups < 1 || c_in % groups != 0 || c_out % groups != 0 || c_pg * groups != c_in {
+    if !groups_fit(groups, c_in, c_out, c_pg) {
         return Err(Error::InvalidArgument(format!(
             "groups = {groups} does not fit C_in = {c_in}, C_out = {c_out} and weight {:?}",
             weight.size()

@@ -9,6 +9,7 @@ use std::ffi::{c_char, CStr};
 use tch::Tensor;
 use torch_sys::C_tensor;
 
+use super::settings::sealed::Entry;
 use super::PlannedCall;
 use crate::error::{Error, Result};
 
@@ -55,44 +56,28 @@ pub(super) fn poison_scratch() {
     assert_eq!(on, 1, "scratch poisoning must take effect");
 }
 
-/// The C entry points' encoding of a setting: `-1` keeps it, `0` the default, else the choice's
-/// discriminant.
-fn setting(choice: Option<Option<i32>>) -> i32 {
-    choice.map_or(-1, |c| c.unwrap_or(0))
-}
-
-/// The library of the float32 GEMMs in use (see [`super::GemmLibrary`]); with `choice`, first
-/// sets it (`Some(None)`: the default, the BLAS).
-pub(super) fn gemm_library(choice: Option<Option<super::GemmLibrary>>) -> super::GemmLibrary {
-    use super::GemmLibrary as Gemm;
-    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
-    match unsafe { calibconv_native_gemm(setting(choice.map(|c| c.map(|l| l as i32)))) } {
-        1 => Gemm::OneDnn,
-        _ => Gemm::Blas,
-    }
-}
-
-/// The library of the large weights' products in use (see [`super::LargeWeights`]); with
-/// `choice`, first sets it (`Some(None)`: the CPU's default).
-pub(super) fn large_weights(choice: Option<Option<super::LargeWeights>>) -> super::LargeWeights {
-    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
-    match unsafe { calibconv_native_large_weights(setting(choice.map(|c| c.map(|l| l as i32)))) } {
-        2 => super::LargeWeights::Blas,
-        _ => super::LargeWeights::Kernels,
-    }
-}
-
-/// The instruction-set level of the few-output-channel kernels in use (see
-/// [`super::SmallKernelIsa`]); with `cap`, first limits it to at most that level.
-pub(super) fn small_kernel_isa(cap: Option<super::SmallKernelIsa>) -> super::SmallKernelIsa {
-    use super::SmallKernelIsa as Isa;
-    let cap = cap.map_or(-1, |c| c as i32);
-    // SAFETY: a plain function of an integer; it only reads and writes an atomic.
-    match unsafe { calibconv_native_small_isa(cap) } {
-        2 => Isa::Avx512,
-        1 => Isa::Avx2,
-        _ => Isa::None,
-    }
+/// Reads a process-wide setting of the kernels (see [`super::NativeSetting`]); with `choice`,
+/// first sets it (`Some(None)`: its default, else a value's code). Returns the code of the value
+/// in use.
+pub(super) fn setting(entry: Entry, choice: Option<Option<i32>>) -> Option<i32> {
+    // The entry points' encoding: `-1` keeps the setting, else the choice's code. The level of
+    // the few-output-channel kernels is a cap, whose default (none) is the highest level; for
+    // the others `0` asks for the default.
+    let code = match (entry, choice) {
+        (_, None) => -1,
+        (_, Some(Some(code))) => code,
+        (Entry::SmallIsa, Some(None)) => super::SmallKernelIsa::Avx512 as i32,
+        (Entry::Gemm | Entry::LargeWeights, Some(None)) => 0,
+    };
+    // SAFETY: plain functions of an integer; they only read and write an atomic.
+    let in_use = unsafe {
+        match entry {
+            Entry::SmallIsa => calibconv_native_small_isa(code),
+            Entry::Gemm => calibconv_native_gemm(code),
+            Entry::LargeWeights => calibconv_native_large_weights(code),
+        }
+    };
+    Some(in_use)
 }
 
 /// The layout of the native op's output (the kernels write either layout from either input

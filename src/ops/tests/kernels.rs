@@ -163,7 +163,7 @@ fn shared_and_per_item_plans_give_the_same_bits() {
 /// a slab and a part; at 96->512 the first slab ends inside tap 5's channels). On a CPU without
 /// AVX-512 the AVX2 path is still held to ATen.
 /// Held by the tests that move the process-wide instruction-set cap of the few-output-channel
-/// kernels (`cap_small_kernel_isa`) and by those that need it steady to compare two runs bit for
+/// kernels (`SmallKernelIsa::set`) and by those that need it steady to compare two runs bit for
 /// bit (tests run in threads of one process).
 static SMALL_ISA_CAP: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
@@ -174,7 +174,7 @@ struct LargeWeightsFor;
 impl LargeWeightsFor {
     fn kernels() -> Self {
         assert_eq!(
-            super::set_large_weights(Some(super::LargeWeights::Kernels)),
+            super::LargeWeights::set(Some(super::LargeWeights::Kernels)),
             super::LargeWeights::Kernels
         );
         LargeWeightsFor
@@ -183,7 +183,7 @@ impl LargeWeightsFor {
 
 impl Drop for LargeWeightsFor {
     fn drop(&mut self) {
-        super::set_large_weights(None);
+        super::LargeWeights::set(None);
     }
 }
 
@@ -194,7 +194,7 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
     }
     let _cap = SMALL_ISA_CAP.lock().unwrap_or_else(|e| e.into_inner());
     poison_native_scratch();
-    let top = small_kernel_isa();
+    let top = SmallKernelIsa::current();
     tch::manual_seed(8);
     for (b, ci, co, h, w) in [
         (2, 8, 8, 11, 13),
@@ -228,9 +228,9 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
             probe,
         } = random_problem([b, ci, co, h, w], 2.0);
         let at_top = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
-        let level = cap_small_kernel_isa(SmallKernelIsa::Avx2);
+        let level = SmallKernelIsa::set(Some(SmallKernelIsa::Avx2));
         let avx2 = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Auto);
-        cap_small_kernel_isa(SmallKernelIsa::Avx512);
+        SmallKernelIsa::set(Some(SmallKernelIsa::Avx512));
         let aten = run_backend(&x, &plan, &wt, &bias, 1, &probe, Backend::Aten);
         let what = format!("{ci}->{co}, {b}x{h}x{w}");
         assert_same(
@@ -271,7 +271,7 @@ fn few_output_channel_kernels_agree_across_isa_levels() {
 #[test]
 fn large_weight_gradients_do_not_depend_on_the_thread_count() {
     let _cap = SMALL_ISA_CAP.lock().unwrap_or_else(|e| e.into_inner());
-    if !native_available() || small_kernel_isa() != SmallKernelIsa::Avx512 {
+    if !native_available() || SmallKernelIsa::current() != SmallKernelIsa::Avx512 {
         return; // (the 256- and 512-output kernels are AVX-512's)
     }
     let _kernels = LargeWeightsFor::kernels();
