@@ -3,8 +3,18 @@
 // GEMMs on strided matrices, layout conversions, and the passes each file defines.
 #pragma once
 
-#include <ATen/ATen.h>
+// The core Tensor and the few operators used, not <ATen/ATen.h> (every operator's declaration):
+// the headers are most of each file's compile time.
+#include <ATen/Context.h>
+#include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/addmm.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/from_blob.h>
+#include <ATen/ops/mm.h>
+#include <ATen/ops/zeros.h>
 
 #include <algorithm>
 #include <atomic>
