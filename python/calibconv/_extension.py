@@ -12,7 +12,7 @@ every torch (it links no libtorch); a C++ extension is bound to one torch's ABI,
 at install time would tie the wheel to the torch present then and break on the next torch
 upgrade. Built here, it follows the torch that is imported: the cache key is the torch version,
 its C++ ABI, the compiler, the flags and the sources' hash, so an upgrade (of torch or of
-calibconv) builds a new library once, in one to three minutes on two cores, and every later process
+calibconv) builds a new library once, in about 35 s on two cores, and every later process
 loads it in milliseconds. ninja is not needed: the sources are compiled in parallel by a thread
 pool here.
 
@@ -129,7 +129,7 @@ def library_path() -> Path:
             return lib
         sys.stderr.write(
             f"calibconv: compiling the native CPU kernels for torch {torch_version} into "
-            f"{target} (once; one to three minutes on two cores)\n"
+            f"{target} (once; about 35 s on two cores)\n"
         )
         with tempfile.TemporaryDirectory(dir=target) as tmp:
             src = Path(tmp)
