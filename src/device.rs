@@ -6,7 +6,7 @@
 //! loaded. Nothing in the crate calls into it directly, so `build.rs` links it with
 //! `--no-as-needed` wherever the libtorch in use has it; [`RuntimeInfo::cuda_backend_linked`]
 //! reads the process's own mappings (`/proc/self/maps`) to say whether it really was loaded
-//! (the test `tests/build_links.rs` checks the release binary's `NEEDED` list).
+//! (the test `tests/integration/build_links.rs` checks the release binary's `NEEDED` list).
 //!
 //! # GPU names and library versions
 //! tch exposes availability and counts, not names or versions. Those come from the C APIs of

@@ -5,7 +5,8 @@
 //!
 //! Tests run in parallel threads and libtorch's random generator is global: every network here
 //! is built through `train::seeded` (which holds a lock) and nothing else draws random numbers,
-//! so initial weights depend on the seeds only.
+//! so initial weights depend on the seeds only. Hence a test binary of its own: the tests of
+//! `tests/integration/` draw from that generator freely (and reseed it).
 
 mod common;
 

@@ -10,7 +10,8 @@ formats ``calibconv camera import`` reads, each spelt as its tool writes it (Kal
 Basalt JSON, COLMAP cameras.txt, OpenCV FileStorage YAML and XML in the calibration sample's
 newer and older spellings, ROS ost.yaml and ost.txt, ORB-SLAM3 settings in both key spellings);
 the camera values are made up for these tests. And ``tests/golden/calib_oracle.json``: for each
-camera, rays and the pixels the tool's own model gives them (read by ``tests/camera_import.rs``).
+camera, rays and the pixels the tool's own model gives them (read by
+``tests/integration/camera_import.rs``).
 
 Oracles, independent of the Rust code:
 

@@ -8,11 +8,13 @@ Usage (from the crate root):
 Writes, deterministically (fixed seeds):
 
 - ``deform_conv2d.safetensors``: ``torchvision.ops.deform_conv2d`` outputs and gradients (input,
-  weight, bias, and the per-item offsets) for a set of layer geometries (read by ``tests/oracle_torchvision.rs``);
+  weight, bias, and the per-item offsets) for a set of layer geometries (read by
+  ``tests/integration/oracle_torchvision.rs``);
 - ``opencv_fisheye.json``: ``cv2.fisheye.projectPoints`` / ``cv2.fisheye.undistortPoints`` for two
-  Kannala-Brandt cameras (read by ``tests/oracle_opencv.rs``);
+  Kannala-Brandt cameras (read by ``tests/integration/oracle_opencv.rs``);
 - ``opencv_radtan.json``: ``cv2.projectPoints`` / ``cv2.undistortPoints`` for two pinhole
-  cameras with OpenCV's radial-tangential distortion (read by ``tests/oracle_opencv_radtan.rs``).
+  cameras with OpenCV's radial-tangential distortion (read by
+  ``tests/integration/oracle_opencv_radtan.rs``).
 
 Every oracle value is double-checked here before it is written: the deformable convolution
 against a direct NumPy loop and against torchvision in float32, the fisheye values against a

@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""PyTorch side of ``tests/pytorch_parity.rs``: milesial/Pytorch-UNet checkpoints in, exported
-state dicts out, with the reference network of ``tools/reference_unet.py`` (``torch`` only).
+"""PyTorch side of ``tests/integration/pytorch_parity.rs``: milesial/Pytorch-UNet checkpoints in,
+exported state dicts out, with the reference network of ``tools/reference_unet.py`` (``torch``
+only).
 
     .venv/bin/python tools/make_pytorch_parity.py torch-to-rust OUT_DIR
     .venv/bin/python tools/make_pytorch_parity.py classic OUT_DIR

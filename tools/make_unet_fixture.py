@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Golden U-Net fixtures from PyTorch, for ``tests/oracle_unet.rs``.
+"""Golden U-Net fixtures from PyTorch, for ``tests/integration/oracle_unet.rs``.
 
 Usage (from the crate root):
 

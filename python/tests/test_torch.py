@@ -47,8 +47,9 @@ def test_zero_offsets_equal_conv2d():
 
 
 def test_matches_the_deform_conv2d_fixture_of_the_rust_op():
-    # tests/golden/deform_conv2d.safetensors is the reference tests/oracle_torchvision.rs holds
-    # calibconv::ops::deform_conv2d to (same inputs, same tolerance).
+    # tests/golden/deform_conv2d.safetensors is the reference
+    # tests/integration/oracle_torchvision.rs holds calibconv::ops::deform_conv2d to (same inputs,
+    # same tolerance).
     fx = load_file(GOLDEN / "deform_conv2d.safetensors")
     cases = sorted({k.split(".")[0] for k in fx})
     checked = 0

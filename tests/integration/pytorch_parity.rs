@@ -10,8 +10,6 @@
 //!   converted checkpoint); `calibconv export`; PyTorch loads it with
 //!   `load_state_dict(strict=True)` and gives calibconv's output.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -25,8 +23,9 @@ use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::train;
 use calibconv::train::checkpoint::{self, CheckpointInfo};
-use common::experiment::{quiet, ExperimentFile};
-use common::{calibconv, failed, max_rel, ok, read_safetensors, root, s};
+
+use crate::common::experiment::{quiet, ExperimentFile};
+use crate::common::{self, calibconv, failed, max_rel, ok, read_safetensors, root, s};
 
 /// float32 convolutions, BatchNorm and up-sampling by one libtorch from two front ends; the
 /// issue's bound. Observed: 0 (bit-identical) on this machine; other thread counts reorder sums.

@@ -3,8 +3,6 @@
 //! shared across seeds on request, `study.json`, and SLURM arrays with one task per run and
 //! seed.
 
-mod common;
-
 use std::path::Path;
 
 use tch::Tensor;
@@ -14,8 +12,9 @@ use calibconv::experiment::layout::{ResultsDir, RunDir};
 use calibconv::experiment::run::open_training_source;
 use calibconv::experiment::sweep::{self, Seeds};
 use calibconv::experiment::{DefaultOpener, InitSpec};
-use common::experiment::ExperimentFile;
-use common::{assert_contains, calibconv_in, file_containing, ok, synth_tiny_f195};
+
+use crate::common::experiment::ExperimentFile;
+use crate::common::{self, assert_contains, calibconv_in, file_containing, ok, synth_tiny_f195};
 
 /// A baseline (`init` None) or a fine-tuning of `bl` with `kernel` on the F195 set, with
 /// colour-jitter augmentation.
@@ -23,6 +22,7 @@ fn experiment(dir: &Path, name: &str, kernel: &str, init: Option<&str>) -> Exper
     let set = |split: &str| format!(r#"{{ dataset = "f195", split = "{split}" }}"#);
     let e = ExperimentFile::tiny(name)
         .set_path("data_root", &dir.join("sets"))
+        .set_path("output", &dir.join("runs"))
         .set("model.kernel", kernel)
         .remove("input.size")
         .set("input.width", 32)
@@ -78,7 +78,6 @@ fn batches(exp: &calibconv::experiment::Experiment) -> Vec<(Vec<String>, Tensor)
 fn seeds_replicate_the_sweep_and_fine_tunings_of_one_seed_see_the_same_batches() {
     let tmp = study();
     let dir = tmp.path();
-    std::env::set_current_dir(dir).unwrap();
     let profile = Default::default();
     let seeds = Seeds {
         seeds: vec![4, 7],

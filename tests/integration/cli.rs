@@ -1,12 +1,11 @@
 //! The `calibconv` binary end to end: files written, shapes, and clear errors on bad input.
 
-mod common;
-
 use std::path::Path;
 
 use calibconv::camera;
 use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, OffsetsTensor};
-use common::{assert_contains, calibconv, failed, ok, s, words};
+
+use crate::common::{self, assert_contains, calibconv, failed, ok, s, words};
 
 fn camera_file(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))

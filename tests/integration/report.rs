@@ -4,8 +4,6 @@
 //! intervals, `verdict.json` / `verdict.md`; one replicate without seed folders; an unreadable
 //! metrics file named in the error.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 
 use serde_json::json;
@@ -18,6 +16,8 @@ use calibconv::loss::DepthLoss;
 use calibconv::nn::Head;
 use calibconv::report::results::{write_report_with, ReportOptions};
 use calibconv::report::verdict::{Outcome, Sign, Verdict};
+
+use crate::common;
 
 /// Test images per evaluation (1 x 8 pixels, ground truth 1 m).
 const IMAGES: usize = 12;

@@ -2,8 +2,6 @@
 //! regeneration, resuming, refusing to overwrite, Stanford 2D-3D-S input, batches per the
 //! contract of `calibconv::data`.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -12,8 +10,9 @@ use calibconv::camera::{self, CameraModel};
 use calibconv::data::format::{Manifest, Split, MANIFEST, SAMPLE_DIRS};
 use calibconv::data::loader::{Dataset, InputSize, LoaderConfig};
 use calibconv::data::{BatchSource, CLASSES, IGNORE_LABEL};
-use common::{assert_contains, calibconv, calibconv_in, s, words};
 use tch::Kind;
+
+use crate::common::{self, assert_contains, calibconv, calibconv_in, s, words};
 
 /// What the command printed (stdout, then stderr), after checking that it succeeded or, with
 /// `success` false, that it failed.

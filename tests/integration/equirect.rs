@@ -1,8 +1,6 @@
 //! Panoramas end to end: calibrated offsets of an equirectangular camera across its seam, the
 //! deformable convolution with columns wrapping around, and the calibrated layer that uses both.
 
-mod common;
-
 use tch::nn::{Module, VarStore};
 use tch::{Device, Kind, Tensor};
 
@@ -11,7 +9,7 @@ use calibconv::kernel::{compute_offsets, InputFrame, LayerGeometry, Offsets, Off
 use calibconv::nn::{CalibratedConv2d, CameraInput, Conv2dConfig};
 use calibconv::ops::{deform_conv2d_planned, Border, ConvGeometry, SamplingPlan};
 
-use common::max_rel;
+use crate::common::max_rel;
 
 /// Offsets are float32: a panorama's offsets reach W/2 = 32 px at the pole rows, whose float32
 /// spacing is ~4e-6 px; 1e-4 px is margin, and a kernel turning by even 1 degree moves a corner

@@ -2,14 +2,14 @@
 //! `calibconv train` or `calibconv eval` of it fails at once with an error naming the first
 //! one's PID; after `kill -9` of the holder the lock is free again (the OS releases it).
 
-mod common;
-
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use calibconv::experiment::layout::RunDir;
-use common::experiment::ExperimentFile;
+
+use crate::common;
+use crate::common::experiment::ExperimentFile;
 
 /// How long the holder may take to start training and write its first checkpoint (a loaded
 /// 2-core machine builds the binary's libtorch state in a few seconds).

@@ -10,12 +10,11 @@
 //! file format, the loader and the model are tested together; only the trait
 //! `CameraModel` is used to project and unproject (see `common::opencv`).
 
-mod common;
-
 use calibconv::camera::{self, Camera};
 use serde::Deserialize;
 
-use common::opencv::{self, Distortion};
+use crate::common;
+use crate::common::opencv::{self, Distortion};
 
 /// Projection: OpenCV and the library evaluate the same polynomial in float64 and differ only in
 /// round-off (atan(r) vs atan2(rho, z), evaluation order), ~1e-13 px at these radii; 1e-9 px is

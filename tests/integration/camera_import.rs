@@ -5,8 +5,6 @@
 //! (`data/cameras/`), the import must equal it exactly: every conversion (COLMAP's half-pixel
 //! shift, OCamCalib's row/column order, Kalibr's intrinsics order) is checked to the bit.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
@@ -15,7 +13,7 @@ use calibconv::camera::import::{
 };
 use calibconv::camera::{self, Camera, CameraModel};
 
-use common::{assert_contains, calibconv, failed, golden, ok, s};
+use crate::common::{self, assert_contains, calibconv, failed, golden, ok, s};
 
 /// Two closed forms of Mei's projection in float64: round-off only (~1e-13 px at these radii).
 const MEI_PX_TOL: f64 = 1e-9;

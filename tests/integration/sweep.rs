@@ -2,8 +2,6 @@
 //! does not stop the others (and blocks its dependants), overrides recorded in each run; the
 //! SLURM scripts' structure; the report of the results.
 
-mod common;
-
 use std::path::Path;
 
 use calibconv::experiment::layout::{RunDir, SweepStatus};
@@ -12,8 +10,11 @@ use calibconv::experiment::status;
 use calibconv::experiment::sweep::{self, Outcome, State, SweepOptions};
 use calibconv::experiment::DefaultOpener;
 use calibconv::train::stop::StopFlag;
-use common::experiment::ExperimentFile;
-use common::{assert_contains, calibconv_in, failed, file_containing, ok, synth_tiny_f195};
+
+use crate::common::experiment::ExperimentFile;
+use crate::common::{
+    self, assert_contains, calibconv_in, failed, file_containing, ok, synth_tiny_f195,
+};
 
 /// A tiny toy experiment: 5 epochs of the tiny U-Net on 16x16 toy images, training on
 /// `train`, fine-tuning `init` if given.
@@ -30,6 +31,9 @@ fn toy(name: &str, init: Option<&str>, train: &str) -> ExperimentFile {
     }
 }
 
+/// The toy experiments `bl`, `ft` (from `bl`), `broken` (its data set is missing) and
+/// `after-broken` (from `broken`) in `dir`, with their data sets and runs under `dir`, and the
+/// profile `tiny`.
 fn write_set(dir: &Path) {
     let ok = r#"{ toy = 4, split = "train" }"#;
     let missing = r#"{ dataset = "no-such-folder", split = "train" }"#;
@@ -39,7 +43,10 @@ fn write_set(dir: &Path) {
         ("broken", None, missing),
         ("after-broken", Some("broken"), ok),
     ] {
-        toy(name, init, train).write(&dir.join(format!("{name}.toml")));
+        toy(name, init, train)
+            .set_path("data_root", dir)
+            .set_path("output", &dir.join("runs"))
+            .write(&dir.join(format!("{name}.toml")));
     }
     std::fs::create_dir_all(dir.join("profiles")).unwrap();
     std::fs::write(
@@ -54,8 +61,6 @@ fn sweeps_run_in_dependency_order_skip_complete_runs_and_go_past_failures() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     write_set(dir);
-    // Output paths are relative to the current directory: run inside the temporary folder.
-    std::env::set_current_dir(dir).unwrap();
     let profile = sweep::find_profile(dir, "tiny").unwrap();
     let overrides: Vec<Override> = vec!["train.batch_size=1".parse().unwrap()];
     let plan = sweep::plan(dir, &profile, &overrides, &[]).unwrap();

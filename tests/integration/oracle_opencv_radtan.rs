@@ -12,12 +12,11 @@
 //! file format, the loader and the model are tested together; only `CameraModel` is used (see
 //! `common::opencv`).
 
-mod common;
-
 use calibconv::camera;
 use serde::Deserialize;
 
-use common::opencv::{self, Distortion};
+use crate::common;
+use crate::common::opencv::{self, Distortion};
 
 /// Projection: both evaluate the same polynomial in float64 (round-off ~1e-13 px); 1e-9 px is
 /// margin, and a modelling slip (p1 and p2 swapped, k3 on r^4) moves pixels by >= 1e-3 px.

@@ -8,15 +8,13 @@
 //! checked against `calibconv::ops::f_deform_conv2d_sampled`); `meta` = `[stride_h, stride_w, pad_h, pad_w, dil_h, dil_w, groups, has_bias]`. The
 //! inputs are float32; the references were computed in float64 and stored as float32.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::panic::AssertUnwindSafe;
 
 use calibconv::ops::{deform_conv2d, f_deform_conv2d_sampled, ConvGeometry};
 use tch::{Kind, Tensor};
 
-use common::{golden, max_rel, read_safetensors};
+use crate::common::{golden, max_rel, read_safetensors};
 
 /// Float32 run vs float64 reference: sums of at most 8 x 25 products of O(1) values carry
 /// round-off ~1e-6 of the largest value; 1e-4 is margin, while a wrong tap, border rule or

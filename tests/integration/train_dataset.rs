@@ -2,13 +2,12 @@
 //! loader behind the experiment's data sources), and the geometry check between a data set's
 //! camera and the experiment's input camera.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 
 use calibconv::experiment::{self, Experiment};
-use common::experiment::{quiet, ExperimentFile};
-use common::{assert_contains, calibconv, ok, s};
+
+use crate::common::experiment::{quiet, ExperimentFile};
+use crate::common::{assert_contains, calibconv, ok, s};
 
 fn camera(name: &str) -> String {
     format!("{}/data/cameras/{name}", env!("CARGO_MANIFEST_DIR"))

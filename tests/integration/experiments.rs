@@ -1,13 +1,26 @@
 //! Every file in `experiments/` parses and resolves, experiment names are unique (they name run
 //! directories), and `init = { experiment = ... }` names an experiment that exists.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use calibconv::experiment::{self, InitSpec};
-use common::calibconv_command;
+
+use crate::common::{self, calibconv_command};
+
+/// The repository root, after checking that it is the current directory: the shipped
+/// experiment files name cameras, data sets and outputs relative to the current directory, which
+/// Cargo sets to the package root for its tests (and no test of this binary changes).
+fn repo_root() -> &'static Path {
+    let root = common::root();
+    let cwd = std::env::current_dir().unwrap();
+    assert_eq!(
+        cwd.canonicalize().unwrap(),
+        root.canonicalize().unwrap(),
+        "the shipped experiment files resolve against the current directory: run from the root"
+    );
+    root
+}
 
 fn toml_files(dir: &Path, out: &mut Vec<PathBuf>) {
     for entry in std::fs::read_dir(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
@@ -26,9 +39,9 @@ fn toml_files(dir: &Path, out: &mut Vec<PathBuf>) {
 #[test]
 fn every_experiment_file_parses_and_resolves() {
     // Relative paths in experiment files are relative to the repository root.
-    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
+    let root = repo_root();
     let mut files = Vec::new();
-    toml_files(Path::new("experiments"), &mut files);
+    toml_files(&root.join("experiments"), &mut files);
     files.sort();
     assert!(files.len() >= 2, "no experiment files found");
     let mut by_name = BTreeMap::new();
@@ -67,8 +80,7 @@ fn every_experiment_file_parses_and_resolves() {
 #[test]
 fn every_profile_applies_to_its_experiments_and_the_paper_set_is_complete() {
     use calibconv::experiment::sweep;
-    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
-    let dir = Path::new("experiments/paper");
+    let dir = &repo_root().join("experiments/paper");
     let mut profiles = Vec::new();
     toml_files(&dir.join("profiles"), &mut profiles);
     profiles.sort();
@@ -215,13 +227,11 @@ fn quick_data_sets_test_on_160_images_of_panoramas_not_used_in_training() {
 #[test]
 fn the_fov_series_pairs_every_lens_with_both_kernels() {
     use calibconv::experiment::sweep;
-    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
-    let profile = sweep::find_profile(
-        Path::new("experiments/fov"),
-        "experiments/paper/profiles/study.toml",
-    )
-    .unwrap();
-    let plan = sweep::plan(Path::new("experiments/fov"), &profile, &[], &[]).unwrap();
+    let root = repo_root();
+    let fov_dir = root.join("experiments/fov");
+    let study = root.join("experiments/paper/profiles/study.toml");
+    let profile = sweep::find_profile(&fov_dir, common::s(&study)).unwrap();
+    let plan = sweep::plan(&fov_dir, &profile, &[], &[]).unwrap();
     for fov in [120, 150, 180, 210, 240] {
         for kernel in ["standard", "calibrated"] {
             let name = format!("fov-depth-ft-kb{fov}-{kernel}");
@@ -233,7 +243,7 @@ fn the_fov_series_pairs_every_lens_with_both_kernels() {
                 matches!(&p.exp.init, Some(InitSpec::Experiment { name, .. }) if name == "paper-depth-bl-pers"),
                 "{name}: not from the study's depth baseline"
             );
-            assert!(Path::new(&format!("data/cameras/kb{fov}.toml")).is_file());
+            assert!(root.join(format!("data/cameras/kb{fov}.toml")).is_file());
         }
     }
     assert_eq!(plan.len(), 10);
@@ -246,11 +256,12 @@ fn the_fov_series_pairs_every_lens_with_both_kernels() {
 #[test]
 fn the_open_questions_plan_from_the_depth_baseline() {
     use calibconv::experiment::{sweep, KernelName, SourceSpec};
-    std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
-    let study = "experiments/paper/profiles/study.toml";
+    let root = repo_root();
+    let study = root.join("experiments/paper/profiles/study.toml");
     let plan_of = |dir: &str| {
-        let profile = sweep::find_profile(Path::new(dir), study).unwrap();
-        sweep::plan(Path::new(dir), &profile, &[], &[]).unwrap()
+        let dir = root.join(dir);
+        let profile = sweep::find_profile(&dir, common::s(&study)).unwrap();
+        sweep::plan(&dir, &profile, &[], &[]).unwrap()
     };
     let from_baseline = |p: &sweep::Planned| matches!(&p.exp.init, Some(InitSpec::Experiment { name, .. }) if name == "paper-depth-bl-pers");
     let full = plan_of("experiments/paper");

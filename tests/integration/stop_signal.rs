@@ -6,8 +6,6 @@
 //! Nothing here waits for a time: the tests wait for files a process writes (a log row, a
 //! "ready" file) and then signal it.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
@@ -18,8 +16,9 @@ use calibconv::experiment::slurm::{emit_slurm, SlurmSpec};
 use calibconv::experiment::sweep::{self, Seeds};
 use calibconv::train::checkpoint::read_info;
 use calibconv::train::stop::INTERRUPTED_EXIT;
-use common::experiment::ExperimentFile;
-use common::{assert_contains, calibconv_command, calibconv_in, ok};
+
+use crate::common::experiment::ExperimentFile;
+use crate::common::{assert_contains, calibconv_command, calibconv_in, ok};
 
 /// Steps of the interrupted run: far more than happen between its first log row and the signal
 /// (the test fails, rather than passing vacuously, if the run ends before the signal).

@@ -2,10 +2,8 @@
 //! of `tools/reference_unet.py`, written by `tools/make_unet_fixture.py`, `num_batches_tracked`
 //! included) loads by name into `calibconv::nn::UNet`, and the outputs match in eval and train
 //! mode, as do the BatchNorm running statistics after one training-mode forward (momentum 0.1).
-//! `tests/pytorch_parity.rs` covers conversion from `.pth` and export back; this file covers
-//! training-mode behaviour.
-
-mod common;
+//! `tests/integration/pytorch_parity.rs` covers conversion from `.pth` and export back; this file
+//! covers training-mode behaviour.
 
 use std::sync::Arc;
 
@@ -15,7 +13,8 @@ use tch::Device;
 use calibconv::kernel::InputFrame;
 use calibconv::nn::{ConvKind, Head, UNet, UNetConfig, UpMode};
 use calibconv::train::checkpoint;
-use common::{golden, max_rel, read_safetensors};
+
+use crate::common::{golden, max_rel, read_safetensors};
 
 /// float32 convolutions and BatchNorm run by the same libtorch from two front ends. Observed:
 /// bit-identical; the margin is for other thread counts / kernels, which reorder float32 sums.
