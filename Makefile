@@ -28,7 +28,8 @@ setup:
 # both cargo commands (it has no Rust tests) because Cargo unifies dependency features over the
 # selected packages: with it (pyo3, numpy) serde, tch and calibconv itself built a second time,
 # 4.4 of the 14 build minutes on a fresh 2-core machine. Without it both commands, and `make
-# demo`'s `cargo build --release`, share one set of artifacts.
+# demo`'s `cargo build --release`, share one set of artifacts (Cargo.toml names bitflags' `std`
+# feature for the same reason).
 # Then the Python package (python/): built from this checkout into the venv (maturin from
 # requirements.txt, no download), and its pytest suite against the binary built above; then the
 # tests of the Python tools (tools/test_*.py).
